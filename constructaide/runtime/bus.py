@@ -1,0 +1,322 @@
+"""The bus a node talks to: zenoh in production, an in-process twin for tests.
+
+Both implement :class:`Bus`. Payloads are msgpack bytes of :mod:`schemas` messages. Data topics
+use reliable delivery with congestion control BLOCK (a slow subscriber slows the publisher
+instead of losing data); ``preview=True`` publishes with DROP for ring-buffer style previews.
+``latched=True`` keeps the last payload of a key and serves it to late joiners through a
+queryable (e.g. the BIM model): a subscriber that asks with ``fetch_latched=True`` gets it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import socket
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from schemas import codec
+from schemas.messages import Message
+
+log = logging.getLogger("constructaide.bus")
+
+DEFAULT_HUB_PORT = 7447
+Callback = Callable[[str, bytes], None]
+
+
+class Closeable(Protocol):
+    def close(self) -> None: ...
+
+
+def payload_of(msg: Message | bytes) -> bytes:
+    return msg if isinstance(msg, (bytes, bytearray, memoryview)) else codec.encode(msg)  # type: ignore[return-value]
+
+
+class Collector:
+    """Collects (key, message) pairs from a subscription; ``wait`` blocks on a condition, not a sleep."""
+
+    def __init__(self, decode: bool = True) -> None:
+        self._decode = decode
+        self._items: list[tuple[str, Any]] = []
+        self._cond = threading.Condition()
+        self.sub: Closeable | None = None
+
+    def __call__(self, key: str, payload: bytes) -> None:
+        item = codec.decode(payload) if self._decode else payload
+        with self._cond:
+            self._items.append((key, item))
+            self._cond.notify_all()
+
+    @property
+    def items(self) -> list[tuple[str, Any]]:
+        with self._cond:
+            return list(self._items)
+
+    def wait(self, count: int = 1, timeout: float = 30.0, where: Callable[[str, Any], bool] | None = None) -> list:
+        """Block until ``count`` items (matching ``where``) arrived; returns them. Raises TimeoutError."""
+        deadline = time.monotonic() + timeout
+
+        def matching() -> list:
+            return [kv for kv in self._items if where is None or where(*kv)]
+
+        with self._cond:
+            while len(found := matching()) < count:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise TimeoutError(f"got {len(found)} of {count} expected messages within {timeout:.1f} s")
+                self._cond.wait(remaining)
+            return found
+
+    def close(self) -> None:
+        if self.sub is not None:
+            self.sub.close()
+
+
+class Bus:
+    """Publish/subscribe on key expressions plus liveliness; see module docstring."""
+
+    def publish(self, key: str, msg: Message | bytes, *, preview: bool = False, latched: bool = False) -> None:
+        raise NotImplementedError
+
+    def subscribe(self, keyexpr: str, callback: Callback, *, fetch_latched: bool = False) -> Closeable:
+        raise NotImplementedError
+
+    def declare_token(self, key: str) -> Closeable:
+        raise NotImplementedError
+
+    def live_tokens(self, keyexpr: str, timeout: float = 2.0) -> list[str]:
+        raise NotImplementedError
+
+    def watch_tokens(self, keyexpr: str, callback: Callable[[str, bool], None]) -> Closeable:
+        """Call ``callback(key, alive)`` for every current and future token under ``keyexpr``."""
+        raise NotImplementedError
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------ helpers
+    def collect(self, keyexpr: str, *, decode: bool = True, fetch_latched: bool = False) -> Collector:
+        c = Collector(decode=decode)
+        c.sub = self.subscribe(keyexpr, c, fetch_latched=fetch_latched)
+        return c
+
+    def wait_for_tokens(self, keyexprs: list[str], timeout: float = 30.0) -> None:
+        """Block until a liveliness token matching each key expression is alive."""
+        cond = threading.Condition()
+        alive: set[str] = set()
+
+        def on_token(key: str, is_alive: bool) -> None:
+            with cond:
+                (alive.add if is_alive else alive.discard)(key)
+                cond.notify_all()
+
+        watchers = [self.watch_tokens(k, on_token) for k in keyexprs]
+        try:
+            deadline = time.monotonic() + timeout
+            with cond:
+                while not all(any(_ke_match(k, a) for a in alive) for k in keyexprs):
+                    remaining = deadline - time.monotonic()
+                    if remaining <= 0:
+                        missing = [k for k in keyexprs if not any(_ke_match(k, a) for a in alive)]
+                        raise TimeoutError(f"nodes not live within {timeout:.0f} s: {missing}")
+                    cond.wait(remaining)
+        finally:
+            for w in watchers:
+                w.close()
+
+    def __enter__(self) -> Bus:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _ke_match(keyexpr: str, key: str) -> bool:
+    """Whether a concrete key matches a key expression with ``*`` and ``**`` (zenoh rules, no '$*')."""
+    ke = keyexpr.split("/")
+    k = key.split("/")
+
+    def rec(i: int, j: int) -> bool:
+        if i == len(ke):
+            return j == len(k)
+        if ke[i] == "**":
+            return any(rec(i + 1, jj) for jj in range(j, len(k) + 1) if all(not c.startswith("@") for c in k[j:jj]))
+        if j == len(k):
+            return False
+        if ke[i] == "*":
+            return not k[j].startswith("@") and rec(i + 1, j + 1)
+        return ke[i] == k[j] and rec(i + 1, j + 1)
+
+    return rec(0, 0)
+
+
+ke_match = _ke_match
+
+
+# ---------------------------------------------------------------------- zenoh
+
+
+@dataclass
+class BusConfig:
+    """How to join the bus. Defaults: peer on loopback, multicast scouting off, a hub port.
+
+    With no ``listen``/``connect`` given, the session listens on ``tcp/127.0.0.1:<hub_port>``
+    when that port is free (it becomes the hub), else on a free loopback port, and always
+    connects to the hub, so processes on one machine meet without a daemon.
+    """
+
+    mode: str = "peer"
+    listen: list[str] = field(default_factory=list)
+    connect: list[str] = field(default_factory=list)
+    hub_port: int = DEFAULT_HUB_PORT
+    extra_json5: dict[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> BusConfig:
+        return cls(
+            mode=getattr(args, "mode", None) or "peer",
+            listen=list(getattr(args, "listen", None) or []),
+            connect=list(getattr(args, "connect", None) or []),
+            hub_port=int(getattr(args, "hub_port", None) or os.environ.get("CONSTRUCTAIDE_HUB_PORT", DEFAULT_HUB_PORT)),
+        )
+
+    def zenoh_config(self) -> Any:
+        import zenoh
+
+        listen, connect = list(self.listen), list(self.connect)
+        if not listen and not connect:
+            hub = f"tcp/127.0.0.1:{self.hub_port}"
+            listen = [hub] if _port_free(self.hub_port) else ["tcp/127.0.0.1:0"]
+            connect = [] if listen == [hub] else [hub]
+        c = zenoh.Config()
+        c.insert_json5("mode", json.dumps(self.mode))
+        c.insert_json5("scouting/multicast/enabled", "false")
+        if listen:
+            c.insert_json5("listen/endpoints", json.dumps(listen))
+        if connect:
+            c.insert_json5("connect/endpoints", json.dumps(connect))
+        for k, v in self.extra_json5.items():
+            c.insert_json5(k, json.dumps(v))
+        return c
+
+
+def add_bus_args(parser: argparse.ArgumentParser) -> None:
+    g = parser.add_argument_group("bus")
+    g.add_argument("--connect", action="append", metavar="ENDPOINT", help="zenoh endpoint to connect to, e.g. tcp/10.0.0.5:7447")
+    g.add_argument("--listen", action="append", metavar="ENDPOINT", help="zenoh endpoint to listen on")
+    g.add_argument("--mode", choices=["peer", "client", "router"], default=None, help="zenoh session mode (default peer)")
+    g.add_argument("--hub-port", type=int, default=None, help=f"loopback hub port (default {DEFAULT_HUB_PORT} or $CONSTRUCTAIDE_HUB_PORT)")
+
+
+def _port_free(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
+def free_port() -> int:
+    """A currently free loopback TCP port (for tests and demos)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class _Closer:
+    def __init__(self, fn: Callable[[], None]) -> None:
+        self._fn: Callable[[], None] | None = fn
+
+    def close(self) -> None:
+        fn, self._fn = self._fn, None
+        if fn is not None:
+            fn()
+
+
+class ZenohBus(Bus):
+    """A zenoh session. Thread-safe; callbacks run on zenoh's threads."""
+
+    def __init__(self, config: BusConfig | None = None) -> None:
+        import zenoh
+
+        zenoh.init_log_from_env_or("error")
+        self._z = zenoh
+        self.config = config or BusConfig()
+        self.session = zenoh.open(self.config.zenoh_config())
+        self._latched: dict[str, bytes] = {}
+        self._latched_lock = threading.Lock()
+        self._queryables: dict[str, Any] = {}
+
+    def publish(self, key: str, msg: Message | bytes, *, preview: bool = False, latched: bool = False) -> None:
+        z = self._z
+        payload = payload_of(msg)
+        if latched:
+            with self._latched_lock:
+                self._latched[key] = payload
+                if key not in self._queryables:
+                    self._queryables[key] = self.session.declare_queryable(key, self._serve_latched)
+        self.session.put(
+            key,
+            payload,
+            congestion_control=z.CongestionControl.DROP if preview else z.CongestionControl.BLOCK,
+            priority=z.Priority.DATA_LOW if preview else z.Priority.DATA,
+        )
+
+    def _serve_latched(self, query: Any) -> None:
+        ke = str(query.key_expr)
+        with self._latched_lock:
+            items = [(k, v) for k, v in self._latched.items() if _ke_match(ke, k) or k == ke]
+        for k, v in items:
+            query.reply(k, v)
+
+    def subscribe(self, keyexpr: str, callback: Callback, *, fetch_latched: bool = False) -> Closeable:
+        def on_sample(sample: Any) -> None:
+            try:
+                callback(str(sample.key_expr), sample.payload.to_bytes())
+            except Exception:  # a callback must never kill zenoh's thread
+                log.exception("subscriber callback failed for %s", sample.key_expr)
+
+        sub = self.session.declare_subscriber(keyexpr, on_sample)
+        if fetch_latched:
+            for reply in self.session.get(keyexpr, timeout=2.0):
+                if reply.ok is not None:
+                    on_sample(reply.ok)
+        return _Closer(sub.undeclare)
+
+    def declare_token(self, key: str) -> Closeable:
+        token = self.session.liveliness().declare_token(key)
+        return _Closer(token.undeclare)
+
+    def live_tokens(self, keyexpr: str, timeout: float = 2.0) -> list[str]:
+        out = []
+        for reply in self.session.liveliness().get(keyexpr, timeout=timeout):
+            if reply.ok is not None:
+                out.append(str(reply.ok.key_expr))
+        return sorted(set(out))
+
+    def watch_tokens(self, keyexpr: str, callback: Callable[[str, bool], None]) -> Closeable:
+        z = self._z
+
+        def on_sample(sample: Any) -> None:
+            callback(str(sample.key_expr), sample.kind == z.SampleKind.PUT)
+
+        sub = self.session.liveliness().declare_subscriber(keyexpr, on_sample, history=True)
+        return _Closer(sub.undeclare)
+
+    def close(self) -> None:
+        for q in self._queryables.values():
+            q.undeclare()
+        self._queryables.clear()
+        self.session.close()
+
+
+def open_bus(config: BusConfig | None = None) -> ZenohBus:
+    """Open a zenoh session with the embedded defaults (see :class:`BusConfig`); use as a context manager."""
+    return ZenohBus(config)

@@ -1,0 +1,287 @@
+"""Node contract and runner.
+
+A node declares its inputs (key template, message type, handler method), outputs and config
+(a msgspec Struct with ``forbid_unknown_fields``). The runner subscribes, decodes payloads into
+Structs, and calls handlers sequentially on one worker thread fed by a bounded queue (a full
+queue blocks zenoh's delivery, which with congestion control BLOCK slows the publishers: no
+data is dropped). A payload that fails to decode, or a handler that raises, becomes a
+:class:`~schemas.messages.NodeError` on ``constructaide/{site}/errors``; the node keeps running.
+Readiness: after subscribing, the node declares the liveliness token
+``constructaide/{site}/@live/{node}/{instance}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import logging
+import os
+import queue
+import signal
+import sys
+import threading
+import time
+import tomllib
+import uuid
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import msgspec
+
+from constructaide.errors import UserError
+from constructaide.runtime.bus import Bus, BusConfig, add_bus_args, open_bus
+from schemas import codec, keys
+from schemas.messages import Message, NodeError
+
+
+@dataclass(frozen=True)
+class Input:
+    """One subscription: ``key`` is a template from :mod:`schemas.keys` (unfilled fields become ``*``).
+
+    ``handler`` names a method ``(msg, key) -> None`` of the node object; with ``raw=True`` it
+    receives the payload bytes instead of a decoded Struct. ``latched=True`` also fetches the
+    last value published as latched (e.g. the BIM model) when the node starts.
+    """
+
+    key: str
+    type: type[Message]
+    handler: str
+    raw: bool = False
+    latched: bool = False
+    fields: dict[str, str] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Output:
+    """A topic the node publishes (declared for documentation, wiring checks and ``describe``)."""
+
+    key: str
+    type: type[Message]
+    latched: bool = False
+
+
+@dataclass(frozen=True)
+class NodeSpec:
+    name: str
+    description: str
+    config_type: type[Any]
+    factory: Callable[[Any, NodeContext], Any]
+    inputs: tuple[Input, ...] = ()
+    outputs: tuple[Output, ...] = ()
+
+    def describe(self) -> str:
+        lines = [f"{self.name}: {self.description}", "inputs:"]
+        lines += [f"  {i.key}  {i.type.__name__}  -> {i.handler}" for i in self.inputs]
+        lines += ["outputs:"] + [f"  {o.key}  {o.type.__name__}" for o in self.outputs]
+        return "\n".join(lines)
+
+
+class NodeContext:
+    """What a node object gets: its site, name, logger and a publish function."""
+
+    def __init__(self, bus: Bus, site: str, node: str, latched_keys: tuple[str, ...] = ()) -> None:
+        self.bus = bus
+        self.site = site
+        self.node = node
+        self.log = logging.getLogger(f"constructaide.{node}")
+        self._latched_templates = latched_keys
+
+    def publish(self, key: str, msg: Message | bytes, *, preview: bool = False) -> None:
+        latched = any(keys.parse(t, key) is not None for t in self._latched_templates)
+        self.bus.publish(key, msg, preview=preview, latched=latched)
+
+    def error(self, topic: str, reason: str, key: str = "") -> None:
+        """Publish a NodeError (for problems found outside a handler, e.g. a folder watcher)."""
+        self.log.warning("%s: %s (%s)", topic, reason, key)
+        err = NodeError(site=self.site, node=self.node, topic=topic, reason=reason, key=key, time_ns=time.time_ns())
+        self.bus.publish(keys.key(keys.ERRORS, site=self.site), err)
+
+
+_STOP = object()
+
+
+class RunningNode:
+    """A started node: subscriptions, worker thread, liveliness token. Use :func:`start_node`."""
+
+    def __init__(self, spec: NodeSpec, config: Any, bus: Bus, queue_size: int = 64) -> None:
+        self.spec = spec
+        self.config = config
+        self.bus = bus
+        site = getattr(config, "site", None)
+        if not site:
+            raise UserError(f"node {spec.name}: config needs a site")
+        self.site: str = site
+        self.ctx = NodeContext(bus, self.site, spec.name, tuple(o.key for o in spec.outputs if o.latched))
+        self.obj = spec.factory(config, self.ctx)
+        self._queue: queue.Queue[Any] = queue.Queue(maxsize=queue_size)
+        self._subs: list[Any] = []
+        self._topics: dict[str, str] = {}
+        self._token: Any = None
+        self.processed = 0
+        self.errors = 0
+        self.idle = threading.Event()
+        self.idle.set()
+        self._worker = threading.Thread(target=self._run, name=f"node-{spec.name}", daemon=True)
+
+    def start(self) -> RunningNode:
+        self._worker.start()
+        for inp in self.spec.inputs:
+            fields = {"site": self.site, **inp.fields}
+            ke = keys.pattern(inp.key, **fields) if "{" in inp.key else inp.key
+            if inp.key.endswith("/**"):
+                ke = keys.site_pattern(self.site)
+            self._topics[inp.handler] = ke
+            self._subs.append(
+                self.bus.subscribe(ke, lambda k, p, _i=inp: self._enqueue(_i, k, p), fetch_latched=inp.latched)
+            )
+        instance = uuid.uuid4().hex[:8]
+        self._token = self.bus.declare_token(keys.key(keys.LIVELINESS, site=self.site, node=self.spec.name, instance=instance))
+        return self
+
+    def _enqueue(self, inp: Input, key: str, payload: bytes) -> None:
+        self.idle.clear()
+        self._queue.put((inp, key, payload))  # blocks when full: back-pressure
+
+    def _run(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is _STOP:
+                return
+            inp, key, payload = item
+            try:
+                self._handle(inp, key, payload)
+            finally:
+                if self._queue.empty():
+                    self.idle.set()
+
+    def _handle(self, inp: Input, key: str, payload: bytes) -> None:
+        try:
+            if inp.raw:
+                msg: Any = payload
+            else:
+                msg = codec.decode(payload, None if inp.type is Message else inp.type)
+        except (msgspec.DecodeError, msgspec.ValidationError) as e:
+            self.errors += 1
+            self.ctx.error(self._topics.get(inp.handler, inp.key), f"cannot decode {inp.type.__name__}: {e}", key)
+            return
+        try:
+            getattr(self.obj, inp.handler)(msg, key)
+            self.processed += 1
+        except Exception as e:  # the node survives any handler failure
+            self.errors += 1
+            self.ctx.log.debug("handler failed", exc_info=True)
+            self.ctx.error(self._topics.get(inp.handler, inp.key), f"{type(e).__name__}: {e}", key)
+
+    def wait_idle(self, timeout: float = 30.0) -> bool:
+        """Wait until the queue is drained and the last message handled."""
+        return self.idle.wait(timeout)
+
+    def close(self) -> None:
+        if self._token is not None:
+            self._token.close()
+            self._token = None
+        for s in self._subs:
+            s.close()
+        self._subs.clear()
+        if self._worker.is_alive():
+            self._queue.put(_STOP)
+            self._worker.join(timeout=60)
+        closer = getattr(self.obj, "close", None)
+        if callable(closer):
+            closer()
+
+    def __enter__(self) -> RunningNode:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+@contextlib.contextmanager
+def start_node(spec: NodeSpec, config: Any, bus: Bus, queue_size: int = 64) -> Iterator[RunningNode]:
+    """Start a node on a bus; stops it (drains its worker, drops its token) on exit."""
+    node = RunningNode(spec, config, bus, queue_size=queue_size)
+    try:
+        node.start()
+        yield node
+    finally:
+        node.close()
+
+
+# ---------------------------------------------------------------------- config
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """``a.b=value`` -> (['a', 'b'], value) with the value parsed as TOML when it is valid TOML."""
+    if "=" not in text:
+        raise UserError(f"--set takes name=value, got {text!r}")
+    name, raw = text.split("=", 1)
+    try:
+        value = tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw
+    return name.strip().split("."), value
+
+
+def load_config(config_type: type[Any], path: str | Path | None = None, section: str | None = None,
+                overrides: list[str] | tuple[str, ...] = (), **direct: Any) -> Any:
+    """Build a node config from a TOML file (optionally one ``[section]``), ``--set`` overrides and keywords."""
+    data: dict[str, Any] = {}
+    if path:
+        try:
+            doc = tomllib.loads(Path(path).read_text())
+        except FileNotFoundError:
+            raise UserError(f"config file not found: {path}") from None
+        except tomllib.TOMLDecodeError as e:
+            raise UserError(f"config file {path} is not valid TOML: {e}") from None
+        if section:
+            for part in section.split("."):
+                doc = doc.get(part, {})
+        data.update(doc)
+    for item in overrides:
+        names, value = parse_override(item)
+        cur = data
+        for n in names[:-1]:
+            cur = cur.setdefault(n, {})
+        cur[names[-1]] = value
+    data.update({k: v for k, v in direct.items() if v is not None})
+    try:
+        return msgspec.convert(data, config_type, strict=False)
+    except msgspec.ValidationError as e:
+        raise UserError(f"bad config for {config_type.__module__}: {e}") from None
+
+
+def add_node_args(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--site", help="site id (overrides the config)")
+    parser.add_argument("--config", help="TOML config file")
+    parser.add_argument("--section", help="table of the TOML file holding this node's config (e.g. nodes.register)")
+    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="override one config field")
+    parser.add_argument("--describe", action="store_true", help="print the node's inputs/outputs and exit")
+    parser.add_argument("-v", "--verbose", action="store_true")
+    add_bus_args(parser)
+
+
+def run_node_cli(spec: NodeSpec, argv: list[str] | None = None, *, prog: str | None = None) -> int:
+    """Console entry for a node: parse args, open the bus, run until Ctrl-C / SIGTERM."""
+    parser = argparse.ArgumentParser(prog=prog or f"constructaide-{spec.name}", description=spec.description)
+    add_node_args(parser)
+    args = parser.parse_args(argv)
+    if args.describe:
+        print(spec.describe())
+        return 0
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format=f"%(asctime)s {spec.name} %(levelname)s %(message)s", stream=sys.stderr)
+    try:
+        config = load_config(spec.config_type, args.config, args.section, args.set, site=args.site)
+        stop = threading.Event()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: stop.set())
+        with open_bus(BusConfig.from_args(args)) as bus, start_node(spec, config, bus):
+            logging.getLogger("constructaide").info("node %s live on site %s (pid %d)", spec.name, config.site, os.getpid())
+            stop.wait()
+        return 0
+    except UserError as e:
+        print(f"constructaide-{spec.name}: error: {e}", file=sys.stderr)
+        return 2
