@@ -1,0 +1,97 @@
+"""Real zenoh sessions in separate processes: typed exchange, restart, malformed payloads."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from constructaide.runtime import BusConfig, open_bus
+from schemas import keys
+from schemas.messages import NodeError, Photo, Registration
+
+pytestmark = pytest.mark.zenoh
+ECHO = Path(__file__).with_name("echo_node.py")
+
+
+def start_echo(site: str, port: int, *extra: str) -> subprocess.Popen[bytes]:
+    return subprocess.Popen(
+        [sys.executable, str(ECHO), "--site", site, "--hub-port", str(port), *extra],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+
+
+def stop(proc: subprocess.Popen[bytes]) -> None:
+    if proc.poll() is None:
+        proc.terminate()
+        proc.wait(20)
+
+
+def photo(site: str, photo_id: str, camera: str = "cam-a") -> tuple[str, Photo]:
+    msg = Photo(site=site, photo_id=photo_id, camera_id=camera, capture_time_ns=1_700_000_000_000_000_000, data=b"\xff\xd8")
+    return keys.key(keys.PHOTO, site=site, camera=camera), msg
+
+
+def test_typed_exchange_restart_and_malformed(hub_port: int) -> None:
+    site = "rt"
+    live = keys.pattern(keys.LIVELINESS, site=site, node="echo")
+    # The test's session is the hub (it owns the port); the node connects to it.
+    with open_bus(BusConfig(hub_port=hub_port)) as bus:
+        regs = bus.collect(keys.pattern(keys.REGISTRATION, site=site))
+        errors = bus.collect(keys.key(keys.ERRORS, site=site))
+        proc = start_echo(site, hub_port, "--set", "reply_message='hello'")
+        try:
+            bus.wait_for_tokens([live], timeout=30)
+            bus.publish(*photo(site, "p1"))
+            (key, reg), = regs.wait(1, timeout=20)
+            assert isinstance(reg, Registration)
+            assert key == "constructaide/rt/registration/cam-a/p1"
+            assert reg.photo_id == "p1" and reg.message == "hello"
+
+            # Malformed payload and a raising handler: NodeErrors, and the node survives.
+            bus.publish(keys.key(keys.PHOTO, site=site, camera="cam-a"), b"\x93not a photo")
+            bus.publish(*photo(site, "raise"))
+            errs = errors.wait(2, timeout=20)
+            assert all(isinstance(e, NodeError) and e.node == "echo" for _, e in errs)
+            reasons = " | ".join(e.reason for _, e in errs)
+            assert "cannot decode Photo" in reasons and "asked to raise" in reasons
+            assert errs[0][1].key == "constructaide/rt/photo/cam-a"
+            bus.publish(*photo(site, "p2"))
+            regs.wait(2, timeout=20)
+            assert proc.poll() is None
+
+            # Kill the node; its token goes away; a restarted node rejoins without restarting the test's session.
+            proc.kill()
+            proc.wait(20)
+            gone = bus.collect(keys.key(keys.ERRORS, site=site))  # unrelated collector stays quiet
+            tokens_after_kill = _wait_tokens_gone(bus, live)
+            assert tokens_after_kill == []
+            proc = start_echo(site, hub_port)
+            bus.wait_for_tokens([live], timeout=30)
+            bus.publish(*photo(site, "p3"))
+            got = regs.wait(3, timeout=20)
+            assert got[-1][1].photo_id == "p3" and got[-1][1].message == "echo"
+            assert gone.items == []
+        finally:
+            stop(proc)
+
+
+def _wait_tokens_gone(bus, keyexpr: str, timeout: float = 20.0) -> list[str]:
+    import threading
+
+    gone = threading.Event()
+
+    def on_token(key: str, alive: bool) -> None:
+        if not alive:
+            gone.set()
+
+    watcher = bus.watch_tokens(keyexpr, on_token)
+    try:
+        if bus.live_tokens(keyexpr):
+            gone.wait(timeout)
+        return bus.live_tokens(keyexpr)
+    finally:
+        watcher.close()
