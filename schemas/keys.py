@@ -81,6 +81,10 @@ def site_pattern(site: str) -> str:
 
 def parse(template: str, key_str: str) -> dict[str, str] | None:
     """Fields of ``key_str`` if it matches ``template`` exactly, else ``None``."""
-    regex = "^" + _FIELD.sub(lambda m: f"(?P<{m.group(1)}>[^/]+)", re.escape(template).replace(r"\{", "{").replace(r"\}", "}")) + "$"
+    regex = (
+        "^"
+        + _FIELD.sub(lambda m: f"(?P<{m.group(1)}>[^/]+)", re.escape(template).replace(r"\{", "{").replace(r"\}", "}"))
+        + "$"
+    )
     m = re.match(regex, key_str)
     return m.groupdict() if m else None
