@@ -31,7 +31,9 @@ def stop(proc: subprocess.Popen[bytes]) -> None:
 
 
 def photo(site: str, photo_id: str, camera: str = "cam-a") -> tuple[str, Photo]:
-    msg = Photo(site=site, photo_id=photo_id, camera_id=camera, capture_time_ns=1_700_000_000_000_000_000, data=b"\xff\xd8")
+    msg = Photo(
+        site=site, photo_id=photo_id, camera_id=camera, capture_time_ns=1_700_000_000_000_000_000, data=b"\xff\xd8"
+    )
     return keys.key(keys.PHOTO, site=site, camera=camera), msg
 
 
@@ -46,7 +48,7 @@ def test_typed_exchange_restart_and_malformed(hub_port: int) -> None:
         try:
             bus.wait_for_tokens([live], timeout=30)
             bus.publish(*photo(site, "p1"))
-            (key, reg), = regs.wait(1, timeout=20)
+            ((key, reg),) = regs.wait(1, timeout=20)
             assert isinstance(reg, Registration)
             assert key == "constructaide/rt/registration/cam-a/p1"
             assert reg.photo_id == "p1" and reg.message == "hello"
@@ -95,3 +97,44 @@ def _wait_tokens_gone(bus, keyexpr: str, timeout: float = 20.0) -> list[str]:
         return bus.live_tokens(keyexpr)
     finally:
         watcher.close()
+
+
+def test_router_joins_nodes_across_sessions_and_status_lists_them(hub_port: int) -> None:
+    """`constructaide router` lets client/peer sessions that only know the router meet; `status` sees the node."""
+    site = "rtr"
+    endpoint = f"tcp/127.0.0.1:{hub_port}"
+    router = subprocess.Popen(
+        [sys.executable, "-m", "constructaide.cli", "router", "--listen", endpoint],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    echo = start_echo(site, hub_port, "--mode", "client", "--connect", endpoint)
+    try:
+        with open_bus(BusConfig(mode="client", connect=[endpoint])) as bus:
+            regs = bus.collect(keys.pattern(keys.REGISTRATION, site=site))
+            bus.wait_for_tokens([keys.pattern(keys.LIVELINESS, site=site, node="echo")], timeout=30)
+            bus.publish(*photo(site, "via-router"))
+            ((_, reg),) = regs.wait(1, timeout=20)
+            assert reg.photo_id == "via-router"
+        status = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "constructaide.cli",
+                "status",
+                "--site",
+                site,
+                "--mode",
+                "client",
+                "--connect",
+                endpoint,
+            ],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        assert status.returncode == 0, status.stderr
+        assert "echo" in status.stdout and site in status.stdout
+    finally:
+        stop(echo)
+        stop(router)

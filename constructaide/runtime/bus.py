@@ -175,6 +175,7 @@ class BusConfig:
     connect: list[str] = field(default_factory=list)
     hub_port: int = DEFAULT_HUB_PORT
     extra_json5: dict[str, Any] = field(default_factory=dict)
+    client_connect_timeout_ms: int = 15000
 
     @classmethod
     def from_args(cls, args: argparse.Namespace) -> BusConfig:
@@ -200,6 +201,9 @@ class BusConfig:
             c.insert_json5("listen/endpoints", json.dumps(listen))
         if connect:
             c.insert_json5("connect/endpoints", json.dumps(connect))
+        if self.mode == "client":
+            # Wait for a router that is still starting instead of failing at once.
+            c.insert_json5("connect/timeout_ms", json.dumps(self.client_connect_timeout_ms))
         for k, v in self.extra_json5.items():
             c.insert_json5(k, json.dumps(v))
         return c
@@ -207,10 +211,19 @@ class BusConfig:
 
 def add_bus_args(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("bus")
-    g.add_argument("--connect", action="append", metavar="ENDPOINT", help="zenoh endpoint to connect to, e.g. tcp/10.0.0.5:7447")
+    g.add_argument(
+        "--connect", action="append", metavar="ENDPOINT", help="zenoh endpoint to connect to, e.g. tcp/10.0.0.5:7447"
+    )
     g.add_argument("--listen", action="append", metavar="ENDPOINT", help="zenoh endpoint to listen on")
-    g.add_argument("--mode", choices=["peer", "client", "router"], default=None, help="zenoh session mode (default peer)")
-    g.add_argument("--hub-port", type=int, default=None, help=f"loopback hub port (default {DEFAULT_HUB_PORT} or $CONSTRUCTAIDE_HUB_PORT)")
+    g.add_argument(
+        "--mode", choices=["peer", "client", "router"], default=None, help="zenoh session mode (default peer)"
+    )
+    g.add_argument(
+        "--hub-port",
+        type=int,
+        default=None,
+        help=f"loopback hub port (default {DEFAULT_HUB_PORT} or $CONSTRUCTAIDE_HUB_PORT)",
+    )
 
 
 def _port_free(port: int) -> bool:
@@ -249,7 +262,12 @@ class ZenohBus(Bus):
         zenoh.init_log_from_env_or("error")
         self._z = zenoh
         self.config = config or BusConfig()
-        self.session = zenoh.open(self.config.zenoh_config())
+        try:
+            self.session = zenoh.open(self.config.zenoh_config())
+        except zenoh.ZError as e:
+            from constructaide.errors import UserError
+
+            raise UserError(f"cannot open the zenoh session ({self.config.mode}): {e}") from None
         self._latched: dict[str, bytes] = {}
         self._latched_lock = threading.Lock()
         self._queryables: dict[str, Any] = {}

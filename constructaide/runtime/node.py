@@ -137,7 +137,9 @@ class RunningNode:
                 self.bus.subscribe(ke, lambda k, p, _i=inp: self._enqueue(_i, k, p), fetch_latched=inp.latched)
             )
         instance = uuid.uuid4().hex[:8]
-        self._token = self.bus.declare_token(keys.key(keys.LIVELINESS, site=self.site, node=self.spec.name, instance=instance))
+        self._token = self.bus.declare_token(
+            keys.key(keys.LIVELINESS, site=self.site, node=self.spec.name, instance=instance)
+        )
         return self
 
     def _enqueue(self, inp: Input, key: str, payload: bytes) -> None:
@@ -225,8 +227,13 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     return name.strip().split("."), value
 
 
-def load_config(config_type: type[Any], path: str | Path | None = None, section: str | None = None,
-                overrides: list[str] | tuple[str, ...] = (), **direct: Any) -> Any:
+def load_config(
+    config_type: type[Any],
+    path: str | Path | None = None,
+    section: str | None = None,
+    overrides: list[str] | tuple[str, ...] = (),
+    **direct: Any,
+) -> Any:
     """Build a node config from a TOML file (optionally one ``[section]``), ``--set`` overrides and keywords."""
     data: dict[str, Any] = {}
     if path:
@@ -271,15 +278,20 @@ def run_node_cli(spec: NodeSpec, argv: list[str] | None = None, *, prog: str | N
     if args.describe:
         print(spec.describe())
         return 0
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
-                        format=f"%(asctime)s {spec.name} %(levelname)s %(message)s", stream=sys.stderr)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format=f"%(asctime)s {spec.name} %(levelname)s %(message)s",
+        stream=sys.stderr,
+    )
     try:
         config = load_config(spec.config_type, args.config, args.section, args.set, site=args.site)
         stop = threading.Event()
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: stop.set())
         with open_bus(BusConfig.from_args(args)) as bus, start_node(spec, config, bus):
-            logging.getLogger("constructaide").info("node %s live on site %s (pid %d)", spec.name, config.site, os.getpid())
+            logging.getLogger("constructaide").info(
+                "node %s live on site %s (pid %d)", spec.name, config.site, os.getpid()
+            )
             stop.wait()
         return 0
     except UserError as e:
