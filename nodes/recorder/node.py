@@ -1,0 +1,104 @@
+"""Recorder node: every data topic of a site into ``<directory>/<site>-<UTC time>.mcap``.
+
+Payloads are recorded byte for byte (see :mod:`nodes.recorder.mcapio` for the file layout).
+The chunk is finished and the file flushed after every Photo/BimModel/BimUpdate (or every
+message with ``flush_on = "message"``), and a background timer flushes anything older than
+``max_unflushed_secs``; so a SIGKILLed recorder loses at most the event in progress.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+from typing import Literal
+
+import msgspec
+
+from constructaide.errors import UserError
+from constructaide.runtime import Input, NodeContext, NodeSpec, run_node_cli
+from nodes.recorder.mcapio import RecordingWriter, new_recording_path
+from schemas.messages import Message
+
+
+class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    site: str = "demo"
+    directory: str = "recordings"
+    """Folder of the .mcap files (created when missing)."""
+    path: str = ""
+    """Exact output file instead of ``<directory>/<site>-<UTC>.mcap`` (must not exist)."""
+    flush_on: Literal["photo", "message"] = "photo"
+    max_unflushed_secs: float = 1.0
+    """Other messages are flushed at the latest this long after they arrived (<= 0: never by time)."""
+    chunk_size_bytes: int = 8 * 1024 * 1024
+    compression: Literal["zstd", "lz4", "none"] = "zstd"
+
+
+class RecorderNode:
+    """Writes each received payload to the MCAP file; ``close`` writes the summary and closes it."""
+
+    def __init__(self, config: Config, ctx: NodeContext) -> None:
+        self.config = config
+        self.ctx = ctx
+        path = Path(config.path) if config.path else new_recording_path(config.directory, ctx.site)
+        if config.path:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        self._lock = threading.Lock()
+        try:
+            self.writer = RecordingWriter(
+                path,
+                flush_on=config.flush_on,
+                chunk_size=config.chunk_size_bytes,
+                compression=config.compression,
+                metadata={"site": ctx.site, "started_ns": str(time.time_ns()), "node": ctx.node},
+            )
+        except FileExistsError:
+            raise UserError(f"recording {path} already exists; choose another path") from None
+        self.path = path
+        ctx.log.info("recording site %s to %s", ctx.site, path)
+        self._stop = threading.Event()
+        self._timer: threading.Thread | None = None
+        if config.max_unflushed_secs > 0:
+            self._timer = threading.Thread(target=self._flush_loop, name="recorder-flush", daemon=True)
+            self._timer.start()
+
+    def on_message(self, payload: bytes, key: str) -> None:
+        if "/@" in key:
+            return  # liveliness/admin keys are not data
+        with self._lock:
+            info = self.writer.write(key, payload, time.time_ns())
+            flushed = self.writer.unflushed_count == 0
+        if flushed:
+            self.ctx.log.debug("flushed %d messages, last %s on %s", self.writer.message_count, info.type_name, key)
+
+    def _flush_loop(self) -> None:
+        interval = self.config.max_unflushed_secs
+        while not self._stop.wait(interval / 2):
+            with self._lock:
+                self.writer.flush_if_older_than(interval)
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._timer is not None:
+            self._timer.join(timeout=10)
+        with self._lock:
+            self.writer.close()
+        self.ctx.log.info("recording closed: %s (%d messages)", self.path, self.writer.message_count)
+
+
+SPEC = NodeSpec(
+    name="recorder",
+    description="Records every data topic of a site to an MCAP file (zstd chunks, JSON Schema, msgpack payloads).",
+    config_type=Config,
+    factory=RecorderNode,
+    inputs=(Input("constructaide/{site}/**", Message, "on_message", raw=True, latched=True),),
+    outputs=(),
+)
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_node_cli(SPEC, argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
