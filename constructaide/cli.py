@@ -166,7 +166,10 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as e:  # one clear line; traceback on request
         if os.environ.get("CONSTRUCTAIDE_DEBUG"):
             raise
-        print(f"constructaide {argv[0]}: error: {type(e).__name__}: {e} (CONSTRUCTAIDE_DEBUG=1 for details)", file=sys.stderr)
+        print(
+            f"constructaide {argv[0]}: error: {type(e).__name__}: {e} (CONSTRUCTAIDE_DEBUG=1 for details)",
+            file=sys.stderr,
+        )
         return 1
 
 

@@ -79,7 +79,9 @@ class Launcher:
             argv += ["--listen", e]
         return argv
 
-    def start(self, node: str, config: Path | None = None, section: str | None = None, sets: list[str] | None = None) -> NodeProcess:
+    def start(
+        self, node: str, config: Path | None = None, section: str | None = None, sets: list[str] | None = None
+    ) -> NodeProcess:
         argv = [sys.executable, "-m", "constructaide.cli", "node", node, "--site", self.site, *self.bus_argv()]
         if config is not None:
             argv += ["--config", str(config)]
@@ -154,6 +156,9 @@ def run_main(argv: list[str]) -> int:
         for name in nodes:
             launcher.start(name, args.config, f"nodes.{name}")
         launcher.wait_live(session, list(nodes))
-        print(f"site {site}: {len(nodes)} nodes live ({', '.join(nodes)}); logs in {args.log_dir}; Ctrl-C to stop", file=sys.stderr)
+        print(
+            f"site {site}: {len(nodes)} nodes live ({', '.join(nodes)}); logs in {args.log_dir}; Ctrl-C to stop",
+            file=sys.stderr,
+        )
         stop.wait()
     return 0

@@ -27,8 +27,13 @@ class EchoNode:
     def on_photo(self, msg: Photo, key: str) -> None:
         if msg.photo_id == "raise":
             raise ValueError("asked to raise")
-        reg = Registration(site=msg.site, photo_id=msg.photo_id, camera_id=msg.camera_id, status="failed",
-                           message=self.config.reply_message)
+        reg = Registration(
+            site=msg.site,
+            photo_id=msg.photo_id,
+            camera_id=msg.camera_id,
+            status="failed",
+            message=self.config.reply_message,
+        )
         self.ctx.publish(keys.key(keys.REGISTRATION, site=self.ctx.site, camera=msg.camera_id, photo=msg.photo_id), reg)
 
 

@@ -1,0 +1,169 @@
+"""``constructaide demo``: the main job on embedded defaults.
+
+Generates (once, cached) the synthetic construction site, starts every node in its own process on
+a loopback zenoh bus, publishes the site's BIM (through the ingest node), the simulated anchor clicks
+and every photo in capture order as the cameras would, waits until the nodes have processed them,
+stops the nodes cleanly and prints a summary with the paths of the MCAP recording and the rerun file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import sys
+import time
+import tomllib
+from collections import Counter
+from pathlib import Path
+
+from tqdm import tqdm
+
+from constructaide.errors import UserError
+from constructaide.launch import Launcher
+from constructaide.runtime import BusConfig, free_port, open_bus
+from schemas import keys
+from schemas.messages import AnchorClicks, AnchorPoint, Photo
+
+PROCESSING_NODES = ("register", "occlude", "render")
+
+
+def _anchor_messages(site: str, site_dir: Path, photos: dict[str, Photo]) -> list[AnchorClicks]:
+    """AnchorClicks for every anchor in the site's anchor file whose photo exists (what a user clicked)."""
+    doc = json.loads((site_dir / "anchors.json").read_text())
+    out = []
+    for a in doc.get("anchors", []):
+        photo = photos.get(a["image"])
+        if photo is None:
+            continue
+        pts = tuple(AnchorPoint(pixel_px=tuple(p["pixel"]), point_in_world_m=tuple(p["world"])) for p in a["points"])
+        out.append(
+            AnchorClicks(site=site, photo_id=photo.photo_id, image_name=a["image"], points=pts, focal_px=doc.get("focal_px"))
+        )
+    return out
+
+
+def main(argv: list[str]) -> int:
+    from constructaide.cli import cache_dir
+    from constructaide.synth import ensure_site
+    from nodes.ingest.photos import photo_from_file
+
+    ap = argparse.ArgumentParser(prog="constructaide demo", description=__doc__)
+    ap.add_argument("--size", default="default", choices=["small", "default", "large"], help="synthetic site size")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--site", default="demo", help="site id on the bus")
+    ap.add_argument("--out", type=Path, default=Path("recordings"), help="folder for .mcap, .rrd and logs")
+    ap.add_argument("--max-photos", type=int, default=0, help="push only the first N photos (0: all)")
+    ap.add_argument("--timeout", type=float, default=1800.0, help="seconds to wait for processing")
+    args = ap.parse_args(argv)
+    keys.check_chunk(args.site, "site")
+
+    t_start = time.monotonic()
+    print(f"[1/5] synthetic site ({args.size}, seed {args.seed})", file=sys.stderr)
+    site_dir = ensure_site(args.size, args.seed, cache_dir() / "synth")
+    site_doc = tomllib.loads((site_dir / "site.toml").read_text())
+    tz = site_doc["site"]["tz"]
+    photos_dir = site_dir / site_doc["paths"]["photos"]
+
+    files = sorted(p for p in photos_dir.rglob("*") if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
+    photos: dict[str, Photo] = {}
+    for f in tqdm(files, desc="reading photos", unit="photo", file=sys.stderr):
+        rel = f.relative_to(photos_dir).as_posix()
+        camera = rel.split("/")[0]
+        photos[rel] = photo_from_file(f, camera_id=None if camera == keys.PHONE else camera, site=args.site, tz=tz)
+    order = sorted(photos, key=lambda r: (photos[r].capture_time_ns, r))
+    if args.max_photos:
+        order = order[: args.max_photos]
+    anchors = [a for a in _anchor_messages(args.site, site_dir, photos) if a.image_name in set(order)]
+
+    stamp = dt.datetime.now(dt.UTC).strftime("%Y%m%dT%H%M%SZ")
+    out = args.out.resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    mcap_path = out / f"{args.site}-{stamp}.mcap"
+    rrd_path = out / f"{args.site}-{stamp}.rrd"
+    log_dir = out / "logs" / f"{args.site}-{stamp}"
+    ifc_path = site_dir / site_doc["paths"]["ifc"]
+
+    bus_cfg = BusConfig(hub_port=free_port())
+    counts: Counter[str] = Counter()
+    with Launcher(site=args.site, bus=bus_cfg, log_dir=log_dir) as launcher, open_bus(bus_cfg) as bus:
+        print("[2/5] starting nodes", file=sys.stderr)
+        regs = bus.collect(keys.pattern(keys.REGISTRATION, site=args.site))
+        overlays = bus.collect(keys.pattern(keys.OVERLAY, site=args.site))
+        masks = bus.collect(keys.pattern(keys.OCCLUSION, site=args.site))
+        errors = bus.collect(keys.key(keys.ERRORS, site=args.site))
+        needs = bus.collect(keys.pattern(keys.NEEDS_ANCHOR, site=args.site))
+        bim = bus.collect(keys.key(keys.BIM_MODEL, site=args.site), fetch_latched=True)
+        launcher.start("recorder", sets=[f"path='{mcap_path}'"])
+        launcher.start("dashboard", sets=[f"rerun='save:{rrd_path}'"])
+        for name in PROCESSING_NODES:
+            launcher.start(name)
+        launcher.wait_live(bus, ["recorder", "dashboard", *PROCESSING_NODES])
+        launcher.start("ingest", sets=[f"ifc=['{ifc_path}']", f"tz='{tz}'"])
+        launcher.wait_live(bus, ["ingest"])
+        bim.wait(1, timeout=300)
+
+        print(f"[3/5] publishing {len(anchors)} anchor click sets and {len(order)} photos", file=sys.stderr)
+        for a in anchors:
+            bus.publish(keys.key(keys.ANCHORS, site=args.site, photo=a.photo_id), a)
+        for rel in tqdm(order, desc="push", unit="photo", file=sys.stderr):
+            p = photos[rel]
+            bus.publish(keys.key(keys.PHOTO, site=args.site, camera=p.camera_id), p)
+
+        print("[4/5] waiting for registration, occlusion and overlays", file=sys.stderr)
+        expected = {photos[r].photo_id for r in order}
+        deadline = time.monotonic() + args.timeout
+        with tqdm(total=len(expected), desc="registered", unit="photo", file=sys.stderr) as bar:
+            done: set[str] = set()
+            while len(done) < len(expected) and time.monotonic() < deadline:
+                try:
+                    regs.wait(len(regs.items) + 1, timeout=min(10.0, max(0.1, deadline - time.monotonic())))
+                except TimeoutError:
+                    if all(p.proc is not None and p.proc.poll() is not None for p in launcher.procs):
+                        break
+                now = {m.photo_id for _, m in regs.items} & expected
+                bar.update(len(now - done))
+                done |= now
+        # Overlays follow registrations; give the render and occlude queues the time to drain.
+        registered = {m.photo_id for _, m in regs.items if m.status != "failed"}
+        _drain(overlays, lambda: {m.photo_id for _, m in overlays.items} >= registered, deadline)
+        print("[5/5] stopping nodes", file=sys.stderr)
+        exit_codes = launcher.stop_all()
+
+    for _, m in regs.items:
+        counts[f"registration {m.status}"] += 1
+    summary = [
+        ("photos pushed", len(order)),
+        ("anchor click sets", len(anchors)),
+        ("registered (anchor)", counts["registration anchor"]),
+        ("registered (auto)", counts["registration auto"]),
+        ("registration failed", counts["registration failed"]),
+        ("needs anchor requests", len(needs.items)),
+        ("occlusion masks", len(masks.items)),
+        ("overlays", len(overlays.items)),
+        ("node errors", len(errors.items)),
+        ("wall time", f"{time.monotonic() - t_start:.0f} s"),
+        ("MCAP recording", str(mcap_path)),
+        ("rerun file", f"{rrd_path}  (view: rerun {rrd_path})"),
+        ("node logs", str(log_dir)),
+    ]
+    width = max(len(k) for k, _ in summary)
+    print("\nConstructAide demo summary")
+    for k, v in summary:
+        print(f"  {k:<{width}}  {v}")
+    for _, e in errors.items[:5]:
+        print(f"  error from {e.node}: {e.reason}")
+    bad = {k: v for k, v in exit_codes.items() if v not in (0, None)}
+    if bad:
+        raise UserError(f"nodes exited with errors: {bad}; see {log_dir}")
+    if not mcap_path.exists():
+        raise UserError(f"recorder wrote no file at {mcap_path}; see {log_dir}")
+    return 0
+
+
+def _drain(collector, done, deadline: float) -> None:
+    while not done() and time.monotonic() < deadline:
+        try:
+            collector.wait(len(collector.items) + 1, timeout=min(15.0, max(0.1, deadline - time.monotonic())))
+        except TimeoutError:
+            return

@@ -1,0 +1,161 @@
+"""4D state of elements from a schedule: pure functions over ``ScheduleTask`` tuples.
+
+Shared by the ingest node (summaries, CLI) and any node that colours elements by state
+(render, dashboard). Times are int ns UTC, like every message.
+
+An element's planned window is the union of the tasks that name it: ``construction`` tasks
+build it (start = earliest start, finish = latest finish), ``demolition`` tasks remove it,
+``temporary`` tasks do both (built during the task, removed at its finish).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Literal
+
+from schemas.messages import ScheduleTask
+
+State = Literal["unscheduled", "not_started", "under_construction", "complete", "under_demolition", "removed"]
+Status = Literal["early", "on_time", "late", "unknown"]
+
+_RANK: dict[str, int] = {
+    "not_started": 0,
+    "under_construction": 1,
+    "complete": 2,
+    "under_demolition": 3,
+    "removed": 4,
+}
+
+
+@dataclass(frozen=True, slots=True)
+class ElementWindow:
+    """When one element is built (and removed), planned and actual; ns UTC, ``None`` = not known."""
+
+    build_start_ns: int | None = None
+    build_finish_ns: int | None = None
+    remove_start_ns: int | None = None
+    remove_finish_ns: int | None = None
+    actual_build_start_ns: int | None = None
+    actual_build_finish_ns: int | None = None
+    actual_remove_start_ns: int | None = None
+    actual_remove_finish_ns: int | None = None
+    has_actuals: bool = False
+
+
+def _min(a: int | None, b: int | None) -> int | None:
+    return b if a is None else a if b is None else min(a, b)
+
+
+def _max(a: int | None, b: int | None) -> int | None:
+    return b if a is None else a if b is None else max(a, b)
+
+
+@dataclass(slots=True)
+class _Acc:
+    bs: int | None = None
+    bf: int | None = None
+    rs: int | None = None
+    rf: int | None = None
+    abs: int | None = None
+    abf: int | None = None
+    ars: int | None = None
+    arf: int | None = None
+    act: bool = False
+
+
+def element_windows(tasks: Iterable[ScheduleTask]) -> dict[str, ElementWindow]:
+    """Planned and actual build/removal windows per element GlobalId."""
+    acc: dict[str, _Acc] = {}
+    for task in tasks:
+        builds = task.task_type in ("construction", "temporary", "other")
+        demolition = task.task_type == "demolition"
+        removes = demolition or task.task_type == "temporary"
+        has_actual = task.actual_start_ns is not None or task.actual_finish_ns is not None
+        # A temporary element is removed at its task's finish; a demolished one from the start.
+        remove_start = task.planned_start_ns if demolition else task.planned_finish_ns
+        actual_remove_start = task.actual_start_ns if demolition else task.actual_finish_ns
+        for gid in task.element_ids:
+            w = acc.setdefault(gid, _Acc())
+            if builds:
+                w.bs, w.bf = _min(w.bs, task.planned_start_ns), _max(w.bf, task.planned_finish_ns)
+                w.abs, w.abf = _min(w.abs, task.actual_start_ns), _max(w.abf, task.actual_finish_ns)
+            if removes:
+                w.rs, w.rf = _min(w.rs, remove_start), _max(w.rf, task.planned_finish_ns)
+                w.ars, w.arf = _min(w.ars, actual_remove_start), _max(w.arf, task.actual_finish_ns)
+            w.act = w.act or has_actual
+    return {
+        gid: ElementWindow(
+            build_start_ns=w.bs,
+            build_finish_ns=w.bf,
+            remove_start_ns=w.rs,
+            remove_finish_ns=w.rf,
+            actual_build_start_ns=w.abs,
+            actual_build_finish_ns=w.abf,
+            actual_remove_start_ns=w.ars,
+            actual_remove_finish_ns=w.arf,
+            has_actuals=w.act,
+        )
+        for gid, w in acc.items()
+    }
+
+
+def _state(at_ns: int, bs: int | None, bf: int | None, rs: int | None, rf: int | None, existed_before: bool) -> State:
+    if rf is not None and at_ns >= rf:
+        return "removed"
+    if rs is not None and at_ns >= rs:
+        return "under_demolition"
+    if bf is not None and at_ns >= bf:
+        return "complete"
+    if bs is not None and at_ns >= bs:
+        return "under_construction"
+    if bs is None and bf is None:
+        # Only removal known: the element exists until it is demolished.
+        return "complete" if existed_before else "unscheduled"
+    return "not_started"
+
+
+def planned_state(window: ElementWindow | None, at_ns: int) -> State:
+    """Planned state of an element at ``at_ns`` (``unscheduled`` when no task names it).
+
+    A task is under construction from its start (inclusive) to its finish (exclusive).
+    """
+    if window is None:
+        return "unscheduled"
+    w = window
+    return _state(at_ns, w.build_start_ns, w.build_finish_ns, w.remove_start_ns, w.remove_finish_ns, True)
+
+
+def actual_state(window: ElementWindow | None, at_ns: int) -> State | None:
+    """Actual state at ``at_ns`` from actual dates, ``None`` when the element has no actuals at all."""
+    if window is None or not window.has_actuals:
+        return None
+    w = window
+    return _state(
+        at_ns,
+        w.actual_build_start_ns,
+        w.actual_build_finish_ns,
+        w.actual_remove_start_ns,
+        w.actual_remove_finish_ns,
+        True,
+    )
+
+
+def schedule_status(window: ElementWindow | None, at_ns: int) -> Status:
+    """Early / on time / late at ``at_ns``: actual progress compared with planned progress.
+
+    ``early`` when the actual state is further along than planned, ``late`` when behind,
+    ``unknown`` when the element has no actual dates.
+    """
+    planned = planned_state(window, at_ns)
+    actual = actual_state(window, at_ns)
+    if actual is None or planned == "unscheduled" or actual == "unscheduled":
+        return "unknown"
+    diff = _RANK[actual] - _RANK[planned]
+    return "early" if diff > 0 else "late" if diff < 0 else "on_time"
+
+
+def states_at(tasks: Iterable[ScheduleTask], element_ids: Iterable[str], at_ns: int) -> dict[str, State]:
+    """Planned state of every element in ``element_ids`` at ``at_ns``."""
+    windows = element_windows(tasks)
+    return {gid: planned_state(windows.get(gid), at_ns) for gid in element_ids}

@@ -1,0 +1,366 @@
+"""Dynamic occlusions (moving equipment, workers) from an aligned time-lapse stack (paper Sec. 4.1.2).
+
+Steps, all at working resolution except the last:
+1. exposure normalisation: every stack image gets a per-channel gain/offset fitted to the photo on
+   robust pixels (iteratively trimmed least squares), so day-to-day lighting changes cancel;
+2. background = per-pixel median of the normalised stack (the photo itself excluded);
+3. squared HSV difference between photo and background (hue circular, weighted by saturation
+   because hue is noise on grey pixels);
+4. cross-bilateral filter of the difference guided by the photo; occluded where any channel
+   exceeds ``threshold`` (paper: 0.05), grown by hysteresis through pixels above a weaker
+   threshold and with enclosed holes filled (an occluder's colour may match the background
+   in places); blobs whose outline is a contrast edge of the background rather than of the
+   photo are ghosts of a neighbour's occluder and dropped (see :func:`remove_ghosts`);
+5. the soft mask is upsampled to full resolution with a guided filter driven by the photo.
+
+The clean background plate is the photo outside the mask and the (upsampled) median inside.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from nodes.occlude.stacks import AlignedStack
+
+U8 = NDArray[np.uint8]
+F32 = NDArray[np.float32]
+
+
+@dataclass(frozen=True)
+class DynamicParams:
+    """Tuning of :func:`dynamic_mask`. Filter sizes are in working-resolution pixels."""
+
+    threshold: float = 0.05
+    weak_ratio: float = 0.25  # hysteresis: grow from strong pixels through pixels above threshold * weak_ratio
+    fill_holes: bool = True
+    ghost_ratio: float = 1.0  # 0 disables ghost removal (see remove_ghosts)
+    temporal_guard: bool = True  # the photo must also differ from its nearest earlier and later neighbours
+    ignore_sky: bool = True  # changes between sky-like pixels (clouds) are not occluders
+    hue_saturation_weighted: bool = True
+    bilateral_diameter_px: int = 9
+    bilateral_sigma_color: float = 0.1
+    bilateral_sigma_space_px: float = 4.0
+    min_views: int = 1
+    min_component_frac: float = 2e-4  # drop blobs smaller than this fraction of the image
+    guided_radius_px: int = 8  # full-resolution pixels
+    guided_eps: float = 1e-3
+    exposure_iterations: int = 3
+
+
+@dataclass
+class DynamicResult:
+    """``mask``: uint8 (H, W) 0/255 at photo resolution (all zero unless status is ok);
+    ``background``: uint8 BGR (H, W, 3) clean plate or None; ``num_views``: stack size used."""
+
+    status: Literal["ok", "not_enough_views"]
+    mask: U8
+    background: U8 | None
+    num_views: int
+
+
+def fit_exposure(src: F32, dst: F32, valid: NDArray[np.bool_], iterations: int = 3, max_samples: int = 20000) -> F32:
+    """Per-channel gain/offset (2, C) mapping ``src`` onto ``dst`` (both float (h, w, C)) on robust pixels.
+
+    Each iteration keeps the pixels whose residual is below the median residual, so occluders and
+    local changes (a few tens of percent of the image) do not bias the fit.
+    """
+    idx = np.flatnonzero(valid.ravel())
+    if idx.size < 16:
+        return np.stack([np.ones(src.shape[2], np.float32), np.zeros(src.shape[2], np.float32)])
+    if idx.size > max_samples:
+        idx = idx[:: idx.size // max_samples + 1]
+    x = src.reshape(-1, src.shape[2])[idx].astype(np.float64)
+    y = dst.reshape(-1, dst.shape[2])[idx].astype(np.float64)
+    keep = np.ones(len(idx), bool)
+    coef = np.zeros((2, src.shape[2]))
+    for _ in range(max(1, iterations)):
+        for c in range(src.shape[2]):
+            xc, yc = x[keep, c], y[keep, c]
+            var = xc.var()
+            gain = ((xc - xc.mean()) * (yc - yc.mean())).mean() / var if var > 1e-8 else 1.0
+            gain = float(np.clip(gain, 0.2, 5.0))
+            coef[0, c], coef[1, c] = gain, yc.mean() - gain * xc.mean()
+        resid = np.abs(x * coef[0] + coef[1] - y).sum(axis=1)
+        keep = resid <= np.median(resid)
+    return coef.astype(np.float32)
+
+
+def masked_median(images: F32, valid: NDArray[np.bool_]) -> tuple[F32, NDArray[np.int32]]:
+    """Per-pixel median over N of ``images`` (N, h, w, C) where ``valid`` (N, h, w).
+
+    Returns the median (h, w, C) (zero where nothing is valid) and the count (h, w).
+    """
+    n, h, w, c = images.shape
+    count = valid.sum(axis=0).astype(np.int32)
+    if n == 1:
+        return np.where(valid[0][..., None], images[0], 0.0).astype(np.float32), count
+    # (h, w, C, N) contiguous so the sort runs along memory
+    data = np.ascontiguousarray(np.moveaxis(images, 0, -1))
+    data[~np.broadcast_to(np.moveaxis(valid, 0, -1)[:, :, None, :], data.shape)] = np.inf
+    data.sort(axis=-1)
+    lo = np.clip((count - 1) // 2, 0, n - 1)[..., None, None]
+    hi = np.clip(count // 2, 0, n - 1)[..., None, None]
+    lo = np.broadcast_to(lo, (h, w, c, 1))
+    hi = np.broadcast_to(hi, (h, w, c, 1))
+    med = 0.5 * (np.take_along_axis(data, lo, axis=-1)[..., 0] + np.take_along_axis(data, hi, axis=-1)[..., 0])
+    med[count == 0] = 0.0
+    return med.astype(np.float32), count
+
+
+def hsv_squared_difference(a_bgr: F32, b_bgr: F32, saturation_weighted: bool = True) -> F32:
+    """Squared per-channel HSV difference (h, w, 3) of two float BGR images in [0, 1].
+
+    Hue difference is circular in [0, 0.5] (H scaled to [0, 1)); with ``saturation_weighted`` it is
+    multiplied by the smaller saturation of the two pixels.
+    """
+    ha = cv2.cvtColor(np.clip(a_bgr, 0.0, 1.0), cv2.COLOR_BGR2HSV)
+    hb = cv2.cvtColor(np.clip(b_bgr, 0.0, 1.0), cv2.COLOR_BGR2HSV)
+    dh = np.abs(ha[..., 0] - hb[..., 0]) / 360.0
+    dh = np.minimum(dh, 1.0 - dh)
+    if saturation_weighted:
+        dh = dh * np.minimum(ha[..., 1], hb[..., 1])
+    ds = ha[..., 1] - hb[..., 1]
+    dv = ha[..., 2] - hb[..., 2]
+    return np.stack([dh * dh, ds * ds, dv * dv], axis=-1).astype(np.float32)
+
+
+def sky_like(bgr: F32) -> NDArray[np.bool_]:
+    """Bright, smooth, grey or blue pixels (h, w) of a float BGR image in [0, 1]: sky and clouds."""
+    hsv = cv2.cvtColor(np.clip(bgr, 0.0, 1.0), cv2.COLOR_BGR2HSV)
+    g = cv2.cvtColor(np.clip(bgr, 0.0, 1.0), cv2.COLOR_BGR2GRAY)
+    mean = cv2.blur(g, (5, 5))
+    std = np.sqrt(np.maximum(cv2.blur(g * g, (5, 5)) - mean * mean, 0.0))
+    blue = (hsv[..., 0] > 180.0) & (hsv[..., 0] < 250.0)
+    return (hsv[..., 2] > 0.55) & ((hsv[..., 1] < 0.25) | blue) & (std < 0.04)
+
+
+def raw_score(photo: F32, other: F32, params: DynamicParams) -> F32:
+    """Per-pixel max over channels of the squared HSV difference (h, w), before smoothing."""
+    return hsv_squared_difference(photo, other, params.hue_saturation_weighted).max(axis=2)
+
+
+def smooth_scores(photo: F32, scores: list[F32], params: DynamicParams) -> list[F32]:
+    """Cross-bilateral smoothing (guided by the photo) of up to three score maps in one filter call."""
+    out: list[F32] = []
+    for k in range(0, len(scores), 3):
+        chunk = scores[k : k + 3]
+        stacked = np.stack(chunk + [chunk[0]] * (3 - len(chunk)), axis=-1)
+        smoothed = cv2.ximgproc.jointBilateralFilter(
+            photo, stacked, params.bilateral_diameter_px, params.bilateral_sigma_color, params.bilateral_sigma_space_px
+        )
+        out += [smoothed[..., c] for c in range(len(chunk))]
+    return out
+
+
+def background_and_difference(
+    photo_small: U8, stack: AlignedStack, params: DynamicParams, progress_region: NDArray[np.bool_] | None = None
+) -> tuple[F32, F32, NDArray[np.int32]]:
+    """Exposure-normalised median background (h, w, 3) float BGR, difference score (h, w) (occluded
+    where > ``params.threshold``) and per-pixel view count (h, w).
+
+    The score is the cross-bilateral-smoothed max-channel squared HSV difference between photo and
+    median. With ``temporal_guard`` it is also capped by the score against the nearest earlier and
+    the nearest later neighbour (the photo must differ from both): construction progress between
+    days changes the scene for good, so a photo agrees with the neighbours on its side of the
+    change, while a transient occluder differs from both. ``progress_region`` (h, w) limits the
+    guard to where the building can change (the projected model); None applies it everywhere.
+    """
+    photo = photo_small.astype(np.float32) * np.float32(1.0 / 255.0)
+    norm = np.empty(stack.images.shape, np.float32)
+    for i in range(stack.num_views):
+        img = stack.images[i].astype(np.float32) * np.float32(1.0 / 255.0)
+        coef = fit_exposure(img, photo, stack.valid[i], params.exposure_iterations)
+        np.multiply(img, coef[0], out=norm[i])
+        norm[i] += coef[1]
+    background, count = masked_median(norm, stack.valid)
+    raw = [raw_score(photo, background, params)]
+    nearest: list[int] = []
+    if params.temporal_guard and stack.num_views >= 2 and len(stack.times_ns) == stack.num_views:
+        dt = np.asarray(stack.times_ns, dtype=np.float64) - float(stack.photo_time_ns)
+        sides = [np.flatnonzero(dt < 0), np.flatnonzero(dt >= 0)]
+        nearest = [int(idx[np.argmin(np.abs(dt[idx]))]) for idx in sides if len(idx)]
+        if len(nearest) == 1:  # all neighbours on one side: the two nearest
+            nearest = [int(i) for i in np.argsort(np.abs(dt))[:2]]
+        raw += [raw_score(photo, norm[i], params) for i in nearest]
+    smoothed = smooth_scores(photo, raw, params)
+    score = smoothed[0]
+    if nearest:
+        guard = np.full(score.shape, np.inf, np.float32)
+        for i, s_i in zip(nearest, smoothed[1:], strict=True):
+            guard = np.minimum(guard, np.where(stack.valid[i], s_i, np.inf))
+        capped = np.minimum(score, guard)
+        score = capped if progress_region is None else np.where(progress_region, capped, score)
+    if params.ignore_sky:
+        score[sky_like(photo) & sky_like(background)] = 0.0
+    score[count == 0] = 0.0
+    return np.clip(background, 0.0, 1.0), score, count
+
+
+def hysteresis_mask(score: F32, strong: float, weak: float) -> U8:
+    """0/255 mask of pixels with ``score`` (h, w) above ``weak`` that are 8-connected to a pixel above ``strong``."""
+    strong_px = score > strong
+    if weak >= strong:
+        return strong_px.astype(np.uint8) * 255
+    weak_px = (score > weak) | strong_px
+    n, labels = cv2.connectedComponents(weak_px.astype(np.uint8), connectivity=8)
+    seeded = np.zeros(n, bool)
+    seeded[np.unique(labels[strong_px])] = True
+    seeded[0] = False
+    return np.where(seeded[labels], 255, 0).astype(np.uint8)
+
+
+def remove_ghosts(mask: U8, photo: U8, background: U8, ratio: float, window_px: int = 7) -> U8:
+    """Drop blobs whose outline separates regions of the background rather than of the photo.
+
+    With few views the background can still show a neighbour's occluder ("ghost"); its difference
+    blob then has the occluder's colour inside *in the background* and the scene in the photo. Across
+    a real occluder's outline the photo changes (occluder | scene) while the background is continuous
+    scene; across a ghost's it is the other way round. A blob is kept when the photo's mean colour
+    contrast across its outline (local means inside vs outside, ``window_px`` box) is at least
+    ``ratio`` x the background's.
+    """
+    n, labels, stats, _ = cv2.connectedComponentsWithStats((mask > 0).astype(np.uint8), connectivity=8)
+    if n <= 1:
+        return mask
+    out = mask.copy()
+    H, W = mask.shape
+    pad = window_px + 2
+    kernel = np.ones((3, 3), np.uint8)
+    box = (window_px, window_px)
+    for i in range(1, n):
+        x, y, w, h = stats[i, :4]
+        x0, y0, x1, y1 = max(0, x - pad), max(0, y - pad), min(W, x + w + pad), min(H, y + h + pad)
+        comp = (labels[y0:y1, x0:x1] == i).astype(np.float32)
+        outline = (cv2.dilate(comp, kernel) - comp) > 0
+        w_in = cv2.boxFilter(comp, -1, box, normalize=False)
+        w_out = cv2.boxFilter(1.0 - comp, -1, box, normalize=False)
+        ok = outline & (w_in > 0) & (w_out > 0)
+        if not ok.any():
+            continue
+        contrast = []
+        for img in (photo, background):
+            crop = img[y0:y1, x0:x1].astype(np.float32)
+            m_in = cv2.boxFilter(crop * comp[..., None], -1, box, normalize=False) / np.maximum(w_in, 1e-6)[..., None]
+            m_out = (
+                cv2.boxFilter(crop * (1.0 - comp[..., None]), -1, box, normalize=False)
+                / np.maximum(w_out, 1e-6)[..., None]
+            )
+            contrast.append(float(np.linalg.norm((m_in - m_out)[ok], axis=1).mean()))
+        if contrast[0] < ratio * contrast[1]:
+            out[y0:y1, x0:x1][comp > 0] = 0
+    return out
+
+
+def fill_holes(mask: U8) -> U8:
+    """Fill background regions of a 0/255 mask that do not touch the image border."""
+    inv = (mask == 0).astype(np.uint8)
+    n, labels = cv2.connectedComponents(inv, connectivity=4)
+    border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+    hole = np.ones(n, bool)
+    hole[border] = False
+    hole[0] = False  # label 0 is the mask itself
+    return np.where(hole[labels] | (mask > 0), 255, 0).astype(np.uint8)
+
+
+def remove_small_components(mask: U8, min_area_px: int) -> U8:
+    """Drop 8-connected blobs of ``mask`` (0/255) smaller than ``min_area_px``."""
+    if min_area_px <= 1:
+        return mask
+    n, labels, stats, _ = cv2.connectedComponentsWithStats((mask > 0).astype(np.uint8), connectivity=8)
+    keep = stats[:, cv2.CC_STAT_AREA] >= min_area_px
+    keep[0] = False
+    return np.where(keep[labels], 255, 0).astype(np.uint8)
+
+
+def small_bbox(mask_small: NDArray[np.generic], pad_px: int) -> tuple[int, int, int, int] | None:
+    """Bounding box (x0, y0, x1, y1) of the non-zero pixels of a working-size mask, padded; None if empty."""
+    ys, xs = np.nonzero(mask_small)
+    if len(xs) == 0:
+        return None
+    h, w = mask_small.shape[:2]
+    return (
+        max(0, xs.min() - pad_px),
+        max(0, ys.min() - pad_px),
+        min(w, xs.max() + 1 + pad_px),
+        min(h, ys.max() + 1 + pad_px),
+    )
+
+
+def _full_box(
+    box: tuple[int, int, int, int], small_size: tuple[int, int], full_size: tuple[int, int]
+) -> tuple[int, ...]:
+    (x0, y0, x1, y1), (w, h), (W, H) = box, small_size, full_size
+    return round(x0 * W / w), round(y0 * H / h), round(x1 * W / w), round(y1 * H / h)
+
+
+def upsample_mask(soft_small: F32, photo_full: U8, radius_px: int, eps: float) -> U8:
+    """Upsample a soft mask in [0, 1] to the photo's size, edges snapped by a guided filter. 0/255.
+
+    Full-resolution work is confined to the bounding box of the mask (plus the filter's reach).
+    """
+    H, W = photo_full.shape[:2]
+    h, w = soft_small.shape[:2]
+    out = np.zeros((H, W), np.uint8)
+    box = small_bbox(soft_small > 0.02, 2 + (4 * radius_px * w) // W)
+    if box is None:
+        return out
+    X0, Y0, X1, Y1 = _full_box(box, (w, h), (W, H))
+    x0, y0, x1, y1 = box
+    soft = cv2.resize(soft_small[y0:y1, x0:x1], (X1 - X0, Y1 - Y0), interpolation=cv2.INTER_LINEAR)
+    if radius_px > 0:
+        guide = cv2.cvtColor(np.ascontiguousarray(photo_full[Y0:Y1, X0:X1]), cv2.COLOR_BGR2GRAY)
+        soft = cv2.ximgproc.guidedFilter(guide, soft, radius_px, eps * 255.0 * 255.0)
+    out[Y0:Y1, X0:X1] = np.where(soft > 0.5, 255, 0).astype(np.uint8)
+    return out
+
+
+def clean_plate(photo_full: U8, mask_small: U8, mask: U8, background_small: F32, count: NDArray[np.int32]) -> U8:
+    """The photo with the masked pixels replaced by the (upsampled) median background, feathered."""
+    H, W = photo_full.shape[:2]
+    h, w = mask_small.shape[:2]
+    plate = photo_full.copy()
+    box = small_bbox(mask_small, 3)
+    if box is None:
+        return plate
+    X0, Y0, X1, Y1 = _full_box(box, (w, h), (W, H))
+    x0, y0, x1, y1 = box
+    size = (X1 - X0, Y1 - Y0)
+    bg = cv2.resize((background_small[y0:y1, x0:x1] * 255.0).astype(np.uint8), size, interpolation=cv2.INTER_LINEAR)
+    covered = cv2.resize((count[y0:y1, x0:x1] > 0).astype(np.uint8), size, interpolation=cv2.INTER_NEAREST)
+    m = cv2.dilate(mask[Y0:Y1, X0:X1], np.ones((5, 5), np.uint8)) & (covered * 255)
+    alpha = cv2.GaussianBlur(m, (0, 0), 2.0).astype(np.float32) * np.float32(1.0 / 255.0)
+    plate[Y0:Y1, X0:X1] = cv2.blendLinear(bg, np.ascontiguousarray(photo_full[Y0:Y1, X0:X1]), alpha, 1.0 - alpha)
+    return plate
+
+
+def dynamic_mask(
+    photo_full: U8,
+    photo_small: U8,
+    stack: AlignedStack,
+    params: DynamicParams | None = None,
+    progress_region: NDArray[np.bool_] | None = None,
+) -> DynamicResult:
+    """Dynamic-occluder mask and clean plate of a photo (uint8 BGR, full and working size).
+
+    ``progress_region``: bool (h, w) at working size, where the building may change between views
+    (the projected BIM); see :func:`background_and_difference`.
+    """
+    params = params or DynamicParams()
+    h, w = photo_full.shape[:2]
+    if stack.num_views < max(1, params.min_views):
+        return DynamicResult("not_enough_views", np.zeros((h, w), np.uint8), None, stack.num_views)
+    background, score, count = background_and_difference(photo_small, stack, params, progress_region)
+    small = hysteresis_mask(score, params.threshold, params.threshold * params.weak_ratio)
+    small = remove_small_components(small, int(params.min_component_frac * small.size))
+    if params.ghost_ratio > 0:
+        small = remove_ghosts(small, photo_small, (background * 255.0).astype(np.uint8), params.ghost_ratio)
+    if params.fill_holes:
+        small = fill_holes(small)
+    soft = cv2.GaussianBlur(small.astype(np.float32) / 255.0, (3, 3), 0)
+    mask = upsample_mask(soft, photo_full, params.guided_radius_px, params.guided_eps)
+    return DynamicResult("ok", mask, clean_plate(photo_full, small, mask, background, count), stack.num_views)

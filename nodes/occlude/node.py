@@ -1,0 +1,427 @@
+"""Occlude node: dynamic, static, user and combined occlusion masks per photo.
+
+Inputs: photos, registrations, viewpoint groups, the sparse cloud, the BIM model (latched) and
+updates, annotations. Outputs: ``OcclusionMask`` on ``constructaide/{site}/occlusion/{kind}/{photo}``
+for kinds ``dynamic`` (with the clean background plate), ``static``, ``user`` and ``combined``
+(union of the ``ok`` masks of the other kinds; what the render node should use).
+
+Incremental: a new photo gets its masks from its own stack; older photos are recomputed only when
+they had no usable stack yet (``not_enough_views``) or when their inputs changed (their viewpoint
+group, a registration, a sparse cloud with markedly more observations of them, a new model).
+"""
+
+from __future__ import annotations
+
+import functools
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import cv2
+import msgspec
+import numpy as np
+from numpy.typing import NDArray
+
+from constructaide.bimgeom import glb_to_meshes, load_bim_model_glb
+from constructaide.runtime import Input, NodeContext, NodeSpec, Output, run_node_cli
+from nodes.occlude.dynamic import DynamicParams, dynamic_mask
+from nodes.occlude.modeldepth import ModelMaps, ModelRenderer
+from nodes.occlude.stacks import TimelapseStore, working_size
+from nodes.occlude.static import StaticParams, estimate_point_normals, estimate_terrain_height, static_mask
+from nodes.occlude.user import UserCorrections
+from schemas import keys
+from schemas.messages import (
+    Annotation,
+    BimModel,
+    BimUpdate,
+    OcclusionMask,
+    Photo,
+    Registration,
+    SparseCloud,
+    ViewpointGroup,
+)
+
+U8 = NDArray[np.uint8]
+NS_PER_DAY = 86_400 * 10**9
+
+
+class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    site: str = "demo"
+    working_width_px: int = 480  # dynamic masks are computed at this width, then upsampled
+    static_working_width_px: int = 640  # static masks (model render, SLIC) at this width
+    max_views: int = 6  # stack size: neighbours nearest in capture time
+    max_time_gap_days: float = 0.0  # 0: no limit on the time between a photo and its neighbours
+    dynamic_threshold: float = 0.05  # squared HSV difference, any channel (paper)
+    depth_margin_m: float = 0.3  # static: point closer than the model by more than this occludes
+    normal_angle_deg: float = 30.0  # static: normal disagreement that occludes
+    terrain_height_m: float | None = None  # site ground level; else BimModel's, else estimated from the cloud
+    sparse_growth: float = 0.2  # recompute a static mask when a photo's observations grew by this fraction
+    jpeg_quality: int = 90
+
+
+@dataclass
+class _PhotoInfo:
+    camera_id: str | None
+    capture_time_ns: int
+    data: bytes
+    width_px: int
+    height_px: int
+
+
+@dataclass
+class _Cloud:
+    points_m: NDArray[np.float64]
+    normals: NDArray[np.float32]
+    flatness: NDArray[np.float32]
+    obs_point: NDArray[np.int32]
+    obs_photo: NDArray[np.int32]
+    obs_pixel: NDArray[np.float32]
+    photo_index: dict[str, int]
+    terrain_height_m: float | None
+
+
+def decode_image(data: bytes, what: str) -> U8:
+    """uint8 BGR (H, W, 3) of JPEG/PNG bytes; ValueError when undecodable."""
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    if img is None:
+        raise ValueError(f"{what}: cannot decode image data ({len(data)} bytes)")
+    return img
+
+
+def encode_png(mask: U8) -> bytes:
+    ok, buf = cv2.imencode(".png", mask)
+    if not ok:
+        raise ValueError("cannot encode mask PNG")
+    return buf.tobytes()
+
+
+def decode_sparse(msg: SparseCloud) -> _Cloud:
+    """Arrays of a SparseCloud message (see its docstring) with PCA normals per point."""
+    pts = np.frombuffer(msg.points_xyz_f32, np.float32)
+    if pts.size % 3:
+        raise ValueError(f"sparse cloud: points_xyz_f32 has {pts.size} floats, not a multiple of 3")
+    pts64 = pts.reshape(-1, 3).astype(np.float64)
+    obs_point = np.frombuffer(msg.obs_point_i32, np.int32)
+    obs_photo = np.frombuffer(msg.obs_photo_i32, np.int32)
+    obs_pixel = np.frombuffer(msg.obs_pixel_f32, np.float32).reshape(-1, 2)
+    if not (len(obs_point) == len(obs_photo) == len(obs_pixel)):
+        raise ValueError(
+            f"sparse cloud: observation arrays differ in length ({len(obs_point)}, {len(obs_photo)}, {len(obs_pixel)})"
+        )
+    if len(obs_point) and (obs_point.max() >= len(pts64) or obs_point.min() < 0):
+        raise ValueError("sparse cloud: obs_point_i32 indexes outside the points")
+    if len(obs_photo) and (obs_photo.max() >= len(msg.photo_ids) or obs_photo.min() < 0):
+        raise ValueError("sparse cloud: obs_photo_i32 indexes outside photo_ids")
+    normals, flatness = estimate_point_normals(pts64)
+    terrain = estimate_terrain_height(pts64, normals, flatness)
+    return _Cloud(
+        pts64, normals, flatness, obs_point, obs_photo, obs_pixel, {p: i for i, p in enumerate(msg.photo_ids)}, terrain
+    )
+
+
+def _flushing(handler: Callable[..., None]) -> Callable[..., None]:
+    """Handler wrapper: publish pending combined masks once the handler is done (even on error)."""
+
+    @functools.wraps(handler)
+    def wrapper(self: OccludeNode, *args: object) -> None:
+        try:
+            handler(self, *args)
+        finally:
+            self._flush()
+
+    return wrapper
+
+
+class OccludeNode:
+    def __init__(self, config: Config, ctx: NodeContext) -> None:
+        self.config = config
+        self.ctx = ctx
+        gap = int(config.max_time_gap_days * NS_PER_DAY) if config.max_time_gap_days > 0 else None
+        self.store = TimelapseStore(
+            working_width_px=config.working_width_px, max_views=config.max_views, max_time_gap_ns=gap
+        )
+        self.dyn_params = DynamicParams(threshold=config.dynamic_threshold)
+        self.static_params = StaticParams(
+            depth_margin_m=config.depth_margin_m, normal_angle_deg=config.normal_angle_deg
+        )
+        self.photos: dict[str, _PhotoInfo] = {}
+        self.registrations: dict[str, Registration] = {}
+        self.cloud: _Cloud | None = None
+        self.meshes: dict[str, tuple[NDArray[np.float64], NDArray[np.int32]]] = {}
+        self.model_revision: str | None = None
+        self.renderer: ModelRenderer | None = None
+        self.model_terrain_height_m: float | None = None
+        self.user = UserCorrections()
+        self.masks: dict[tuple[str, str], tuple[str, bytes]] = {}  # (photo, kind) -> (status, png)
+        self.dynamic_stack_ids: dict[str, tuple[str, ...]] = {}
+        self.static_obs_count: dict[str, int] = {}
+        self._dirty: set[str] = set()
+        self.model_region: dict[str, NDArray[np.bool_]] = {}  # projected model at dynamic working size
+        self.dynamic_used_region: dict[str, bool] = {}
+
+    # ----------------------------------------------------------------- handlers
+
+    @_flushing
+    def on_photo(self, msg: Photo, key: str) -> None:
+        img = decode_image(msg.data, f"photo {msg.photo_id}")
+        h, w = img.shape[:2]
+        self.photos[msg.photo_id] = _PhotoInfo(msg.camera_id, msg.capture_time_ns, msg.data, w, h)
+        self.store.add_photo(msg.photo_id, msg.camera_id, msg.capture_time_ns, img)
+        self._dynamic(msg.photo_id, img)
+        if msg.camera_id is not None:
+            for other in self.store.by_camera.get(msg.camera_id, ()):
+                if other != msg.photo_id and self.masks.get((other, "dynamic"), ("ok",))[0] == "not_enough_views":
+                    self._dynamic(other)
+        self._static(msg.photo_id, img)
+        self._user(msg.photo_id)
+
+    @_flushing
+    def on_viewpoints(self, msg: ViewpointGroup, key: str) -> None:
+        groups = {}
+        for n in msg.neighbours:
+            if len(n.this_from_neighbour) != 9:
+                raise ValueError(
+                    f"viewpoint group of {msg.photo_id}: homography of {n.photo_id} "
+                    f"has {len(n.this_from_neighbour)} values, expected 9"
+                )
+            groups[n.photo_id] = np.asarray(n.this_from_neighbour, dtype=np.float64).reshape(3, 3)
+        self.store.set_neighbours(msg.photo_id, groups)
+        touched = [msg.photo_id] + [
+            p for p in groups if self.masks.get((p, "dynamic"), ("ok",))[0] == "not_enough_views"
+        ]
+        for pid in touched:
+            if pid in self.photos and self._stack_ids(pid) != self.dynamic_stack_ids.get(pid):
+                self._dynamic(pid)
+
+    @_flushing
+    def on_registration(self, msg: Registration, key: str) -> None:
+        if msg.status == "failed" or msg.intrinsics is None or len(msg.world_from_camera) != 16:
+            return
+        self.registrations[msg.photo_id] = msg
+        self.static_obs_count.pop(msg.photo_id, None)
+        self._static(msg.photo_id)
+        # the projected model now tells where construction progress may change the scene
+        status = self.masks.get((msg.photo_id, "dynamic"), ("", b""))[0]
+        if (
+            status == "ok"
+            and not self.dynamic_used_region.get(msg.photo_id, False)
+            and msg.photo_id in self.model_region
+        ):
+            self._dynamic(msg.photo_id)
+
+    @_flushing
+    def on_sparse(self, msg: SparseCloud, key: str) -> None:
+        self.cloud = decode_sparse(msg)
+        for pid in list(self.registrations):
+            n_obs = self._num_obs(pid)
+            last = self.static_obs_count.get(pid)
+            if last is None or n_obs > last * (1.0 + self.config.sparse_growth):
+                self._static(pid)
+
+    @_flushing
+    def on_bim_model(self, msg: BimModel, key: str) -> None:
+        self._set_model(load_bim_model_glb(msg), msg.revision)
+        self.model_terrain_height_m = msg.terrain_height_m
+
+    @_flushing
+    def on_bim_update(self, msg: BimUpdate, key: str) -> None:
+        if self.model_revision is None or msg.base_revision != self.model_revision:
+            raise ValueError(
+                f"BIM update {msg.base_revision} -> {msg.revision} does not apply to revision {self.model_revision}"
+            )
+        meshes = dict(self.meshes)
+        for gid in msg.removed:
+            meshes.pop(gid, None)
+        new = glb_to_meshes(msg.geometry_glb)
+        for el in (*msg.added, *msg.changed):
+            ref = el.geometry_ref or el.global_id
+            meshes.pop(ref, None)
+            if ref in new:
+                meshes[ref] = new[ref]
+        self._set_model(meshes, msg.revision)
+
+    @_flushing
+    def on_annotation(self, msg: Annotation, key: str) -> None:
+        if msg.kind != "occluder":
+            return
+        info = self.photos.get(msg.photo_id) if msg.photo_id else None
+        camera_id = msg.camera_id if msg.camera_id is not None else (info.camera_id if info else None)
+        self.user.add(
+            msg.annotation_id,
+            msg.photo_id,
+            camera_id,
+            msg.polygon_px,
+            info.capture_time_ns if info else None,
+            (info.width_px, info.height_px) if info else None,
+        )
+        for pid, p in self.photos.items():
+            if pid == msg.photo_id or (camera_id is not None and p.camera_id == camera_id):
+                self._user(pid)
+
+    def close(self) -> None:
+        if self.renderer is not None:
+            self.renderer.close()
+            self.renderer = None
+
+    # ----------------------------------------------------------------- work
+
+    def _image(self, photo_id: str) -> U8:
+        return decode_image(self.photos[photo_id].data, f"photo {photo_id}")
+
+    def _stack_ids(self, photo_id: str) -> tuple[str, ...]:
+        cands = self.store.candidate_neighbours(photo_id)
+        return tuple(sorted(cands))
+
+    def _publish(self, photo_id: str, kind: str, status: str, mask: U8 | None, started: float, **extra: object) -> None:
+        png = encode_png(mask) if mask is not None and status == "ok" else b""
+        self.masks[(photo_id, kind)] = (status, png)
+        msg = OcclusionMask(
+            site=self.ctx.site,
+            photo_id=photo_id,
+            kind=kind,  # type: ignore[arg-type]
+            status=status,  # type: ignore[arg-type]
+            mask_png=png,
+            processing_ms=(time.perf_counter() - started) * 1000.0,
+            **extra,  # type: ignore[arg-type]
+        )
+        self.ctx.publish(keys.key(keys.OCCLUSION, site=self.ctx.site, kind=kind, photo=photo_id), msg)
+        if kind != "combined":
+            self._dirty.add(photo_id)
+
+    def _flush(self) -> None:
+        """Publish the combined mask of every photo whose component masks changed in this handler."""
+        while self._dirty:
+            self._combined(self._dirty.pop())
+
+    def _dynamic(self, photo_id: str, img: U8 | None = None) -> None:
+        started = time.perf_counter()
+        img = self._image(photo_id) if img is None else img
+        stack = self.store.aligned_stack(photo_id)
+        self.dynamic_stack_ids[photo_id] = self._stack_ids(photo_id)
+        region = self.model_region.get(photo_id)
+        self.dynamic_used_region[photo_id] = region is not None
+        res = dynamic_mask(img, self.store.frames[photo_id].image_small, stack, self.dyn_params, region)
+        bg = b""
+        if res.background is not None:
+            ok, buf = cv2.imencode(".jpg", res.background, [cv2.IMWRITE_JPEG_QUALITY, self.config.jpeg_quality])
+            bg = buf.tobytes() if ok else b""
+        self._publish(photo_id, "dynamic", res.status, res.mask, started, background_jpeg=bg, num_views=res.num_views)
+
+    def _terrain_height_m(self) -> float | None:
+        """Configured ground level, else the model's, else the cloud's dominant horizontal surface."""
+        if self.config.terrain_height_m is not None:
+            return self.config.terrain_height_m
+        if self.model_terrain_height_m is not None:
+            return self.model_terrain_height_m
+        return self.cloud.terrain_height_m if self.cloud is not None else None
+
+    def _num_obs(self, photo_id: str) -> int:
+        if self.cloud is None or photo_id not in self.cloud.photo_index:
+            return 0
+        return int(np.count_nonzero(self.cloud.obs_photo == self.cloud.photo_index[photo_id]))
+
+    def _static(self, photo_id: str, img: U8 | None = None) -> None:
+        reg = self.registrations.get(photo_id)
+        if reg is None or photo_id not in self.photos or self.renderer is None or reg.intrinsics is None:
+            return
+        started = time.perf_counter()
+        img = self._image(photo_id) if img is None else img
+        H, W = img.shape[:2]
+        w, h, _ = working_size(W, H, self.config.static_working_width_px)
+        small = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
+        world_from_camera = np.asarray(reg.world_from_camera, dtype=np.float64).reshape(4, 4)
+        maps: ModelMaps = self.renderer.render(reg.intrinsics, world_from_camera, w, h)
+        frame = self.store.frames.get(photo_id)
+        if frame is not None:
+            dh, dw = frame.image_small.shape[:2]
+            region = cv2.resize(maps.has_model.astype(np.uint8), (dw, dh), interpolation=cv2.INTER_NEAREST)
+            self.model_region[photo_id] = cv2.dilate(region, np.ones((9, 9), np.uint8)) > 0
+        pts = np.zeros((0, 3))
+        px = np.zeros((0, 2))
+        normals = np.zeros((0, 3), np.float32)
+        flat = np.zeros(0, np.float32)
+        if self.cloud is not None and photo_id in self.cloud.photo_index:
+            sel = self.cloud.obs_photo == self.cloud.photo_index[photo_id]
+            idx = self.cloud.obs_point[sel]
+            pts, px = self.cloud.points_m[idx], self.cloud.obs_pixel[sel].astype(np.float64)
+            normals, flat = self.cloud.normals[idx], self.cloud.flatness[idx]
+            # observations are in the registered image's pixels; rescale when the photo differs
+            if (reg.intrinsics.width_px, reg.intrinsics.height_px) != (W, H) and reg.intrinsics.width_px > 0:
+                sx, sy = W / reg.intrinsics.width_px, H / reg.intrinsics.height_px
+                px = np.stack([sx * (px[:, 0] + 0.5) - 0.5, sy * (px[:, 1] + 0.5) - 0.5], axis=1)
+        self.static_obs_count[photo_id] = len(pts)
+        res = static_mask(
+            img,
+            small,
+            maps,
+            world_from_camera[:3, 3],
+            pts,
+            px,
+            normals,
+            flat,
+            self._terrain_height_m(),
+            self.static_params,
+        )
+        self._publish(photo_id, "static", res.status, res.mask, started, num_views=res.num_points)
+
+    def _user(self, photo_id: str) -> None:
+        info = self.photos.get(photo_id)
+        if info is None:
+            return
+        started = time.perf_counter()
+        mask = self.user.mask_for(photo_id, info.camera_id, info.capture_time_ns, info.width_px, info.height_px)
+        if mask is not None:
+            self._publish(photo_id, "user", "ok", mask, started)
+
+    def _combined(self, photo_id: str) -> None:
+        info = self.photos.get(photo_id)
+        if info is None:
+            return
+        started = time.perf_counter()
+        out = np.zeros((info.height_px, info.width_px), np.uint8)
+        any_ok = False
+        for kind in ("dynamic", "static", "user"):
+            status, png = self.masks.get((photo_id, kind), ("", b""))
+            if status == "ok" and png:
+                m = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_GRAYSCALE)
+                if m is not None and m.shape == out.shape:
+                    out |= m
+                    any_ok = True
+        self._publish(photo_id, "combined", "ok" if any_ok else "not_enough_views", out if any_ok else None, started)
+
+    def _set_model(self, meshes: dict[str, tuple[NDArray[np.float64], NDArray[np.int32]]], revision: str) -> None:
+        if self.renderer is not None:
+            self.renderer.close()
+        self.meshes = meshes
+        self.model_revision = revision
+        self.renderer = ModelRenderer(meshes)
+        self.static_obs_count.clear()
+        for pid in list(self.registrations):
+            self._static(pid)
+
+
+SPEC = NodeSpec(
+    name="occlude",
+    description="dynamic (time-lapse median), static (sparse points vs BIM), user and combined occlusion masks",
+    config_type=Config,
+    factory=OccludeNode,
+    inputs=(
+        Input(keys.PHOTO, Photo, "on_photo"),
+        Input(keys.REGISTRATION, Registration, "on_registration"),
+        Input(keys.VIEWPOINTS, ViewpointGroup, "on_viewpoints"),
+        Input(keys.SPARSE, SparseCloud, "on_sparse", latched=True),
+        Input(keys.BIM_MODEL, BimModel, "on_bim_model", latched=True),
+        Input(keys.BIM_UPDATE, BimUpdate, "on_bim_update"),
+        Input(keys.ANNOTATION, Annotation, "on_annotation"),
+    ),
+    outputs=(Output(keys.OCCLUSION, OcclusionMask),),
+)
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_node_cli(SPEC, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,220 @@
+"""Pixel-aligned time-lapse stacks from viewpoint groups (paper Sec. 4.1.1).
+
+Every photo is kept at a reduced working resolution. A photo's stack is its neighbours (photos
+from nearly the same viewpoint) warped into its view by ``this_from_neighbour`` homographies.
+Neighbours come from registration's viewpoint groups (either direction: a group of B listing A
+with ``B_from_A`` gives ``A_from_B = inv(B_from_A)``) and, for a fixed camera, from the camera's
+other frames (identity homography, refined by a phase-correlation shift to absorb small jitter;
+a frame that still does not line up, because the camera was moved, is left out).
+
+Adding a photo or a group is O(1); a stack is built on demand for one photo only, so a new frame
+never forces recomputing other frames' stacks.
+
+Pixel convention: (0, 0) is the centre of the top-left pixel, so scaling an image by ``s`` maps
+``u -> s (u + 0.5) - 0.5``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+U8 = NDArray[np.uint8]
+F64 = NDArray[np.float64]
+
+
+def scale_matrix(scale: float) -> F64:
+    """3x3 map from full-resolution pixels to pixels of an image resized by ``scale``."""
+    off = 0.5 * scale - 0.5
+    return np.array([[scale, 0.0, off], [0.0, scale, off], [0.0, 0.0, 1.0]])
+
+
+def working_size(width_px: int, height_px: int, working_width_px: int) -> tuple[int, int, float]:
+    """(width, height, scale) of the working image; never upscales."""
+    if width_px <= 0 or height_px <= 0:
+        raise ValueError(f"bad image size {width_px}x{height_px}")
+    scale = min(1.0, working_width_px / float(width_px))
+    return max(1, round(width_px * scale)), max(1, round(height_px * scale)), scale
+
+
+def alignment_ncc(a_bgr: U8, b_bgr: U8, valid: NDArray[np.bool_]) -> float:
+    """Normalised cross-correlation of the band-passed grey images over ``valid`` pixels (gain/offset
+    invariant; about 1 for aligned views of the same scene, about 0 for misaligned ones)."""
+    out = []
+    for img in (a_bgr, b_bgr):
+        g = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY).astype(np.float32)
+        g = cv2.GaussianBlur(g, (0, 0), 1.0) - cv2.GaussianBlur(g, (0, 0), 4.0)
+        out.append(g[valid])
+    x, y = out
+    x = x - x.mean()
+    y = y - y.mean()
+    den = float(np.sqrt((x * x).sum() * (y * y).sum()))
+    return float((x * y).sum() / den) if den > 0 else 0.0
+
+
+@dataclass
+class StackFrame:
+    """One stored photo at working resolution. ``image_small``: uint8 BGR (h, w, 3)."""
+
+    photo_id: str
+    camera_id: str | None
+    capture_time_ns: int
+    image_small: U8
+    scale: float
+    full_size_px: tuple[int, int]  # (width, height) of the original photo
+
+
+@dataclass
+class AlignedStack:
+    """Neighbours warped into one photo's working view.
+
+    ``images``: uint8 (N, h, w, 3) BGR; ``valid``: bool (N, h, w), True where the warped
+    neighbour covers the pixel; ``photo_ids``: the N neighbours, nearest in time first.
+    """
+
+    photo_id: str
+    images: U8
+    valid: NDArray[np.bool_]
+    photo_ids: tuple[str, ...] = ()
+    times_ns: tuple[int, ...] = ()  # capture time of each neighbour
+    photo_time_ns: int = 0
+
+    @property
+    def num_views(self) -> int:
+        return int(self.images.shape[0])
+
+
+@dataclass
+class TimelapseStore:
+    """Photos at working resolution and the homographies between them.
+
+    ``max_views``: stack size cap (neighbours nearest in capture time win);
+    ``max_time_gap_ns``: neighbours further apart in time are ignored (None: no limit);
+    ``min_overlap``: neighbours whose warp covers less of the photo are dropped;
+    ``refine_fixed_shift``: estimate a sub-pixel shift between a fixed camera's frames.
+    """
+
+    working_width_px: int = 480
+    max_views: int = 8
+    max_time_gap_ns: int | None = None
+    min_overlap: float = 0.3
+    refine_fixed_shift: bool = True
+    min_fixed_ncc: float = 0.5  # a fixed camera's frame is dropped when it aligns worse than this (camera moved)
+    frames: dict[str, StackFrame] = field(default_factory=dict)
+    # (this, neighbour) -> this_from_neighbour in full-resolution pixels
+    homographies: dict[tuple[str, str], F64] = field(default_factory=dict)
+    by_camera: dict[str, list[str]] = field(default_factory=dict)
+    _shift_cache: dict[tuple[str, str], F64] = field(default_factory=dict)
+
+    def add_photo(self, photo_id: str, camera_id: str | None, capture_time_ns: int, image_bgr: U8) -> StackFrame:
+        """Store a photo (uint8 BGR (H, W, 3), full resolution). Returns its frame."""
+        if image_bgr.ndim != 3 or image_bgr.shape[2] != 3:
+            raise ValueError(f"photo {photo_id}: expected (H, W, 3) BGR, got shape {image_bgr.shape}")
+        h_full, w_full = image_bgr.shape[:2]
+        w, h, scale = working_size(w_full, h_full, self.working_width_px)
+        small = cv2.resize(image_bgr, (w, h), interpolation=cv2.INTER_AREA) if scale < 1.0 else image_bgr.copy()
+        frame = StackFrame(photo_id, camera_id, int(capture_time_ns), small, scale, (w_full, h_full))
+        if photo_id not in self.frames and camera_id is not None:
+            self.by_camera.setdefault(camera_id, []).append(photo_id)
+        self.frames[photo_id] = frame
+        return frame
+
+    def set_neighbours(self, photo_id: str, this_from_neighbour: dict[str, F64]) -> None:
+        """Record a viewpoint group: 3x3 homographies mapping neighbour pixels to ``photo_id``'s."""
+        for nid, H in this_from_neighbour.items():
+            if nid == photo_id:
+                continue
+            H = np.asarray(H, dtype=np.float64).reshape(3, 3)
+            if not np.all(np.isfinite(H)) or abs(np.linalg.det(H)) < 1e-12:
+                raise ValueError(f"viewpoint group of {photo_id}: degenerate homography for {nid}")
+            self.homographies[(photo_id, nid)] = H / H[2, 2]
+
+    def candidate_neighbours(self, photo_id: str) -> dict[str, F64]:
+        """All neighbours of a stored photo with full-resolution ``this_from_neighbour`` (3, 3)."""
+        out: dict[str, F64] = {}
+        for (a, b), H in self.homographies.items():
+            if a == photo_id and b in self.frames:
+                out[b] = H
+            elif b == photo_id and a in self.frames and a not in out:
+                out[a] = np.linalg.inv(H)
+        frame = self.frames[photo_id]
+        if frame.camera_id is not None:
+            for nid in self.by_camera.get(frame.camera_id, ()):
+                if nid != photo_id and nid not in out and self.frames[nid].full_size_px == frame.full_size_px:
+                    out[nid] = self._fixed_camera_homography(photo_id, nid)
+        return out
+
+    def _fixed_camera_homography(self, photo_id: str, nid: str) -> F64:
+        """Identity, or a translation from phase correlation of the working images."""
+        if not self.refine_fixed_shift:
+            return np.eye(3)
+        key = (photo_id, nid)
+        if key in self._shift_cache:
+            return self._shift_cache[key]
+        a = cv2.cvtColor(self.frames[photo_id].image_small, cv2.COLOR_BGR2GRAY).astype(np.float32)
+        b = cv2.cvtColor(self.frames[nid].image_small, cv2.COLOR_BGR2GRAY).astype(np.float32)
+        win = cv2.createHanningWindow(a.shape[::-1], cv2.CV_32F)
+        (dx, dy), response = cv2.phaseCorrelate(b, a, win)
+        H = np.eye(3)
+        max_shift = 0.1 * a.shape[1]
+        if response > 0.05 and abs(dx) < max_shift and abs(dy) < max_shift:
+            H[0, 2], H[1, 2] = dx / self.frames[photo_id].scale, dy / self.frames[photo_id].scale
+        self._shift_cache[key] = H
+        self._shift_cache[(nid, photo_id)] = np.linalg.inv(H)
+        return H
+
+    def aligned_stack(self, photo_id: str) -> AlignedStack:
+        """Warp the nearest-in-time neighbours into ``photo_id``'s working view."""
+        if photo_id not in self.frames:
+            raise ValueError(f"unknown photo {photo_id}")
+        frame = self.frames[photo_id]
+        h, w = frame.image_small.shape[:2]
+        cands = self.candidate_neighbours(photo_id)
+        fixed = {n for n in cands if (photo_id, n) not in self.homographies and (n, photo_id) not in self.homographies}
+        order = sorted(cands, key=lambda nid: (abs(self.frames[nid].capture_time_ns - frame.capture_time_ns), nid))
+        if self.max_time_gap_ns is not None:
+            order = [
+                n for n in order if abs(self.frames[n].capture_time_ns - frame.capture_time_ns) <= self.max_time_gap_ns
+            ]
+        S_this = scale_matrix(frame.scale)
+        images: list[U8] = []
+        valids: list[NDArray[np.bool_]] = []
+        ids: list[str] = []
+        for nid in order:
+            if len(ids) >= self.max_views:
+                break
+            nf = self.frames[nid]
+            H_small = S_this @ cands[nid] @ np.linalg.inv(scale_matrix(nf.scale))
+            warped = cv2.warpPerspective(
+                nf.image_small, H_small, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+            )
+            ones = np.full(nf.image_small.shape[:2], 255, np.uint8)
+            cover = cv2.warpPerspective(ones, H_small, (w, h), flags=cv2.INTER_NEAREST, borderValue=0)
+            cover = cv2.erode(cover, np.ones((3, 3), np.uint8))
+            valid = cover > 0
+            if valid.mean() < self.min_overlap:
+                continue
+            if nid in fixed and alignment_ncc(frame.image_small, warped, valid) < self.min_fixed_ncc:
+                continue  # the camera was moved between the two frames
+            images.append(warped)
+            valids.append(valid)
+            ids.append(nid)
+        if not images:
+            empty = AlignedStack(photo_id, np.zeros((0, h, w, 3), np.uint8), np.zeros((0, h, w), bool))
+            empty.photo_time_ns = frame.capture_time_ns
+            return empty
+        times = tuple(self.frames[n].capture_time_ns for n in ids)
+        return AlignedStack(photo_id, np.stack(images), np.stack(valids), tuple(ids), times, frame.capture_time_ns)
+
+    def forget(self, photo_id: str) -> None:
+        """Drop a photo and every homography that mentions it."""
+        frame = self.frames.pop(photo_id, None)
+        if frame is not None and frame.camera_id is not None:
+            self.by_camera[frame.camera_id] = [p for p in self.by_camera[frame.camera_id] if p != photo_id]
+        for k in [k for k in self.homographies if photo_id in k]:
+            del self.homographies[k]
+        for k in [k for k in self._shift_cache if photo_id in k]:
+            del self._shift_cache[k]

@@ -1,0 +1,224 @@
+"""Static occlusions (fence, ground over the basement, scaffolding, neighbours) (paper Sec. 4.1.2).
+
+For each sparse 3D point observed in the photo, compare it with the model surface at its pixel:
+it occludes the model when it is more than ``depth_margin_m`` closer to the camera than every
+model surface around that pixel, or (within the margin) when its normal, estimated by PCA of its
+nearest neighbours in the cloud, differs from the model's normal by more than
+``normal_angle_deg``. SLIC superpixels holding occluding points are flooded; model pixels whose
+surface lies below the site terrain are occluded by the ground; the mask is smoothed with a
+cross-bilateral filter guided by the photo and upsampled with a guided filter.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from nodes.occlude.dynamic import upsample_mask
+from nodes.occlude.modeldepth import ModelMaps
+
+U8 = NDArray[np.uint8]
+F32 = NDArray[np.float32]
+F64 = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class StaticParams:
+    """Tuning of :func:`static_mask`. Sizes are in working-resolution pixels unless named otherwise."""
+
+    depth_margin_m: float = 0.3
+    normal_angle_deg: float = 30.0
+    normal_neighbours: int = 12
+    max_flatness: float = 0.05  # smallest PCA eigenvalue / sum: above it the normal is not trusted
+    depth_window_px: int = 3  # model depth is the minimum over this window around the point
+    slic_region_px: int = 14
+    slic_ruler: float = 12.0
+    slic_iterations: int = 4
+    vote_fraction: float = 0.5  # flood a superpixel when occluding >= this fraction of its judged points
+    bilateral_diameter_px: int = 9
+    bilateral_sigma_color: float = 0.1
+    bilateral_sigma_space_px: float = 4.0
+    ground_margin_m: float = 0.05
+    restrict_to_model: bool = True
+    guided_radius_px: int = 8  # full-resolution pixels
+    guided_eps: float = 1e-3
+    min_points: int = 1
+
+
+@dataclass
+class StaticResult:
+    """``mask``: uint8 (H, W) 0/255 at photo resolution; counts of judged and occluding points."""
+
+    status: Literal["ok", "not_enough_views"]
+    mask: U8
+    num_points: int
+    num_occluding: int
+
+
+def estimate_point_normals(points_world_m: F64, k: int = 12) -> tuple[F32, F32]:
+    """PCA normals (N, 3) and flatness (N,) (smallest eigenvalue / eigenvalue sum; 1/3 = isotropic)
+    of each point from its ``k`` nearest neighbours. Fewer than 4 points: zero normals, flatness 1."""
+    pts = np.asarray(points_world_m, dtype=np.float64).reshape(-1, 3)
+    n = len(pts)
+    if n < 4:
+        return np.zeros((n, 3), np.float32), np.ones(n, np.float32)
+    k = min(k, n)
+    _, idx = cKDTree(pts).query(pts, k=k)
+    nb = pts[idx]  # (N, k, 3)
+    centred = nb - nb.mean(axis=1, keepdims=True)
+    cov = np.einsum("nki,nkj->nij", centred, centred) / k
+    evals, evecs = np.linalg.eigh(cov)  # ascending
+    normals = evecs[:, :, 0]
+    flatness = evals[:, 0] / np.maximum(evals.sum(axis=1), 1e-12)
+    return normals.astype(np.float32), flatness.astype(np.float32)
+
+
+def estimate_terrain_height(
+    points_world_m: F64, normals: F32, flatness: F32, bin_m: float = 0.25, min_points: int = 30
+) -> float | None:
+    """Height (world z, metres) of the most populated horizontal surface in the sparse cloud, taken as
+    the site terrain; None when fewer than ``min_points`` flat points face up.
+
+    The ground around a building site is the largest horizontal surface in view; its points are
+    binned by z and the fullest bin (and its neighbours) gives the median height.
+    """
+    pts = np.asarray(points_world_m, dtype=np.float64).reshape(-1, 3)
+    horizontal = (np.abs(normals[:, 2]) > 0.95) & (flatness < 0.05)
+    z = pts[horizontal, 2]
+    if len(z) < min_points:
+        return None
+    lo = np.floor(z.min() / bin_m)
+    idx = np.floor(z / bin_m - lo).astype(np.int64)
+    counts = np.bincount(idx)
+    best = int(np.argmax(counts))
+    near = np.abs(idx - best) <= 1
+    return float(np.median(z[near]))
+
+
+def classify_points(
+    points_world_m: F64,
+    pixels_small: F64,
+    camera_center_m: F64,
+    maps: ModelMaps,
+    normals: F32,
+    flatness: F32,
+    params: StaticParams,
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """Judge points against the model. Returns (judged, occluding), both bool (N,).
+
+    ``pixels_small``: (N, 2) pixel of each point in the working image. A point is judged when its
+    pixel shows model surface; occluding per the paper's heuristic (see module docstring).
+    """
+    h, w = maps.depth_m.shape
+    n = len(points_world_m)
+    judged = np.zeros(n, bool)
+    occluding = np.zeros(n, bool)
+    if n == 0:
+        return judged, occluding
+    ui = np.round(pixels_small[:, 0]).astype(np.int64)
+    vi = np.round(pixels_small[:, 1]).astype(np.int64)
+    inside = (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
+    ui, vi = np.clip(ui, 0, w - 1), np.clip(vi, 0, h - 1)
+    win = max(1, params.depth_window_px)
+    depth_min = cv2.erode(maps.depth_m, np.ones((win, win), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    model_pt = maps.point_in_world_m[vi, ui].astype(np.float64)
+    model_n = maps.normal_in_world[vi, ui].astype(np.float64)
+    has = inside & np.isfinite(maps.depth_m[vi, ui])
+    judged[:] = has
+    # ranges along the viewing ray: the point's, the model's at the pixel and the nearest model's around it
+    ray_p = points_world_m - camera_center_m
+    r_p = np.linalg.norm(ray_p, axis=1)
+    r_m = np.linalg.norm(model_pt - camera_center_m, axis=1)
+    z_m = maps.depth_m[vi, ui].astype(np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r_min = r_m * depth_min[vi, ui] / z_m
+    closer = has & (r_min - r_p > params.depth_margin_m)
+    near = has & (np.abs(r_m - r_p) <= params.depth_margin_m)
+    cos_ang = np.abs(np.sum(normals.astype(np.float64) * model_n, axis=1))
+    trusted = (flatness <= params.max_flatness) & (np.linalg.norm(model_n, axis=1) > 0.5)
+    turned = near & trusted & (cos_ang < np.cos(np.radians(params.normal_angle_deg)))
+    occluding[:] = closer | turned
+    return judged, occluding
+
+
+def superpixel_flood(
+    photo_small: U8, pixels_small: F64, judged: NDArray[np.bool_], occluding: NDArray[np.bool_], params: StaticParams
+) -> U8:
+    """SLIC superpixels of the working photo flooded by occluding points. uint8 (h, w) 0/1."""
+    h, w = photo_small.shape[:2]
+    lab = cv2.cvtColor(photo_small, cv2.COLOR_BGR2LAB)
+    slic = cv2.ximgproc.createSuperpixelSLIC(lab, cv2.ximgproc.SLICO, params.slic_region_px, params.slic_ruler)
+    slic.iterate(params.slic_iterations)
+    labels = slic.getLabels()
+    nlab = int(labels.max()) + 1
+    ui = np.clip(np.round(pixels_small[:, 0]).astype(np.int64), 0, w - 1)
+    vi = np.clip(np.round(pixels_small[:, 1]).astype(np.int64), 0, h - 1)
+    lab_of = labels[vi, ui]
+    n_occ = np.bincount(lab_of[occluding], minlength=nlab)
+    n_judged = np.bincount(lab_of[judged], minlength=nlab)
+    flooded = (n_occ >= 1) & (n_occ >= params.vote_fraction * n_judged)
+    return flooded[labels].astype(np.uint8)
+
+
+def below_terrain(maps: ModelMaps, terrain_height_m: float, margin_m: float) -> NDArray[np.bool_]:
+    """Model pixels whose visible surface lies below the terrain plane z = terrain_height_m."""
+    z = maps.point_in_world_m[..., 2]
+    return np.isfinite(z) & (z < terrain_height_m - margin_m)
+
+
+def static_mask(
+    photo_full: U8,
+    photo_small: U8,
+    maps: ModelMaps,
+    camera_center_m: F64,
+    points_world_m: F64,
+    pixels_full: F64,
+    normals: F32,
+    flatness: F32,
+    terrain_height_m: float | None,
+    params: StaticParams | None = None,
+) -> StaticResult:
+    """Static-occluder mask of one photo.
+
+    ``photo_full``/``photo_small``: uint8 BGR at photo and working size; ``maps``: model maps at the
+    working size; ``points_world_m`` (N, 3) the cloud points observed in the photo with their
+    observed full-resolution pixels ``pixels_full`` (N, 2) and PCA ``normals``/``flatness`` (N,).
+    """
+    params = params or StaticParams()
+    H, W = photo_full.shape[:2]
+    h, w = photo_small.shape[:2]
+    if maps.depth_m.shape != (h, w):
+        raise ValueError(f"model maps {maps.depth_m.shape} do not match the working photo {(h, w)}")
+    sx, sy = w / W, h / H
+    pts = np.asarray(points_world_m, dtype=np.float64).reshape(-1, 3)
+    px = np.asarray(pixels_full, dtype=np.float64).reshape(-1, 2)
+    pixels_small = np.stack([sx * (px[:, 0] + 0.5) - 0.5, sy * (px[:, 1] + 0.5) - 0.5], axis=1)
+    judged, occluding = classify_points(
+        pts, pixels_small, np.asarray(camera_center_m, np.float64), maps, normals, flatness, params
+    )
+    ground = (
+        below_terrain(maps, terrain_height_m, params.ground_margin_m)
+        if terrain_height_m is not None
+        else np.zeros((h, w), bool)
+    )
+    if int(judged.sum()) < params.min_points and not ground.any():
+        return StaticResult("not_enough_views", np.zeros((H, W), np.uint8), int(judged.sum()), 0)
+    flood = (
+        superpixel_flood(photo_small, pixels_small, judged, occluding, params)
+        if occluding.any()
+        else np.zeros((h, w), np.uint8)
+    )
+    soft = np.maximum(flood.astype(np.float32), ground.astype(np.float32))
+    photo_f = photo_small.astype(np.float32) / 255.0
+    soft = cv2.ximgproc.jointBilateralFilter(
+        photo_f, soft, params.bilateral_diameter_px, params.bilateral_sigma_color, params.bilateral_sigma_space_px
+    )
+    if params.restrict_to_model:
+        soft = soft * maps.has_model.astype(np.float32)
+    mask = upsample_mask(soft, photo_full, params.guided_radius_px, params.guided_eps)
+    return StaticResult("ok", mask, int(judged.sum()), int(occluding.sum()))

@@ -1,0 +1,291 @@
+"""Anchor registration: camera pose (and optionally focal) from user clicks (paper Sec. 6).
+
+A user clicks >= 4 pixels and the model points they show. The pose is solved by Levenberg-Marquardt on
+reprojection error (initialised by OpenCV PnP solvers), with the principal point at the image centre, square
+pixels and no distortion. The focal comes from a prior (EXIF / user) or a 50 degree horizontal field of view;
+with >= 6 non-coplanar clicks it is solved too. Every click gets a residual and a leave-one-out prediction
+error so a mis-click is flagged (``outlier_mask``). Degenerate input raises :class:`DegenerateAnchors`.
+
+Frames and units: pixels in the OpenCV convention ((0, 0) = centre of the top-left pixel), world points in
+model units, ``world_from_camera`` (4, 4) maps OpenCV camera coordinates to world.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+
+from constructaide import camera as cam
+from schemas.messages import Intrinsics
+
+DEFAULT_FOV_DEG = 50.0
+MIN_CLICKS = 4
+MIN_CLICKS_FOR_FOCAL = 6
+
+
+class DegenerateAnchors(ValueError):
+    """The clicks cannot determine a camera (too few, collinear, behind the camera, inconsistent...)."""
+
+
+@dataclass
+class AnchorSolution:
+    """Camera solved from clicks.
+
+    ``residuals_px`` (N,): reprojection error of each click under the solution; ``loo_errors_px`` (N,): error of
+    each click predicted by the solution without it (NaN when too few clicks to leave one out);
+    ``outlier_mask`` (N,) bool: clicks flagged as probable mis-clicks.
+    """
+
+    intrinsics: Intrinsics
+    world_from_camera: np.ndarray
+    residuals_px: np.ndarray
+    rms_px: float
+    focal_solved: bool
+    outlier_mask: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    loo_errors_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    outlier_threshold_px: float = float("nan")
+
+
+def _residuals(params: np.ndarray, pts: np.ndarray, px: np.ndarray, c: np.ndarray, f_fixed: float | None) -> np.ndarray:
+    R = cam.rodrigues_to_matrix(params[:3])
+    p_cam = pts @ R.T + params[3:6]
+    f = f_fixed if f_fixed is not None else float(np.exp(np.clip(params[6], -20.0, 20.0)))
+    z = p_cam[:, 2]
+    z_safe = np.where(np.abs(z) < 1e-9, 1e-9, z)
+    proj = f * p_cam[:, :2] / z_safe[:, None] + c
+    return (proj - px).ravel()
+
+
+def _rms(res: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(res.reshape(-1, 2) ** 2 * 2))) if res.size else 0.0
+
+
+def _pnp_inits(pts: np.ndarray, px: np.ndarray, K: np.ndarray, planar: bool) -> list[np.ndarray]:
+    """Candidate (rvec, tvec) from several OpenCV solvers; camera_from_world convention."""
+    methods = [cv2.SOLVEPNP_SQPNP, cv2.SOLVEPNP_EPNP]
+    if planar:
+        methods.insert(0, cv2.SOLVEPNP_IPPE)
+    out = []
+    for method in methods:
+        try:
+            ok, rvecs, tvecs, _ = cv2.solvePnPGeneric(pts, px, K, None, flags=method)
+        except cv2.error:
+            continue
+        if not ok:
+            continue
+        for r, t in zip(rvecs, tvecs, strict=False):
+            if np.all(np.isfinite(r)) and np.all(np.isfinite(t)):
+                out.append(np.concatenate([np.ravel(r), np.ravel(t)]).astype(np.float64))
+    return out
+
+
+def _dlt_focal(pts: np.ndarray, px: np.ndarray, c: np.ndarray) -> float | None:
+    """Focal (px) from a normalised DLT projection matrix; None when it is not meaningful."""
+    n = len(pts)
+    mean3, mean2 = pts.mean(0), px.mean(0)
+    s3 = np.sqrt(3) / max(np.linalg.norm(pts - mean3, axis=1).mean(), 1e-12)
+    s2 = np.sqrt(2) / max(np.linalg.norm(px - mean2, axis=1).mean(), 1e-12)
+    T3 = np.diag([s3, s3, s3, 1.0])
+    T3[:3, 3] = -s3 * mean3
+    T2 = np.diag([s2, s2, 1.0])
+    T2[:2, 2] = -s2 * mean2
+    X = np.c_[pts, np.ones(n)] @ T3.T
+    x = np.c_[px, np.ones(n)] @ T2.T
+    A = np.zeros((2 * n, 12))
+    A[0::2, 4:8] = -X
+    A[0::2, 8:12] = X * x[:, 1:2]
+    A[1::2, 0:4] = X
+    A[1::2, 8:12] = -X * x[:, 0:1]
+    P = np.linalg.svd(A)[2][-1].reshape(3, 4)
+    P = np.linalg.inv(T2) @ P @ T3
+    M = P[:, :3]
+    if abs(np.linalg.det(M)) < 1e-15:
+        return None
+    # K K^T = M M^T up to scale; with a known principal point f^2 = (M M^T)_00/(M M^T)_22 - cx^2.
+    MMt = M @ M.T / (M[2] @ M[2])
+    fx2 = MMt[0, 0] - c[0] ** 2
+    fy2 = MMt[1, 1] - c[1] ** 2
+    vals = [v for v in (fx2, fy2) if v > 0]
+    if not vals:
+        return None
+    return float(np.sqrt(np.mean(vals)))
+
+
+def _validate(pixels_px, points_in_world) -> tuple[np.ndarray, np.ndarray]:
+    px = np.asarray(pixels_px, dtype=np.float64)
+    pts = np.asarray(points_in_world, dtype=np.float64)
+    if px.ndim != 2 or px.shape[1] != 2:
+        raise DegenerateAnchors(f"pixels must have shape (N, 2), got {px.shape}")
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise DegenerateAnchors(f"world points must have shape (N, 3), got {pts.shape}")
+    if len(px) != len(pts):
+        raise DegenerateAnchors(f"{len(px)} pixels but {len(pts)} world points")
+    if not (np.all(np.isfinite(px)) and np.all(np.isfinite(pts))):
+        raise DegenerateAnchors("clicks contain NaN or infinite values")
+    if len(px) < MIN_CLICKS:
+        raise DegenerateAnchors(f"need at least {MIN_CLICKS} clicks, got {len(px)}")
+    extent = float(np.ptp(pts, axis=0).max())
+    if extent <= 1e-9 * max(1.0, float(np.abs(pts).max())):
+        raise DegenerateAnchors("all clicked model points coincide")
+    uniq_pts = len(np.unique(np.round(pts / (extent * 1e-6)), axis=0))
+    uniq_px = len(np.unique(np.round(px * 10), axis=0))
+    if min(uniq_pts, uniq_px) < MIN_CLICKS:
+        raise DegenerateAnchors(
+            f"only {min(uniq_pts, uniq_px)} distinct clicks (duplicated pixels or points); need {MIN_CLICKS}"
+        )
+    s2 = np.linalg.svd(px - px.mean(0), compute_uv=False)
+    if s2[1] / np.sqrt(len(px)) < 1.0 or s2[1] < 1e-3 * s2[0]:
+        raise DegenerateAnchors("clicked pixels are collinear; spread clicks over the image")
+    s3 = np.linalg.svd(pts - pts.mean(0), compute_uv=False)
+    if s3[1] < 1e-3 * s3[0]:
+        raise DegenerateAnchors("clicked model points are collinear; pick points off one line")
+    return px, pts
+
+
+def _is_planar(pts: np.ndarray) -> bool:
+    s3 = np.linalg.svd(pts - pts.mean(0), compute_uv=False)
+    return bool(s3[2] < 0.02 * s3[0])
+
+
+def _solve(
+    px: np.ndarray, pts: np.ndarray, c: np.ndarray, f0: float, solve_focal: bool, init: np.ndarray | None = None
+) -> tuple[np.ndarray, float, float]:
+    """Best (rvec|tvec, f_px, cost) over several initialisations."""
+    planar = _is_planar(pts)
+    focal_inits = [f0]
+    if solve_focal:
+        f_dlt = _dlt_focal(pts, px, c)
+        if f_dlt is not None and 0.05 * f0 < f_dlt < 20 * f0:
+            focal_inits.append(f_dlt)
+    best: tuple[np.ndarray, float, float] | None = None
+
+    def run(p0: np.ndarray, f_init: float) -> None:
+        nonlocal best
+        if solve_focal:
+            x0 = np.concatenate([p0, [np.log(f_init)]])
+            sol = least_squares(_residuals, x0, method="lm", args=(pts, px, c, None), x_scale="jac", max_nfev=400)
+            f = float(np.exp(np.clip(sol.x[6], -20.0, 20.0)))
+        else:
+            sol = least_squares(_residuals, p0, method="lm", args=(pts, px, c, f_init), x_scale="jac", max_nfev=400)
+            f = f_init
+        if best is None or sol.cost < best[2]:
+            best = (sol.x[:6].copy(), f, float(sol.cost))
+
+    if init is not None:
+        run(init, f0)
+    else:
+        for f_init in focal_inits:
+            K = np.array([[f_init, 0, c[0]], [0, f_init, c[1]], [0, 0, 1.0]])
+            for p0 in _pnp_inits(pts, px, K, planar):
+                run(p0, f_init)
+        # If nothing fits well, also start from poses that put every point behind the camera (PnP on the
+        # point-reflected model, translation negated): if those fit best, the clicks are reported as behind.
+        if best is None or _rms(_residuals(best[0], pts, px, c, best[1])) > 2.0:
+            for f_init in focal_inits:
+                K = np.array([[f_init, 0, c[0]], [0, f_init, c[1]], [0, 0, 1.0]])
+                for p in _pnp_inits(-pts, px, K, planar):
+                    run(np.concatenate([p[:3], -p[3:]]), f_init)
+    if best is None:
+        raise DegenerateAnchors("no pose could be solved from these clicks")
+    return best
+
+
+def solve_anchor(
+    pixels_px,
+    points_in_world,
+    width_px: int,
+    height_px: int,
+    focal_px: float | None = None,
+    solve_focal: bool | None = None,
+    min_outlier_px: float | None = None,
+) -> AnchorSolution:
+    """Solve a camera from clicks: pixels (N, 2) OpenCV convention, world points (N, 3) in model units.
+
+    ``focal_px`` is the prior (EXIF/user), else a 50 degree horizontal FOV. ``solve_focal``: None = with >= 6
+    non-coplanar clicks solve it when there is no prior, or when solving halves the squared error of the prior;
+    True forces it (needs >= 6 non-coplanar clicks); False keeps the prior.
+    ``min_outlier_px`` (default 0.5% of the width, at least 3 px) is the smallest leave-one-out error flagged.
+    Raises :class:`DegenerateAnchors` with a reason for unusable input.
+    """
+    px, pts = _validate(pixels_px, points_in_world)
+    if width_px <= 0 or height_px <= 0:
+        raise DegenerateAnchors(f"bad image size {width_px}x{height_px}")
+    if focal_px is not None and not (np.isfinite(focal_px) and focal_px > 0):
+        raise DegenerateAnchors(f"focal prior must be a positive number, got {focal_px}")
+    f0 = float(focal_px) if focal_px is not None else float(cam.focal_from_fov(width_px, DEFAULT_FOV_DEG))
+    c = np.array([(width_px - 1) / 2.0, (height_px - 1) / 2.0])
+    can_solve_focal = len(px) >= MIN_CLICKS_FOR_FOCAL and not _is_planar(pts)
+    if solve_focal and not can_solve_focal:
+        raise DegenerateAnchors(
+            f"solving the focal needs >= {MIN_CLICKS_FOR_FOCAL} non-coplanar clicks, got {len(px)}"
+            + (" coplanar" if _is_planar(pts) else "")
+        )
+    params, f, cost = _solve(px, pts, c, f0, bool(solve_focal))
+    do_focal = bool(solve_focal)
+    if solve_focal is None and can_solve_focal:
+        # Auto: without a prior always solve the focal; with a prior keep it unless solving it fits much better
+        # (focal and depth trade off for narrow fields of view, so a good prior is worth more than a free f).
+        p_f, f_f, cost_f = _solve(px, pts, c, f0, True)
+        if focal_px is None or cost_f < 0.5 * cost:
+            params, f, do_focal = p_f, f_f, True
+    R = cam.rodrigues_to_matrix(params[:3])
+    z = pts @ R.T[:, 2] + params[5]
+    if np.any(z <= 0):
+        raise DegenerateAnchors(
+            f"{int(np.sum(z <= 0))} clicked model points would be behind the camera; check pixel/point pairing"
+        )
+    res = _residuals(params, pts, px, c, f).reshape(-1, 2)
+    residuals = np.linalg.norm(res, axis=1)
+    rms = float(np.sqrt(np.mean(residuals**2)))
+    if rms > 0.1 * width_px:
+        raise DegenerateAnchors(
+            f"clicks are inconsistent: reprojection RMS {rms:.0f} px (> 10% of the width); check the pairing"
+        )
+
+    # Mis-clicks: repeatedly leave out the click whose removal best explains the rest; flag it when the
+    # others predict it far worse than they fit themselves. The pose is then solved without flagged clicks.
+    n = len(px)
+    floor = min_outlier_px if min_outlier_px is not None else max(3.0, 0.005 * width_px)
+    loo = np.full(n, np.nan)
+    outliers = np.zeros(n, dtype=bool)
+    threshold = floor
+    cur_params, cur_f = params, f
+    while n - outliers.sum() - 1 >= MIN_CLICKS + 1:
+        active = np.nonzero(~outliers)[0]
+        loo_focal = do_focal and len(active) - 1 >= MIN_CLICKS_FOR_FOCAL
+        best_i, best_rms, best_err = -1, np.inf, 0.0
+        for i in active:
+            keep = active[active != i]
+            p_i, f_i, _ = _solve(px[keep], pts[keep], c, cur_f, loo_focal, init=cur_params)
+            err = float(np.linalg.norm(_residuals(p_i, pts[i : i + 1], px[i : i + 1], c, f_i)))
+            if not outliers.any():
+                loo[i] = err
+            rms_i = _rms(_residuals(p_i, pts[keep], px[keep], c, f_i))
+            if rms_i < best_rms:
+                best_i, best_rms, best_err = i, rms_i, err
+        threshold = max(floor, 5.0 * best_rms)
+        if best_err <= threshold:
+            break
+        outliers[best_i] = True
+        keep = np.nonzero(~outliers)[0]
+        cur_params, cur_f, _ = _solve(px[keep], pts[keep], c, f0, do_focal and len(keep) >= MIN_CLICKS_FOR_FOCAL)
+    if outliers.any():
+        params, f = cur_params, cur_f
+        R = cam.rodrigues_to_matrix(params[:3])
+        residuals = np.linalg.norm(_residuals(params, pts, px, c, f).reshape(-1, 2), axis=1)
+        rms = float(np.sqrt(np.mean(residuals[~outliers] ** 2)))
+
+    camera_from_world = cam.rigid(R, params[3:6])
+    return AnchorSolution(
+        intrinsics=cam.centered_intrinsics(width_px, height_px, f),
+        world_from_camera=cam.invert_rigid(camera_from_world),
+        residuals_px=residuals,
+        rms_px=rms,
+        focal_solved=do_focal,
+        outlier_mask=outliers,
+        loo_errors_px=loo,
+        outlier_threshold_px=threshold,
+    )

@@ -1,0 +1,268 @@
+"""``constructaide register``: model-assisted SfM over a folder of photos (batch mode).
+
+Writes a COLMAP text model (cameras.txt, images.txt, points3D.txt) in the model frame and ``report.json``
+(registered / unregistered images with reasons, per-image RMS, timings). Anchor file format::
+
+    {"anchors": [{"image": "IMG_0001.jpg", "points": [{"pixel": [u, v], "world": [x, y, z]}, ...]}],
+     "focal_px": 1520.0}
+
+``image`` is the posix path relative to ``--images``; ``pixel`` is OpenCV convention; ``world`` in model units.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from constructaide.errors import UserError
+from nodes.register.colmap_io import ColmapImage, ColmapModel, write_text_model
+from nodes.register.features import Features, extract_features
+from nodes.register.sfm import Clicks, Reconstruction, SfmConfig, add_image, reconstruct
+
+IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp"}
+
+
+def find_images(images_dir: Path) -> list[tuple[str, Path]]:
+    """Images under ``images_dir`` (recursive), sorted, as (posix name relative to the folder, path)."""
+    root = Path(images_dir)
+    if not root.is_dir():
+        raise UserError(f"--images {root} is not a folder")
+    found = sorted(p for p in root.rglob("*") if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    return [(p.relative_to(root).as_posix(), p) for p in found]
+
+
+def load_anchor_file(path: Path) -> tuple[dict[str, Clicks], float | None]:
+    """Parse the anchor file: clicks by image name (in file order) and the optional focal prior (px)."""
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise UserError(f"anchor file {path} does not exist") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise UserError(f"anchor file {path} is not valid JSON: {e}") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("anchors"), list) or not doc["anchors"]:
+        raise UserError(f"anchor file {path} needs a non-empty list 'anchors'")
+    focal = doc.get("focal_px")
+    if focal is not None and (not isinstance(focal, int | float) or not math.isfinite(focal) or focal <= 0):
+        raise UserError(f"anchor file {path}: focal_px must be a positive number, got {focal!r}")
+    out: dict[str, Clicks] = {}
+    for k, a in enumerate(doc["anchors"]):
+        if not isinstance(a, dict) or not isinstance(a.get("image"), str) or not isinstance(a.get("points"), list):
+            raise UserError(f"anchor file {path}: anchors[{k}] needs 'image' (string) and 'points' (list)")
+        px, world = [], []
+        for j, p in enumerate(a["points"]):
+            try:
+                u, v = (float(x) for x in p["pixel"])
+                x, y, z = (float(c) for c in p["world"])
+            except (KeyError, TypeError, ValueError):
+                raise UserError(
+                    f"anchor file {path}: anchors[{k}].points[{j}] needs 'pixel' [u, v] and 'world' [x, y, z]"
+                ) from None
+            px.append((u, v))
+            world.append((x, y, z))
+        if len(px) < 4:
+            raise UserError(f"anchor file {path}: image {a['image']} has {len(px)} clicks, at least 4 are needed")
+        if a["image"] in out:
+            raise UserError(f"anchor file {path}: image {a['image']} is listed twice")
+        out[a["image"]] = (np.array(px, float), np.array(world, float))
+    return out, (float(focal) if focal is not None else None)
+
+
+def exif_focal_px(path: Path, width_px: int) -> float | None:
+    """Focal in pixels from EXIF FocalLengthIn35mmFilm (36 mm film width), None when absent."""
+    try:
+        from PIL import Image
+
+        with Image.open(path) as img:
+            exif = img.getexif().get_ifd(0x8769)
+            f35 = exif.get(0xA405)
+    except Exception:
+        return None
+    if not f35:
+        return None
+    return float(f35) / 36.0 * width_px
+
+
+def extract_all(
+    paths: list[Path], max_features: int, max_side_px: int | None, workers: int = 2, show_progress: bool = True
+) -> list[tuple[Features, np.ndarray]]:
+    """Features and keypoint colours (N, 3) RGB u8 of every image (threads; OpenCV releases the GIL)."""
+
+    def job(p: Path) -> tuple[Features, np.ndarray]:
+        bgr = cv2.imread(str(p), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise UserError(f"cannot read image {p}")
+        feats = extract_features(cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY), max_features, max_side_px)
+        ij = np.clip(np.round(feats.keypoints_px).astype(int), 0, [bgr.shape[1] - 1, bgr.shape[0] - 1])
+        colors = bgr[ij[:, 1], ij[:, 0], ::-1].copy()
+        return feats, colors
+
+    with ThreadPoolExecutor(max(1, workers)) as pool:
+        it = pool.map(job, paths)
+        return list(tqdm(it, total=len(paths), desc="features", unit="img", disable=not show_progress, file=sys.stderr))
+
+
+def reconstruction_to_colmap(recon: Reconstruction) -> ColmapModel:
+    """Registered images and triangulated points as a COLMAP model (every keypoint written as a 2D point)."""
+    pts, cols, obs_p, obs_i, obs_px = recon.sparse_arrays()
+    ok = np.nonzero(np.all(np.isfinite(recon.points), axis=1))[0]
+    remap = -np.ones(len(recon.points), int)
+    remap[ok] = np.arange(len(ok))
+    images = []
+    err_sum = np.zeros(len(pts))
+    err_n = np.zeros(len(pts))
+    for i, im in enumerate(recon.images):
+        if not im.registered:
+            continue
+        t = recon.feature_track[i]
+        p3 = np.where(t >= 0, remap[np.maximum(t, 0)], -1)
+        images.append(ColmapImage(im.name, im.intrinsics, im.world_from_camera, im.features.keypoints_px, p3))
+        sel = p3 >= 0
+        if sel.any():
+            from constructaide import camera as cam
+
+            proj, _ = cam.project_points(im.intrinsics, cam.invert_rigid(im.world_from_camera), pts[p3[sel]])
+            e = np.linalg.norm(proj - im.features.keypoints_px[sel], axis=1)
+            np.add.at(err_sum, p3[sel], np.nan_to_num(e, nan=0.0))
+            np.add.at(err_n, p3[sel], 1)
+    return ColmapModel(images, pts, cols, err_sum / np.maximum(err_n, 1))
+
+
+def image_report(recon: Reconstruction) -> list[dict]:
+    out = []
+    for im in recon.images:
+        d: dict = {"image": im.name, "status": im.status if im.status != "unregistered" else "unregistered"}
+        d["method"] = im.method
+        d["message"] = im.message
+        if im.registered:
+            d.update(
+                f_px=im.intrinsics.f_px,
+                k1=im.intrinsics.k1,
+                k2=im.intrinsics.k2,
+                num_inliers=im.num_inliers,
+                rms_px=None if not math.isfinite(im.rms_px) else im.rms_px,
+            )
+            if im.anchor is not None:
+                d["anchor_residuals_px"] = [float(r) for r in im.anchor.residuals_px]
+                d["anchor_flagged_clicks"] = [int(k) for k in np.nonzero(im.anchor.outlier_mask)[0]]
+        else:
+            d["num_matched_tracks"] = im.num_matched_tracks
+        out.append(d)
+    return out
+
+
+def run_batch(
+    images_dir: Path,
+    anchors_path: Path,
+    out_dir: Path,
+    focal_px: float | None = None,
+    cfg: SfmConfig | None = None,
+    max_features: int = 8000,
+    max_side_px: int | None = 1600,
+    bim_paths: tuple[Path, ...] = (),
+    show_progress: bool = True,
+) -> tuple[Reconstruction, dict]:
+    """Register every image under ``images_dir``; write the COLMAP model and report.json to ``out_dir``."""
+    t0 = time.perf_counter()
+    cfg = cfg or SfmConfig()
+    anchors, file_focal = load_anchor_file(anchors_path)
+    for b in bim_paths:
+        if not Path(b).exists():
+            raise UserError(f"--bim {b} does not exist")
+    named = find_images(images_dir)
+    if not named:
+        raise UserError(f"no images under {images_dir}")
+    names = {n for n, _ in named}
+    missing = [n for n in anchors if n not in names]
+    if missing:
+        raise UserError(f"anchor file names images not under {images_dir}: {', '.join(missing[:3])}")
+    focal = focal_px if focal_px is not None else file_focal
+    if focal is not None:
+        cfg = SfmConfig(**{**cfg.__dict__, "focal_px": focal})
+    t_feat = time.perf_counter()
+    feats = extract_all([p for _, p in named], max_features, max_side_px, cfg.workers, show_progress)
+    recon = Reconstruction()
+    for (name, path), (f, c) in zip(named, feats, strict=True):
+        add_image(recon, name, f, c, exif_focal_px(path, f.width_px))
+    features_secs = time.perf_counter() - t_feat
+    n_pairs = len(named) * (len(named) - 1) // 2
+    bar_m = tqdm(total=n_pairs, desc="matching", unit="pair", disable=not show_progress, file=sys.stderr)
+    bar_r = tqdm(total=len(named), desc="registering", unit="img", disable=not show_progress, file=sys.stderr)
+
+    def prog(stage: str, n: int) -> None:
+        bar_r.n = n
+        bar_r.set_postfix_str(stage[-40:])
+        bar_r.refresh()
+
+    reconstruct(recon, anchors, cfg, progress=prog, match_progress=lambda: bar_m.update())
+    bar_m.close()
+    bar_r.close()
+    out_dir = Path(out_dir)
+    write_text_model(reconstruction_to_colmap(recon), out_dir)
+    registered = [im.name for im in recon.images if im.registered]
+    report = {
+        "images_dir": str(images_dir),
+        "anchors": str(anchors_path),
+        "bim": [str(b) for b in bim_paths],
+        "focal_prior_px": focal,
+        "num_images": len(recon.images),
+        "num_registered": len(registered),
+        "num_points": int(np.sum(np.all(np.isfinite(recon.points), axis=1))),
+        "registered": registered,
+        "unregistered": [
+            {"image": im.name, "status": im.status, "reason": im.message} for im in recon.images if not im.registered
+        ],
+        "needs_anchor": [{"image": n, "reason": r, "num_matched_tracks": c} for n, r, c in recon.needs_anchor],
+        "images": image_report(recon),
+        "timings_secs": {"features": features_secs, **recon.timings_secs, "total": time.perf_counter() - t0},
+    }
+    (out_dir / "report.json").write_text(json.dumps(report, indent=2))
+    return recon, report
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="constructaide register", description=__doc__.split("\n")[0])
+    ap.add_argument("--images", required=True, type=Path, help="folder of photos (searched recursively)")
+    ap.add_argument("--anchors", required=True, type=Path, help="anchor clicks JSON file")
+    ap.add_argument("--out", required=True, type=Path, help="output folder for the COLMAP text model + report.json")
+    ap.add_argument("--bim", action="append", default=[], type=Path, help="BIM model file(s) (recorded in report)")
+    ap.add_argument("--focal-px", type=float, default=None, help="focal prior in pixels for every image")
+    ap.add_argument("--max-side", type=int, default=1600, help="longest side for feature detection (px)")
+    ap.add_argument("--max-features", type=int, default=8000)
+    ap.add_argument("--refine-principal-point", action="store_true")
+    ap.add_argument("--quiet", action="store_true", help="no progress bars")
+    args = ap.parse_args(argv)
+    if args.focal_px is not None and not (args.focal_px > 0):
+        raise UserError("--focal-px must be positive")
+    cfg = SfmConfig(refine_principal_point=args.refine_principal_point)
+    _, report = run_batch(
+        args.images,
+        args.anchors,
+        args.out,
+        focal_px=args.focal_px,
+        cfg=cfg,
+        max_features=args.max_features,
+        max_side_px=args.max_side,
+        bim_paths=tuple(args.bim),
+        show_progress=not args.quiet,
+    )
+    print(
+        f"registered {report['num_registered']}/{report['num_images']} images, {report['num_points']} points "
+        f"in {report['timings_secs']['total']:.1f} s -> {args.out}"
+    )
+    for u in report["unregistered"]:
+        print(f"  unregistered {u['image']}: {u['reason']}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

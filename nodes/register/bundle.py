@@ -1,0 +1,367 @@
+"""Constrained bundle adjustment (paper Sec. 6) with scipy's sparse least squares.
+
+Unknowns: per camera a pose update (axis-angle applied on the left of the current rotation, and the
+translation of ``camera_from_world``) unless the pose is fixed (anchor cameras, or cameras outside a local
+window); per camera focal f_px and radial k1, k2 (optionally the principal point) unless the intrinsics are
+fixed; per point either a world position (3) or, for points seen by an anchor camera, the depth along that
+anchor's ray through its observed pixel (1). Residuals (pixels): feature observations, anchor clicks (model
+points, fixed), and a weak prior pulling k1, k2 towards 0. Robust loss, finite differences over a sparse
+Jacobian pattern (``jac_sparsity``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.optimize import least_squares
+
+
+def rodrigues_batch(rvecs: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) rotations of (N, 3) axis-angle vectors (radians)."""
+    r = np.asarray(rvecs, dtype=np.float64).reshape(-1, 3)
+    theta = np.linalg.norm(r, axis=1)
+    small = theta < 1e-12
+    k = r / np.where(small, 1.0, theta)[:, None]
+    K = np.zeros((len(r), 3, 3))
+    K[:, 0, 1], K[:, 0, 2] = -k[:, 2], k[:, 1]
+    K[:, 1, 0], K[:, 1, 2] = k[:, 2], -k[:, 0]
+    K[:, 2, 0], K[:, 2, 1] = -k[:, 1], k[:, 0]
+    s = np.sin(theta)[:, None, None]
+    c = (1 - np.cos(theta))[:, None, None]
+    R = np.eye(3)[None] + s * K + c * (K @ K)
+    R[small] = np.eye(3)
+    return R
+
+
+def undistort_batch(xy_d: np.ndarray, k1: np.ndarray, k2: np.ndarray, iterations: int = 8) -> np.ndarray:
+    """Invert radial distortion on (N, 2) normalised coords with per-row k1, k2 (N,)."""
+    xy = xy_d.copy()
+    for _ in range(iterations):
+        r2 = np.sum(xy * xy, axis=1)
+        xy = xy_d / (1.0 + k1 * r2 + k2 * r2 * r2)[:, None]
+    return xy
+
+
+@dataclass
+class BundleProblem:
+    """Arrays of a bundle adjustment. C cameras, P points, M observations, K clicks.
+
+    ``camera_from_world`` (C, 4, 4); intrinsics arrays (C,); ``points_in_world`` (P, 3);
+    ``point_ref_cam`` (P,) anchor camera whose ray carries the point (-1: free xyz) and ``point_ref_px`` (P, 2) the
+    pixel of that ray; observations ``obs_cam``, ``obs_point`` (M,) int and ``obs_px`` (M, 2); clicks
+    ``click_cam`` (K,), ``click_world`` (K, 3), ``click_px`` (K, 2).
+    """
+
+    camera_from_world: np.ndarray
+    f_px: np.ndarray
+    cx_px: np.ndarray
+    cy_px: np.ndarray
+    k1: np.ndarray
+    k2: np.ndarray
+    pose_fixed: np.ndarray
+    intrinsics_fixed: np.ndarray
+    points_in_world: np.ndarray
+    point_fixed: np.ndarray
+    point_ref_cam: np.ndarray
+    point_ref_px: np.ndarray
+    obs_cam: np.ndarray
+    obs_point: np.ndarray
+    obs_px: np.ndarray
+    click_cam: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    click_world: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    click_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+
+
+@dataclass
+class BundleOptions:
+    loss: str = "huber"
+    loss_scale_px: float = 2.0
+    refine_distortion: bool = True
+    refine_principal_point: bool = False
+    distortion_prior_px: float = 0.05
+    click_weight: float = 1.0
+    max_nfev: int = 50
+    ftol: float = 1e-4
+    # Optional focal prior per camera (C,) px and its standard deviation (C,) px (inf = no prior).
+    focal_prior_px: np.ndarray | None = None
+    focal_prior_sigma_px: np.ndarray | None = None
+
+
+@dataclass
+class BundleResult:
+    """Adjusted arrays (same layout as the problem) and per-observation residual norms (M,) in px."""
+
+    camera_from_world: np.ndarray
+    f_px: np.ndarray
+    cx_px: np.ndarray
+    cy_px: np.ndarray
+    k1: np.ndarray
+    k2: np.ndarray
+    points_in_world: np.ndarray
+    obs_error_px: np.ndarray
+    click_error_px: np.ndarray
+    initial_rms_px: float
+    final_rms_px: float
+    num_iterations: int
+
+
+class _Layout:
+    def __init__(self, prob: BundleProblem, opts: BundleOptions):
+        C = len(prob.f_px)
+        P = len(prob.points_in_world)
+        self.n_intr = 1 + (2 if opts.refine_distortion else 0) + (2 if opts.refine_principal_point else 0)
+        idx = 0
+        self.pose_col = np.full(C, -1)
+        for c in range(C):
+            if not prob.pose_fixed[c]:
+                self.pose_col[c] = idx
+                idx += 6
+        self.intr_col = np.full(C, -1)
+        for c in range(C):
+            if not prob.intrinsics_fixed[c]:
+                self.intr_col[c] = idx
+                idx += self.n_intr
+        self.point_col = np.full(P, -1)
+        self.point_is_depth = (prob.point_ref_cam >= 0) & ~prob.point_fixed
+        self.point_free = ~prob.point_fixed
+        for p in range(P):
+            if self.point_free[p]:
+                self.point_col[p] = idx
+                idx += 1 if self.point_is_depth[p] else 3
+        self.n = idx
+
+
+def _cam_from_world(T: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    return np.einsum("nij,nj->ni", T[:, :3, :3], pts) + T[:, :3, 3]
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) cross-product matrices of (N, 3) vectors."""
+    S = np.zeros((len(v), 3, 3))
+    S[:, 0, 1], S[:, 0, 2] = -v[:, 2], v[:, 1]
+    S[:, 1, 0], S[:, 1, 2] = v[:, 2], -v[:, 0]
+    S[:, 2, 0], S[:, 2, 1] = -v[:, 1], v[:, 0]
+    return S
+
+
+def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> BundleResult:
+    """Run the constrained bundle adjustment; returns adjusted copies (the problem is not modified).
+
+    Points carried by an anchor ray move along the ray fixed at the start of the call (anchor pose fixed, ray
+    from the anchor's current intrinsics); the anchor's own observation of such a point then constrains the
+    anchor's intrinsics. Analytic sparse Jacobian.
+    """
+    opts = opts or BundleOptions()
+    lay = _Layout(prob, opts)
+    C = len(prob.f_px)
+    R0 = prob.camera_from_world[:, :3, :3].copy()
+    t0 = prob.camera_from_world[:, :3, 3].copy()
+    obs_cam, obs_point, obs_px = prob.obs_cam, prob.obs_point, prob.obs_px
+    n_obs, n_clk = len(obs_cam), len(prob.click_cam)
+    distortion_cams = np.nonzero(lay.intr_col >= 0)[0] if opts.refine_distortion else np.zeros(0, int)
+    if opts.focal_prior_px is not None and opts.focal_prior_sigma_px is not None:
+        focal_cams = np.nonzero((lay.intr_col >= 0) & np.isfinite(opts.focal_prior_sigma_px))[0]
+        f_prior = np.asarray(opts.focal_prior_px, float)[focal_cams]
+        f_sigma = np.asarray(opts.focal_prior_sigma_px, float)[focal_cams]
+    else:
+        focal_cams, f_prior, f_sigma = np.zeros(0, int), np.zeros(0), np.ones(0)
+
+    # Anchor rays (world) and initial depths.
+    depth_pts = np.nonzero(lay.point_is_depth)[0]
+    rc = prob.point_ref_cam[depth_pts]
+    ray_origin = np.zeros((len(prob.points_in_world), 3))
+    ray_dir = np.zeros((len(prob.points_in_world), 3))
+    x0 = np.zeros(lay.n)
+    if len(depth_pts):
+        xy_d = (prob.point_ref_px[depth_pts] - np.stack([prob.cx_px[rc], prob.cy_px[rc]], axis=1)) / prob.f_px[rc][
+            :, None
+        ]
+        xy = undistort_batch(xy_d, prob.k1[rc], prob.k2[rc])
+        Rw = np.transpose(R0[rc], (0, 2, 1))
+        ray_dir[depth_pts] = np.einsum("nij,nj->ni", Rw, np.c_[xy, np.ones(len(xy))])
+        ray_origin[depth_pts] = -np.einsum("nij,nj->ni", Rw, t0[rc])
+        pc = _cam_from_world(prob.camera_from_world[rc], prob.points_in_world[depth_pts])
+        x0[lay.point_col[depth_pts]] = np.maximum(pc[:, 2], 1e-9)
+    for c in range(C):
+        if lay.intr_col[c] >= 0:
+            j = lay.intr_col[c]
+            vals = [prob.f_px[c]]
+            if opts.refine_distortion:
+                vals += [prob.k1[c], prob.k2[c]]
+            if opts.refine_principal_point:
+                vals += [prob.cx_px[c], prob.cy_px[c]]
+            x0[j : j + lay.n_intr] = vals
+        if lay.pose_col[c] >= 0:
+            x0[lay.pose_col[c] + 3 : lay.pose_col[c] + 6] = t0[c]
+    free_xyz = np.nonzero(lay.point_free & ~lay.point_is_depth)[0]
+    if len(free_xyz):
+        cols = lay.point_col[free_xyz]
+        for k in range(3):
+            x0[cols + k] = prob.points_in_world[free_xyz, k]
+
+    def unpack(x: np.ndarray):
+        T = prob.camera_from_world.copy()
+        f, k1, k2 = prob.f_px.copy(), prob.k1.copy(), prob.k2.copy()
+        cx, cy = prob.cx_px.copy(), prob.cy_px.copy()
+        pc_ = np.nonzero(lay.pose_col >= 0)[0]
+        if len(pc_):
+            cols = lay.pose_col[pc_]
+            w = np.stack([x[cols], x[cols + 1], x[cols + 2]], axis=1)
+            T[pc_, :3, :3] = rodrigues_batch(w) @ R0[pc_]
+            T[pc_, :3, 3] = np.stack([x[cols + 3], x[cols + 4], x[cols + 5]], axis=1)
+        ic = np.nonzero(lay.intr_col >= 0)[0]
+        if len(ic):
+            cols = lay.intr_col[ic]
+            f[ic] = x[cols]
+            o = 1
+            if opts.refine_distortion:
+                k1[ic], k2[ic] = x[cols + 1], x[cols + 2]
+                o = 3
+            if opts.refine_principal_point:
+                cx[ic], cy[ic] = x[cols + o], x[cols + o + 1]
+        pts = prob.points_in_world.copy()
+        if len(free_xyz):
+            cols = lay.point_col[free_xyz]
+            pts[free_xyz] = np.stack([x[cols], x[cols + 1], x[cols + 2]], axis=1)
+        if len(depth_pts):
+            d = x[lay.point_col[depth_pts]]
+            pts[depth_pts] = ray_origin[depth_pts] + d[:, None] * ray_dir[depth_pts]
+        return T, f, k1, k2, cx, cy, pts
+
+    def project_full(T, f, k1, k2, cx, cy, cams, X):
+        """Pixels (M, 2), camera points (M, 3), and pieces for the Jacobian."""
+        p = _cam_from_world(T[cams], X)
+        z = np.where(p[:, 2] > 1e-9, p[:, 2], 1e-9)
+        xn, yn = p[:, 0] / z, p[:, 1] / z
+        r2 = xn * xn + yn * yn
+        D = 1 + k1[cams] * r2 + k2[cams] * r2 * r2
+        u = f[cams] * xn * D + cx[cams]
+        v = f[cams] * yn * D + cy[cams]
+        return np.stack([u, v], axis=1), p, z, xn, yn, r2, D
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        T, f, k1, k2, cx, cy, pts = unpack(x)
+        parts = [(project_full(T, f, k1, k2, cx, cy, obs_cam, pts[obs_point])[0] - obs_px).ravel()]
+        if n_clk:
+            r_clk = project_full(T, f, k1, k2, cx, cy, prob.click_cam, prob.click_world)[0] - prob.click_px
+            parts.append(opts.click_weight * r_clk.ravel())
+        if len(distortion_cams):
+            parts.append(np.concatenate([k1[distortion_cams], k2[distortion_cams]]) / opts.distortion_prior_px)
+        if len(focal_cams):
+            parts.append((f[focal_cams] - f_prior) / f_sigma)
+        return np.concatenate(parts)
+
+    n_res = 2 * (n_obs + n_clk) + 2 * len(distortion_cams) + len(focal_cams)
+
+    def jac_block(T, f, k1, k2, cams, X, weight):
+        """Rows/cols/vals of the Jacobian of 2 residuals per (cams, X) w.r.t. pose, intrinsics; plus dpix/dX."""
+        _, p, z, xn, yn, r2, D = project_full(T, f, k1, k2, prob.cx_px, prob.cy_px, cams, X)
+        fc = f[cams]
+        dD = k1[cams] + 2 * k2[cams] * r2  # dD/d(r2)
+        # d(u,v)/d(xn,yn)
+        J_uv_xy = np.zeros((len(cams), 2, 2))
+        J_uv_xy[:, 0, 0] = fc * (D + xn * dD * 2 * xn)
+        J_uv_xy[:, 0, 1] = fc * xn * dD * 2 * yn
+        J_uv_xy[:, 1, 0] = fc * yn * dD * 2 * xn
+        J_uv_xy[:, 1, 1] = fc * (D + yn * dD * 2 * yn)
+        J_xy_p = np.zeros((len(cams), 2, 3))
+        J_xy_p[:, 0, 0] = 1 / z
+        J_xy_p[:, 0, 2] = -xn / z
+        J_xy_p[:, 1, 1] = 1 / z
+        J_xy_p[:, 1, 2] = -yn / z
+        J_uv_p = weight * (J_uv_xy @ J_xy_p)  # (M, 2, 3)
+        Rp = p - T[cams, :3, 3]  # R X
+        J_pose = np.concatenate([J_uv_p @ -_skew(Rp), J_uv_p], axis=2)  # (M, 2, 6)
+        J_intr = [weight * np.stack([xn * D, yn * D], axis=1)]
+        if opts.refine_distortion:
+            J_intr += [weight * fc[:, None] * np.stack([xn * r2, yn * r2], axis=1)]
+            J_intr += [weight * fc[:, None] * np.stack([xn * r2 * r2, yn * r2 * r2], axis=1)]
+        if opts.refine_principal_point:
+            ones, zeros = np.full(len(cams), weight), np.zeros(len(cams))
+            J_intr += [np.stack([ones, zeros], axis=1), np.stack([zeros, ones], axis=1)]
+        J_intr_a = np.stack(J_intr, axis=2)  # (M, 2, n_intr)
+        J_X = J_uv_p @ T[cams, :3, :3]  # (M, 2, 3)
+        return J_pose, J_intr_a, J_X
+
+    def emit(rows, cols, vals, row0, col_start, J):
+        """Add dense blocks J (M, 2, W) at rows 2*row0.. and columns col_start (M,) (skipping col_start < 0)."""
+        ok = col_start >= 0
+        if not ok.any():
+            return
+        M, _, W = J.shape
+        r = (2 * row0[ok])[:, None, None] + np.arange(2)[None, :, None] + np.zeros((1, 1, W), int)
+        c = col_start[ok][:, None, None] + np.zeros((1, 2, 1), int) + np.arange(W)[None, None, :]
+        rows.append(r.ravel())
+        cols.append(c.ravel())
+        vals.append(J[ok].ravel())
+
+    def jacobian(x: np.ndarray) -> sp.csr_matrix:
+        T, f, k1, k2, cx, cy, pts = unpack(x)
+        rows: list[np.ndarray] = []
+        cols: list[np.ndarray] = []
+        vals: list[np.ndarray] = []
+        if n_obs:
+            J_pose, J_intr, J_X = jac_block(T, f, k1, k2, obs_cam, pts[obs_point], 1.0)
+            ar = np.arange(n_obs)
+            emit(rows, cols, vals, ar, lay.pose_col[obs_cam], J_pose)
+            emit(rows, cols, vals, ar, lay.intr_col[obs_cam], J_intr)
+            is_depth = lay.point_is_depth[obs_point]
+            free = ~is_depth
+            emit(rows, cols, vals, ar[free], lay.point_col[obs_point[free]], J_X[free])
+            if is_depth.any():
+                J_d = J_X[is_depth] @ ray_dir[obs_point[is_depth]][:, :, None]
+                emit(rows, cols, vals, ar[is_depth], lay.point_col[obs_point[is_depth]], J_d)
+        if n_clk:
+            J_pose, J_intr, _ = jac_block(T, f, k1, k2, prob.click_cam, prob.click_world, opts.click_weight)
+            ar = np.arange(n_clk) + n_obs
+            emit(rows, cols, vals, ar, lay.pose_col[prob.click_cam], J_pose)
+            emit(rows, cols, vals, ar, lay.intr_col[prob.click_cam], J_intr)
+        if len(distortion_cams):
+            base = 2 * (n_obs + n_clk)
+            nd = len(distortion_cams)
+            ic = lay.intr_col[distortion_cams]
+            rows += [base + np.arange(nd), base + nd + np.arange(nd)]
+            cols += [ic + 1, ic + 2]
+            vals += [np.full(nd, 1 / opts.distortion_prior_px)] * 2
+        if len(focal_cams):
+            base = 2 * (n_obs + n_clk) + 2 * len(distortion_cams)
+            rows.append(base + np.arange(len(focal_cams)))
+            cols.append(lay.intr_col[focal_cams])
+            vals.append(1 / f_sigma)
+        if not rows:
+            return sp.csr_matrix((n_res, lay.n))
+        return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n_res, lay.n))
+
+    r0 = residuals(x0)
+    init_rms = float(np.sqrt(np.mean(r0[: 2 * n_obs] ** 2) * 2)) if n_obs else 0.0
+    nfev = 0
+    x = x0
+    if lay.n > 0 and n_res >= lay.n:
+        sol = least_squares(
+            residuals,
+            x0,
+            jac=jacobian,
+            method="trf",
+            tr_solver="lsmr",
+            loss=opts.loss,
+            f_scale=opts.loss_scale_px,
+            x_scale="jac",
+            max_nfev=opts.max_nfev,
+            ftol=opts.ftol,
+            xtol=1e-8,
+        )
+        x, nfev = sol.x, int(sol.nfev)
+    T, f, k1, k2, cx, cy, pts = unpack(x)
+    proj, p_all, *_ = project_full(T, f, k1, k2, cx, cy, prob.obs_cam, pts[prob.obs_point])
+    obs_err = np.linalg.norm(proj - prob.obs_px, axis=1)
+    obs_err[p_all[:, 2] <= 0] = np.inf
+    clk_err = np.zeros(n_clk)
+    if n_clk:
+        clk_err = np.linalg.norm(
+            project_full(T, f, k1, k2, cx, cy, prob.click_cam, prob.click_world)[0] - prob.click_px, axis=1
+        )
+    fin = np.isfinite(obs_err)
+    final_rms = float(np.sqrt(np.mean(obs_err[fin] ** 2))) if fin.any() else 0.0
+    return BundleResult(T, f, cx, cy, k1, k2, pts, obs_err, clk_err, init_rms, final_rms, nfev)

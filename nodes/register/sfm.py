@@ -1,0 +1,936 @@
+"""Model-assisted structure from motion (paper Sec. 6, Algorithm 1), pure core.
+
+The state is a :class:`Reconstruction`: images (features, camera, status), pairwise verified matches, tracks
+(``track_obs[t]`` maps image index -> feature index) and their triangulated points in the model frame. Images can
+be added one at a time (:func:`add_image`, :func:`match_image`, :func:`link_image_tracks`,
+:func:`register_image_pnp`, :func:`triangulate_tracks`, :func:`bundle`), which is what the streaming node
+does; :func:`reconstruct` runs the whole batch algorithm:
+
+1. the first anchor image is solved from its clicks (:mod:`nodes.register.anchors`);
+2. features are matched over the collection (exhaustive, or a bag-of-words shortlist for large sets) and
+   pruned by a fundamental matrix (RANSAC); matches are chained into tracks;
+3. images whose matches to an anchor are >= 80 % inliers of one homography receive the warped clicks and are
+   solved by PnP;
+4. constrained bundle adjustment (:mod:`nodes.register.bundle`) after each addition: anchor poses fixed,
+   points seen by an anchor parameterised by depth along its ray, rays closer than 2 degrees not triangulated;
+5. next image: among unregistered images with >= 60 matches to triangulated tracks, the one with the fewest,
+   solved by PnP-RANSAC (inliers within 1 % of the width) refined with the paper's epipolar term;
+6. when none qualifies, the image with the fewest matched tracks needs anchor clicks (``request_anchor``).
+
+Pixels: OpenCV convention. Poses: ``world_from_camera`` (4, 4), OpenCV camera frame, model units.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+
+from constructaide import camera as cam
+from nodes.register.anchors import AnchorSolution, DegenerateAnchors, solve_anchor
+from nodes.register.bundle import BundleOptions, BundleProblem, bundle_adjust
+from nodes.register.features import Features, filter_matches_fundamental, homography_inlier_ratio, match_features
+from schemas.messages import Intrinsics
+
+Clicks = tuple[np.ndarray, np.ndarray]  # pixels (N, 2) OpenCV px, world points (N, 3) model units
+
+
+@dataclass
+class SfmConfig:
+    """Thresholds of the algorithm. Fractions are of the image width."""
+
+    ratio: float = 0.8
+    fundamental_threshold_frac: float = 0.0015
+    min_pair_inliers: int = 20
+    preemptive_features: int = 300
+    preemptive_min_matches: int = 6
+    homography_min_inlier_ratio: float = 0.8
+    homography_min_matches: int = 30
+    homography_threshold_frac: float = 0.005
+    min_track_matches: int = 60
+    fallback_min_track_matches: int = 25
+    pnp_inlier_frac: float = 0.01
+    min_pnp_inliers: int = 20
+    epipolar_weight: float = 1.0
+    min_triangulation_angle_deg: float = 2.0
+    max_obs_error_frac: float = 0.005
+    min_obs_error_px: float = 3.0
+    refine_distortion: bool = True
+    refine_principal_point: bool = False
+    # The paper holds anchor poses fixed (and carries points on anchor rays); False lets them move, constrained by
+    # their clicks and feature tracks like any camera (a benchmark variant).
+    fix_anchor_poses: bool = True
+    loss_scale_px: float = 2.0
+    ba_max_nfev: int = 40
+    local_ba_window: int = 6
+    local_ba_max_nfev: int = 15
+    full_ba_every: int = 4
+    focal_px: float | None = None
+    # Standard deviation of a known focal prior as a fraction of it, applied in bundle adjustment (focal and depth
+    # trade off for narrow fields of view, so a free focal drifts): a user-given focal_px is trusted, EXIF less.
+    focal_prior_sigma_frac: float | None = 0.001
+    exif_focal_sigma_frac: float | None = 0.02
+    max_exhaustive_images: int = 40
+    shortlist_size: int = 15
+    use_all_anchors: bool = False
+    workers: int = 2
+
+
+@dataclass
+class PairGeometry:
+    """Verified matches between images i < j: ``matches`` (M, 2) feature indices (in i, in j), ``F`` with
+    ``x_j^T F x_i = 0`` in pixels, and the homography inlier ratio (computed lazily, NaN until then)."""
+
+    matches: np.ndarray
+    F: np.ndarray
+    num_raw_matches: int
+    homography_i_to_j: np.ndarray | None = None
+    homography_ratio: float = float("nan")
+
+
+@dataclass
+class ImageState:
+    """One image. ``status``: unregistered, anchor, auto or failed; ``clicks`` are model-point constraints
+    (user clicks for anchors, warped clicks for homography registrations)."""
+
+    name: str
+    features: Features
+    colors_rgb_u8: np.ndarray | None = None
+    focal_prior_px: float | None = None
+    intrinsics: Intrinsics | None = None
+    world_from_camera: np.ndarray | None = None
+    status: str = "unregistered"
+    method: str = ""
+    num_inliers: int = 0
+    rms_px: float = float("nan")
+    message: str = ""
+    clicks: Clicks | None = None
+    click_inliers: np.ndarray | None = None
+    anchor: AnchorSolution | None = None
+    num_matched_tracks: int = 0
+
+    @property
+    def width_px(self) -> int:
+        return self.features.width_px
+
+    @property
+    def height_px(self) -> int:
+        return self.features.height_px
+
+    @property
+    def registered(self) -> bool:
+        return self.status in ("anchor", "auto")
+
+
+@dataclass
+class Reconstruction:
+    """Images, verified pairs, tracks and points (T, 3) world (NaN while untriangulated)."""
+
+    images: list[ImageState] = field(default_factory=list)
+    pairs: dict[tuple[int, int], PairGeometry] = field(default_factory=dict)
+    track_obs: list[dict[int, int]] = field(default_factory=list)
+    feature_track: list[np.ndarray] = field(default_factory=list)
+    points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    colors: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.uint8))
+    needs_anchor: list[tuple[str, str, int]] = field(default_factory=list)
+    timings_secs: dict[str, float] = field(default_factory=dict)
+
+    def index(self, name: str) -> int:
+        for i, im in enumerate(self.images):
+            if im.name == name:
+                return i
+        raise KeyError(name)
+
+    def registered_indices(self) -> list[int]:
+        return [i for i, im in enumerate(self.images) if im.registered]
+
+    def pair(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """(matches (M, 2) as (feature in a, feature in b), F with x_b^T F x_a = 0) or None."""
+        if a < b:
+            g = self.pairs.get((a, b))
+            return None if g is None else (g.matches, g.F)
+        g = self.pairs.get((b, a))
+        return None if g is None else (g.matches[:, ::-1], g.F.T)
+
+    def sparse_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Triangulated points (P, 3), colours (P, 3) u8, and observations over registered images:
+        point index (M,), image index (M,), pixel (M, 2)."""
+        ok = np.nonzero(np.all(np.isfinite(self.points), axis=1))[0]
+        remap = -np.ones(len(self.points), int)
+        remap[ok] = np.arange(len(ok))
+        op, oi, ox = [], [], []
+        for t in ok:
+            for i, f in self.track_obs[t].items():
+                if self.images[i].registered:
+                    op.append(remap[t])
+                    oi.append(i)
+                    ox.append(self.images[i].features.keypoints_px[f])
+        px = np.array(ox, np.float64).reshape(-1, 2)
+        return self.points[ok], self.colors[ok], np.array(op, int), np.array(oi, int), px
+
+    def _add_tracks(self, n: int) -> None:
+        self.points = np.vstack([self.points, np.full((n, 3), np.nan)])
+        self.colors = np.vstack([self.colors, np.zeros((n, 3), np.uint8)])
+
+
+def focal_prior(im: ImageState, cfg: SfmConfig) -> float:
+    if cfg.focal_px is not None:
+        return float(cfg.focal_px)
+    if im.focal_prior_px is not None:
+        return float(im.focal_prior_px)
+    return float(cam.focal_from_fov(im.width_px, 50.0))
+
+
+def _focal_sigma_frac(im: ImageState, cfg: SfmConfig) -> float:
+    """Relative standard deviation of the focal prior of an image (inf when the prior is only a FOV guess)."""
+    if cfg.focal_px is not None:
+        return cfg.focal_prior_sigma_frac if cfg.focal_prior_sigma_frac is not None else np.inf
+    if im.focal_prior_px is not None:
+        return cfg.exif_focal_sigma_frac if cfg.exif_focal_sigma_frac is not None else np.inf
+    return np.inf
+
+
+# ---------------------------------------------------------------------------
+# Images, pairs, tracks
+# ---------------------------------------------------------------------------
+
+
+def add_image(
+    recon: Reconstruction,
+    name: str,
+    features: Features,
+    colors_rgb_u8: np.ndarray | None = None,
+    focal_prior_px: float | None = None,
+) -> int:
+    """Append an unregistered image; returns its index. ``colors_rgb_u8`` (N, 3): colour at each keypoint."""
+    if any(im.name == name for im in recon.images):
+        raise ValueError(f"image {name!r} is already in the reconstruction")
+    recon.images.append(ImageState(name, features, colors_rgb_u8, focal_prior_px))
+    recon.feature_track.append(-np.ones(len(features), dtype=np.int64))
+    return len(recon.images) - 1
+
+
+def _largest_scales(f: Features, n: int) -> Features:
+    keep = np.argsort(-f.scales)[:n]
+    return Features(f.keypoints_px[keep], f.descriptors[keep], f.scales[keep], f.width_px, f.height_px)
+
+
+def verify_pair(a: Features, b: Features, cfg: SfmConfig) -> PairGeometry | None:
+    """Ratio-test matches pruned by a RANSAC fundamental matrix; None with fewer than ``min_pair_inliers``.
+
+    Preemptive matching (as in VisualSFM): the ``preemptive_features`` largest-scale features are matched first
+    and the pair is skipped when fewer than ``preemptive_min_matches`` of them match.
+    """
+    n_pre = cfg.preemptive_features
+    if n_pre and len(a) > 2 * n_pre and len(b) > 2 * n_pre:
+        pre = match_features(_largest_scales(a, n_pre), _largest_scales(b, n_pre), cfg.ratio)
+        if len(pre) < cfg.preemptive_min_matches:
+            return None
+    m = match_features(a, b, cfg.ratio)
+    if len(m) < cfg.min_pair_inliers:
+        return None
+    thr = max(1.0, cfg.fundamental_threshold_frac * max(a.width_px, b.width_px))
+    F, inl = filter_matches_fundamental(a.keypoints_px, b.keypoints_px, m, thr)
+    if F is None or inl.sum() < cfg.min_pair_inliers:
+        return None
+    return PairGeometry(m[inl], F, len(m))
+
+
+def select_pairs(features: list[Features], cfg: SfmConfig, seed: int = 0) -> list[tuple[int, int]]:
+    """All pairs for small sets; for more than ``max_exhaustive_images`` a bag-of-words shortlist (each image with
+    its ``shortlist_size`` most similar images by tf-idf cosine over a k-means vocabulary of RootSIFT)."""
+    n = len(features)
+    if n <= cfg.max_exhaustive_images:
+        return [(i, j) for i in range(n) for j in range(i + 1, n)]
+    rng = np.random.default_rng(seed)
+    sample = []
+    for f in features:
+        if len(f):
+            sample.append(f.descriptors[rng.choice(len(f), min(len(f), 300), replace=False)])
+    data = np.vstack(sample).astype(np.float32)
+    k = int(min(512, max(16, len(data) // 20)))
+    criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 20, 1e-3)
+    cv2.setRNGSeed(seed)
+    _, _, centers = cv2.kmeans(data, k, None, criteria, 2, cv2.KMEANS_PP_CENTERS)
+    matcher = cv2.BFMatcher(cv2.NORM_L2)
+    hist = np.zeros((n, k))
+    for i, f in enumerate(features):
+        if len(f):
+            words = np.array([m.trainIdx for m in matcher.match(f.descriptors, centers)])
+            hist[i] = np.bincount(words, minlength=k)
+    idf = np.log(n / np.maximum((hist > 0).sum(0), 1))
+    h = hist * idf
+    h /= np.maximum(np.linalg.norm(h, axis=1, keepdims=True), 1e-12)
+    sim = h @ h.T
+    np.fill_diagonal(sim, -np.inf)
+    pairs = set()
+    for i in range(n):
+        for j in np.argsort(-sim[i])[: cfg.shortlist_size]:
+            pairs.add((min(i, int(j)), max(i, int(j))))
+    return sorted(pairs)
+
+
+def match_image(
+    recon: Reconstruction, idx: int, others: list[int], cfg: SfmConfig, progress: Callable[[], None] | None = None
+) -> int:
+    """Verify pairs between image ``idx`` and ``others``; stores them; returns how many pairs were kept."""
+    kept = 0
+    for o in others:
+        if o == idx:
+            continue
+        i, j = min(idx, o), max(idx, o)
+        if (i, j) in recon.pairs:
+            kept += 1
+            continue
+        g = verify_pair(recon.images[i].features, recon.images[j].features, cfg)
+        if g is not None:
+            recon.pairs[(i, j)] = g
+            kept += 1
+        if progress is not None:
+            progress()
+    return kept
+
+
+def build_tracks(recon: Reconstruction) -> None:
+    """(Re)build all tracks from the verified pairs by union-find; tracks with two features in one image are
+    dropped. Clears triangulated points."""
+    offsets = np.cumsum([0] + [len(im.features) for im in recon.images])
+    parent = np.arange(offsets[-1])
+
+    def find(x: int) -> int:
+        root = x
+        while parent[root] != root:
+            root = parent[root]
+        while parent[x] != root:
+            parent[x], x = root, parent[x]
+        return root
+
+    for (i, j), g in recon.pairs.items():
+        for fa, fb in g.matches:
+            ra, rb = find(offsets[i] + fa), find(offsets[j] + fb)
+            if ra != rb:
+                parent[max(ra, rb)] = min(ra, rb)
+    comps: dict[int, dict[int, int]] = {}
+    bad: set[int] = set()
+    node_image = np.repeat(np.arange(len(recon.images)), np.diff(offsets))
+    used = set()
+    for (i, j), g in recon.pairs.items():
+        used.update((offsets[i] + g.matches[:, 0]).tolist())
+        used.update((offsets[j] + g.matches[:, 1]).tolist())
+    for node in used:
+        r = find(node)
+        img = int(node_image[node])
+        d = comps.setdefault(r, {})
+        if img in d:
+            bad.add(r)
+        d[img] = int(node - offsets[img])
+    recon.track_obs = [d for r, d in comps.items() if r not in bad and len(d) >= 2]
+    recon.feature_track = [-np.ones(len(im.features), dtype=np.int64) for im in recon.images]
+    for t, d in enumerate(recon.track_obs):
+        for i, f in d.items():
+            recon.feature_track[i][f] = t
+    n = len(recon.track_obs)
+    recon.points = np.full((n, 3), np.nan)
+    recon.colors = np.zeros((n, 3), np.uint8)
+
+
+def link_image_tracks(recon: Reconstruction, idx: int) -> int:
+    """Attach the features of image ``idx`` to tracks through its verified pairs (incremental, no merging of
+    existing tracks); new two-view tracks are created for unmatched pairs. Returns the number of links made."""
+    links = 0
+    ft = recon.feature_track[idx]
+    for (i, j), g in list(recon.pairs.items()):
+        if idx not in (i, j):
+            continue
+        other = j if i == idx else i
+        m = g.matches if i == idx else g.matches[:, ::-1]
+        for f_new, f_other in m:
+            if ft[f_new] >= 0:
+                continue
+            t = int(recon.feature_track[other][f_other])
+            if t < 0:
+                t = len(recon.track_obs)
+                recon.track_obs.append({int(other): int(f_other)})
+                recon._add_tracks(1)
+                recon.feature_track[other][f_other] = t
+            elif idx in recon.track_obs[t]:
+                continue
+            recon.track_obs[t][idx] = int(f_new)
+            ft[f_new] = t
+            links += 1
+    return links
+
+
+def matched_track_count(recon: Reconstruction, idx: int) -> int:
+    """Features of image ``idx`` that belong to triangulated tracks."""
+    t = recon.feature_track[idx]
+    t = t[t >= 0]
+    if len(t) == 0:
+        return 0
+    return int(np.sum(np.all(np.isfinite(recon.points[t]), axis=1)))
+
+
+# ---------------------------------------------------------------------------
+# Registration steps
+# ---------------------------------------------------------------------------
+
+
+def register_anchor(recon: Reconstruction, idx: int, clicks: Clicks, cfg: SfmConfig) -> AnchorSolution:
+    """Solve image ``idx`` from user clicks; marks it an anchor. Raises DegenerateAnchors."""
+    im = recon.images[idx]
+    px, world = np.asarray(clicks[0], float), np.asarray(clicks[1], float)
+    sol = solve_anchor(px, world, im.width_px, im.height_px, focal_px=focal_prior(im, cfg))
+    im.intrinsics, im.world_from_camera = sol.intrinsics, sol.world_from_camera
+    im.status, im.method, im.anchor = "anchor", "anchor", sol
+    im.clicks, im.click_inliers = (px, world), ~sol.outlier_mask
+    im.num_inliers = int(np.sum(~sol.outlier_mask))
+    im.rms_px = sol.rms_px
+    n_out = int(sol.outlier_mask.sum())
+    im.message = f"{len(px)} clicks, rms {sol.rms_px:.2f} px" + (f", {n_out} flagged as mis-clicks" if n_out else "")
+    return sol
+
+
+def try_homography_transfer(recon: Reconstruction, anchor_idx: int, idx: int, cfg: SfmConfig) -> bool:
+    """Register ``idx`` by warping the clicks of ``anchor_idx`` through a homography fitting >= 80 % of their
+    matches, then PnP on the warped clicks inside the image (>= 4). Returns True when registered."""
+    a, im = recon.images[anchor_idx], recon.images[idx]
+    p = recon.pair(anchor_idx, idx)
+    if p is None or a.clicks is None or len(p[0]) < cfg.homography_min_matches:
+        return False
+    m, _ = p
+    thr = max(1.0, cfg.homography_threshold_frac * im.width_px)
+    H, ratio = homography_inlier_ratio(a.features.keypoints_px, im.features.keypoints_px, m, thr)
+    if H is None or ratio < cfg.homography_min_inlier_ratio:
+        return False
+    keep = a.click_inliers if a.click_inliers is not None else np.ones(len(a.clicks[0]), bool)
+    px_a, world = a.clicks[0][keep], a.clicks[1][keep]
+    warped = cv2.perspectiveTransform(px_a.reshape(-1, 1, 2).astype(np.float64), H).reshape(-1, 2)
+    inside = (
+        np.all(np.isfinite(warped), axis=1)
+        & (warped[:, 0] >= -0.5)
+        & (warped[:, 1] >= -0.5)
+        & (warped[:, 0] <= im.width_px - 0.5)
+        & (warped[:, 1] <= im.height_px - 0.5)
+    )
+    if inside.sum() < 4:
+        return False
+    try:
+        sol = solve_anchor(warped[inside], world[inside], im.width_px, im.height_px, focal_px=focal_prior(im, cfg))
+    except DegenerateAnchors:
+        return False
+    im.intrinsics, im.world_from_camera = sol.intrinsics, sol.world_from_camera
+    im.status, im.method = "auto", "homography"
+    im.clicks, im.click_inliers = (warped[inside], world[inside]), ~sol.outlier_mask
+    im.num_inliers, im.rms_px = int(inside.sum()), sol.rms_px
+    im.message = f"homography from {a.name} ({ratio:.0%} inliers), {int(inside.sum())} warped clicks"
+    return True
+
+
+def _epipolar_constraints(recon: Reconstruction, idx: int) -> tuple[np.ndarray, np.ndarray]:
+    """Model points (K, 3) of anchor clicks and their epipolar lines (K, 3) in image ``idx`` (normalised so
+    a·u + b·v + c is a distance in pixels)."""
+    pts, lines = [], []
+    for a_idx, a in enumerate(recon.images):
+        if a.status != "anchor" or a.clicks is None or a_idx == idx:
+            continue
+        p = recon.pair(a_idx, idx)
+        if p is None:
+            continue
+        _, F = p  # x_idx^T F x_a = 0
+        keep = a.click_inliers if a.click_inliers is not None else np.ones(len(a.clicks[0]), bool)
+        x_a = np.c_[a.clicks[0][keep], np.ones(int(keep.sum()))]
+        ln = x_a @ F.T
+        ln /= np.maximum(np.linalg.norm(ln[:, :2], axis=1, keepdims=True), 1e-12)
+        pts.append(a.clicks[1][keep])
+        lines.append(ln)
+    if not pts:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    return np.vstack(pts), np.vstack(lines)
+
+
+def _project(intr: Intrinsics, rvec: np.ndarray, t: np.ndarray, f: float, pts: np.ndarray) -> np.ndarray:
+    R = cam.rodrigues_to_matrix(rvec)
+    p = pts @ R.T + t
+    xy = p[:, :2] / np.maximum(p[:, 2:3], 1e-9)
+    r2 = np.sum(xy * xy, axis=1, keepdims=True)
+    xy = xy * (1 + intr.k1 * r2 + intr.k2 * r2 * r2)
+    return xy * f + np.array([intr.cx_px, intr.cy_px])
+
+
+def solve_pose_epipolar(
+    intr: Intrinsics,
+    rvec0: np.ndarray,
+    t0: np.ndarray,
+    points_in_world: np.ndarray,
+    pixels_px: np.ndarray,
+    click_points_in_world: np.ndarray,
+    click_lines: np.ndarray,
+    epipolar_weight: float,
+    solve_focal: bool,
+    loss_scale_px: float,
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """The paper's constrained PnP: min over (R, t[, f]) of robust reprojection error of (N, 3) points to their
+    pixels plus the distance of projected click model points (K, 3) to their epipolar lines (K, 3)."""
+
+    def res(x: np.ndarray) -> np.ndarray:
+        f = float(np.exp(x[6])) if solve_focal else intr.f_px
+        r = (_project(intr, x[:3], x[3:6], f, points_in_world) - pixels_px).ravel()
+        if len(click_lines):
+            q = _project(intr, x[:3], x[3:6], f, click_points_in_world)
+            d = np.sum(q * click_lines[:, :2], axis=1)
+            r = np.concatenate([r, epipolar_weight * (d + click_lines[:, 2])])
+        return r
+
+    x0 = np.concatenate([rvec0, t0] + ([[np.log(intr.f_px)]] if solve_focal else []))
+    sol = least_squares(res, x0, method="trf", loss="huber", f_scale=loss_scale_px, x_scale="jac", max_nfev=100)
+    f = float(np.exp(sol.x[6])) if solve_focal else intr.f_px
+    return sol.x[:3], sol.x[3:6], f
+
+
+def register_image_pnp(recon: Reconstruction, idx: int, cfg: SfmConfig) -> bool:
+    """Register image ``idx`` from its matches to triangulated tracks: PnP-RANSAC (inliers within
+    ``pnp_inlier_frac`` of the width) then the epipolar-constrained refinement. Returns True on success."""
+    im = recon.images[idx]
+    ft = recon.feature_track[idx]
+    feats = np.nonzero(ft >= 0)[0]
+    tr = ft[feats]
+    ok = np.all(np.isfinite(recon.points[tr]), axis=1)
+    feats, tr = feats[ok], tr[ok]
+    im.num_matched_tracks = len(feats)
+    if len(feats) < max(cfg.min_pnp_inliers, 6):
+        im.message = f"only {len(feats)} matches to triangulated tracks"
+        return False
+    obj = recon.points[tr].astype(np.float64)
+    img = im.features.keypoints_px[feats].astype(np.float64)
+    f0 = focal_prior(im, cfg)
+    intr = cam.centered_intrinsics(im.width_px, im.height_px, f0)
+    K = cam.K_matrix(intr)
+    thr = cfg.pnp_inlier_frac * im.width_px
+    best = None
+    # Try the prior focal and, if that registers poorly, a few alternatives (a wrong prior breaks RANSAC).
+    for f_try in (f0, f0 * 0.7, f0 * 1.4, f0 * 2.0, f0 * 0.5):
+        Kt = K.copy()
+        Kt[0, 0] = Kt[1, 1] = f_try
+        ok_r, rvec, tvec, inl = cv2.solvePnPRansac(
+            obj, img, Kt, None, iterationsCount=2000, reprojectionError=thr, confidence=0.999, flags=cv2.SOLVEPNP_SQPNP
+        )
+        n_inl = 0 if (not ok_r or inl is None) else len(inl)
+        if best is None or n_inl > best[0]:
+            best = (n_inl, f_try, rvec, tvec, inl)
+        if n_inl >= 0.5 * len(obj):
+            break
+    n_inl, f_try, rvec, tvec, inl = best
+    if n_inl < cfg.min_pnp_inliers:
+        im.message = f"PnP found {n_inl} inliers among {len(obj)} track matches (< {cfg.min_pnp_inliers})"
+        return False
+    inl = inl.ravel()
+    intr = cam.centered_intrinsics(im.width_px, im.height_px, f_try)
+    cpts, clines = _epipolar_constraints(recon, idx)
+    rv, tv, f = solve_pose_epipolar(
+        intr,
+        rvec.ravel(),
+        tvec.ravel(),
+        obj[inl],
+        img[inl],
+        cpts,
+        clines,
+        cfg.epipolar_weight,
+        solve_focal=n_inl >= 50 and not np.isfinite(_focal_sigma_frac(im, cfg)),
+        loss_scale_px=cfg.loss_scale_px,
+    )
+    intr = cam.centered_intrinsics(im.width_px, im.height_px, f)
+    proj = _project(intr, rv, tv, f, obj)
+    err = np.linalg.norm(proj - img, axis=1)
+    R = cam.rodrigues_to_matrix(rv)
+    z = obj @ R.T[:, 2] + tv[2]
+    inliers = (err < thr) & (z > 0)
+    if inliers.sum() < cfg.min_pnp_inliers:
+        im.message = f"refined pose keeps {int(inliers.sum())} inliers (< {cfg.min_pnp_inliers})"
+        return False
+    im.intrinsics = intr
+    im.world_from_camera = cam.invert_rigid(cam.rigid(R, tv))
+    im.status, im.method = "auto", "pnp"
+    im.num_inliers = int(inliers.sum())
+    im.rms_px = float(np.sqrt(np.mean(err[inliers] ** 2)))
+    im.message = f"PnP {int(inliers.sum())}/{len(obj)} inliers, {len(clines)} epipolar click constraints"
+    # Drop this image's outlier observations from their tracks.
+    for fi, t in zip(feats[~inliers], tr[~inliers], strict=True):
+        recon.track_obs[t].pop(idx, None)
+        recon.feature_track[idx][fi] = -1
+    return True
+
+
+# ---------------------------------------------------------------------------
+# Triangulation and bundle adjustment
+# ---------------------------------------------------------------------------
+
+
+def _obs_thr(im: ImageState, cfg: SfmConfig) -> float:
+    return max(cfg.min_obs_error_px, cfg.max_obs_error_frac * im.width_px)
+
+
+def _rays(recon: Reconstruction, img_idx: np.ndarray, px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Camera centres (M, 3) and unit world ray directions (M, 3) of pixels (M, 2) in images ``img_idx``."""
+    centers = np.zeros((len(img_idx), 3))
+    dirs = np.zeros((len(img_idx), 3))
+    for i in np.unique(img_idx):
+        sel = img_idx == i
+        im = recon.images[i]
+        xy = cam.pixels_to_normalized(im.intrinsics, px[sel])
+        d = np.c_[xy, np.ones(len(xy))] @ im.world_from_camera[:3, :3].T
+        dirs[sel] = d / np.linalg.norm(d, axis=1, keepdims=True)
+        centers[sel] = im.world_from_camera[:3, 3]
+    return centers, dirs
+
+
+def triangulate_tracks(recon: Reconstruction, cfg: SfmConfig, retriangulate: bool = False) -> int:
+    """Triangulate untriangulated tracks seen by >= 2 registered images (midpoint of rays, all at once), keeping
+    those whose rays span >= ``min_triangulation_angle_deg`` and that reproject within threshold in front of
+    every camera. Returns the number of new points."""
+    reg = np.array([im.registered for im in recon.images])
+    tids, iids, fids = [], [], []
+    for t, d in enumerate(recon.track_obs):
+        if not retriangulate and np.all(np.isfinite(recon.points[t])):
+            continue
+        obs = [(i, f) for i, f in d.items() if reg[i]]
+        if len(obs) < 2:
+            continue
+        for i, f in obs:
+            tids.append(t)
+            iids.append(i)
+            fids.append(f)
+    if not tids:
+        return 0
+    tids_a, iids_a = np.array(tids), np.array(iids)
+    px = np.array([recon.images[i].features.keypoints_px[f] for i, f in zip(iids, fids, strict=True)], np.float64)
+    C, D = _rays(recon, iids_a, px)
+    uniq, inv = np.unique(tids_a, return_inverse=True)
+    n = len(uniq)
+    M = np.eye(3)[None] - D[:, :, None] * D[:, None, :]
+    A = np.zeros((n, 3, 3))
+    b = np.zeros((n, 3))
+    np.add.at(A, inv, M)
+    np.add.at(b, inv, np.einsum("nij,nj->ni", M, C))
+    det = np.linalg.det(A)
+    good = np.abs(det) > 1e-12
+    X = np.full((n, 3), np.nan)
+    X[good] = np.linalg.solve(A[good], b[good][:, :, None])[:, :, 0]
+    # Ray span: max angle between any ray and the track's mean direction, doubled as a bound.
+    first = np.zeros(n, int)
+    first[inv[::-1]] = np.arange(len(inv))[::-1]
+    cosang = np.sum(D * D[first][inv], axis=1)
+    min_cos = np.ones(n)
+    np.minimum.at(min_cos, inv, cosang)
+    wide = min_cos < np.cos(np.radians(cfg.min_triangulation_angle_deg))
+    # Reprojection and cheirality per observation.
+    bad = np.zeros(n, bool)
+    for i in np.unique(iids_a):
+        sel = np.nonzero(iids_a == i)[0]
+        im = recon.images[i]
+        proj, z = cam.project_points(im.intrinsics, cam.invert_rigid(im.world_from_camera), X[inv[sel]])
+        e = np.linalg.norm(proj - px[sel], axis=1)
+        fail = ~(np.isfinite(e) & (e < _obs_thr(im, cfg)) & (z > 0))
+        np.logical_or.at(bad, inv[sel], fail)
+    accept = good & wide & ~bad
+    new = 0
+    for k in np.nonzero(accept)[0]:
+        t = int(uniq[k])
+        if not np.all(np.isfinite(recon.points[t])):
+            new += 1
+        recon.points[t] = X[k]
+        i0, f0 = next(iter(recon.track_obs[t].items()))
+        cols = recon.images[i0].colors_rgb_u8
+        if cols is not None:
+            recon.colors[t] = cols[f0]
+    return new
+
+
+def bundle(recon: Reconstruction, cfg: SfmConfig, window: list[int] | None = None) -> dict[str, float]:
+    """Constrained bundle adjustment over all registered images, or a local one where only images in ``window``
+    (and the points they see) move. Then drops observations beyond threshold and points left with < 2 views.
+    Returns stats (initial/final rms px, observations removed, points)."""
+    reg = recon.registered_indices()
+    if not reg:
+        return {}
+    cam_of = {i: c for c, i in enumerate(reg)}
+    movable = set(reg if window is None else [i for i in window if i in cam_of])
+    anchors = {i for i in reg if recon.images[i].status == "anchor"} if cfg.fix_anchor_poses else set()
+    tri = np.nonzero(np.all(np.isfinite(recon.points), axis=1))[0]
+    pt_list, obs_c, obs_p, obs_x, obs_track, obs_img = [], [], [], [], [], []
+    ref_cam, ref_px = [], []
+    for t in tri:
+        d = recon.track_obs[t]
+        views = [(i, f) for i, f in d.items() if i in cam_of]
+        if len(views) < 2:
+            continue
+        if window is not None and not any(i in movable for i, _ in views):
+            continue
+        p = len(pt_list)
+        pt_list.append(t)
+        rc, rp = -1, (0.0, 0.0)
+        for i, f in views:
+            obs_c.append(cam_of[i])
+            obs_p.append(p)
+            obs_x.append(recon.images[i].features.keypoints_px[f])
+            obs_track.append(t)
+            obs_img.append(i)
+            if rc < 0 and i in anchors:
+                rc, rp = cam_of[i], recon.images[i].features.keypoints_px[f]
+        ref_cam.append(rc)
+        ref_px.append(rp)
+    intr = [recon.images[i].intrinsics for i in reg]
+    click_c, click_w, click_x = [], [], []
+    for i in reg:
+        im = recon.images[i]
+        if im.clicks is not None:
+            keep = im.click_inliers if im.click_inliers is not None else np.ones(len(im.clicks[0]), bool)
+            click_c += [cam_of[i]] * int(keep.sum())
+            click_w.append(im.clicks[1][keep])
+            click_x.append(im.clicks[0][keep])
+    point_ref = np.array(ref_cam, int)
+    # In a local window, points fixed when they are not seen by a movable image (already filtered), anchors'
+    # rays are used only for movable anchors.
+    pose_fixed = np.array([(i in anchors) or (i not in movable) for i in reg])
+    intr_fixed = np.array([i not in movable for i in reg])
+    prob = BundleProblem(
+        camera_from_world=np.stack([cam.invert_rigid(recon.images[i].world_from_camera) for i in reg]),
+        f_px=np.array([x.f_px for x in intr]),
+        cx_px=np.array([x.cx_px for x in intr]),
+        cy_px=np.array([x.cy_px for x in intr]),
+        k1=np.array([x.k1 for x in intr]),
+        k2=np.array([x.k2 for x in intr]),
+        pose_fixed=pose_fixed,
+        intrinsics_fixed=intr_fixed,
+        points_in_world=recon.points[pt_list] if pt_list else np.zeros((0, 3)),
+        point_fixed=np.zeros(len(pt_list), bool),
+        point_ref_cam=np.where(point_ref >= 0, point_ref, -1) if len(point_ref) else np.zeros(0, int),
+        point_ref_px=np.array(ref_px, float).reshape(-1, 2),
+        obs_cam=np.array(obs_c, int),
+        obs_point=np.array(obs_p, int),
+        obs_px=np.array(obs_x, float).reshape(-1, 2),
+        click_cam=np.array(click_c, int),
+        click_world=np.vstack(click_w) if click_w else np.zeros((0, 3)),
+        click_px=np.vstack(click_x) if click_x else np.zeros((0, 2)),
+    )
+    f_prior = np.array([focal_prior(recon.images[i], cfg) for i in reg])
+    sigma = np.array([_focal_sigma_frac(recon.images[i], cfg) for i in reg]) * f_prior
+    opts = BundleOptions(
+        focal_prior_px=f_prior,
+        focal_prior_sigma_px=sigma,
+        loss_scale_px=cfg.loss_scale_px,
+        refine_distortion=cfg.refine_distortion,
+        refine_principal_point=cfg.refine_principal_point,
+        max_nfev=cfg.ba_max_nfev,
+    )
+    res = bundle_adjust(prob, opts)
+    for c, i in enumerate(reg):
+        if i not in movable:
+            continue
+        im = recon.images[i]
+        im.intrinsics = Intrinsics(
+            width_px=im.width_px,
+            height_px=im.height_px,
+            f_px=float(res.f_px[c]),
+            cx_px=float(res.cx_px[c]),
+            cy_px=float(res.cy_px[c]),
+            k1=float(res.k1[c]),
+            k2=float(res.k2[c]),
+        )
+        if i not in anchors:
+            im.world_from_camera = cam.invert_rigid(res.camera_from_world[c])
+    if pt_list:
+        recon.points[pt_list] = res.points_in_world
+    # Outlier observations.
+    removed = 0
+    per_img_err: dict[int, list[float]] = {i: [] for i in reg}
+    for k, (t, i) in enumerate(zip(obs_track, obs_img, strict=True)):
+        e = res.obs_error_px[k]
+        if not np.isfinite(e) or e > _obs_thr(recon.images[i], cfg):
+            f = recon.track_obs[t].pop(i, None)
+            if f is not None:
+                recon.feature_track[i][f] = -1
+            removed += 1
+        else:
+            per_img_err[i].append(float(e))
+    for t in pt_list:
+        if sum(1 for i in recon.track_obs[t] if i in cam_of) < 2:
+            recon.points[t] = np.nan
+    for i in reg:
+        if i in movable and per_img_err[i]:
+            im = recon.images[i]
+            errs = np.array(per_img_err[i])
+            if im.status != "anchor":
+                im.num_inliers = len(errs)
+            im.rms_px = float(np.sqrt(np.mean(errs**2)))
+    return {
+        "initial_rms_px": res.initial_rms_px,
+        "final_rms_px": res.final_rms_px,
+        "removed_observations": float(removed),
+        "points": float(len(pt_list)),
+        "iterations": float(res.num_iterations),
+    }
+
+
+def local_window(recon: Reconstruction, idx: int, size: int) -> list[int]:
+    """Image ``idx`` and the registered images sharing the most triangulated tracks with it (``size`` in all)."""
+    shared: dict[int, int] = {}
+    for t in recon.feature_track[idx]:
+        if t < 0 or not np.isfinite(recon.points[t, 0]):
+            continue
+        for i in recon.track_obs[t]:
+            if i != idx and recon.images[i].registered:
+                shared[i] = shared.get(i, 0) + 1
+    best = sorted(shared, key=lambda i: -shared[i])[: max(0, size - 1)]
+    return [idx, *best]
+
+
+# ---------------------------------------------------------------------------
+# The batch algorithm
+# ---------------------------------------------------------------------------
+
+
+def reconstruct(
+    recon: Reconstruction,
+    anchors: dict[str, Clicks],
+    cfg: SfmConfig,
+    request_anchor: Callable[[str, str, int], Clicks | None] | None = None,
+    progress: Callable[[str, int], None] | None = None,
+    match_progress: Callable[[], None] | None = None,
+) -> Reconstruction:
+    """Run Algorithm 1 on a reconstruction whose images were added with :func:`add_image`.
+
+    ``anchors``: clicks by image name; the first one (or all with ``cfg.use_all_anchors``) starts the
+    reconstruction, the others are used when an image needs an anchor. ``request_anchor(name, reason,
+    num_tracks)`` may supply clicks for other images (None: the image stays unregistered for now); every request
+    is also recorded in ``recon.needs_anchor``. ``progress(stage, registered_count)`` is called after each step.
+    """
+    t_start = time.perf_counter()
+    names = [im.name for im in recon.images]
+    unknown = [n for n in anchors if n not in names]
+    if unknown:
+        raise ValueError(f"anchor clicks for images not in the collection: {', '.join(unknown[:5])}")
+    if not anchors:
+        raise ValueError("at least one anchor image with clicks is needed")
+    pending = dict(anchors)
+
+    # Matching.
+    t0 = time.perf_counter()
+    if not recon.pairs:
+        pairs = select_pairs([im.features for im in recon.images], cfg)
+
+        def job(ij: tuple[int, int]) -> tuple[tuple[int, int], PairGeometry | None]:
+            return ij, verify_pair(recon.images[ij[0]].features, recon.images[ij[1]].features, cfg)
+
+        with ThreadPoolExecutor(max(1, cfg.workers)) as pool:
+            for ij, g in pool.map(job, pairs):
+                if g is not None:
+                    recon.pairs[ij] = g
+                if match_progress is not None:
+                    match_progress()
+    build_tracks(recon)
+    recon.timings_secs["matching"] = time.perf_counter() - t0
+
+    def note(stage: str) -> None:
+        if progress is not None:
+            progress(stage, len(recon.registered_indices()))
+
+    # Initial anchors.
+    first = list(pending)[: (len(pending) if cfg.use_all_anchors else 1)]
+    for name in first:
+        clicks = pending.pop(name)
+        idx = recon.index(name)
+        try:
+            register_anchor(recon, idx, clicks, cfg)
+        except DegenerateAnchors as e:
+            recon.images[idx].status, recon.images[idx].message = "failed", f"anchor clicks rejected: {e}"
+        note(f"anchor {name}")
+    t_reg = time.perf_counter()
+    checked_h: set[tuple[int, int]] = set()
+    failed_pnp: set[int] = set()
+    dirty = True  # something was added since the last full bundle adjustment
+    since_full = 0
+    while True:
+        # Homography transfer from every clicked image to unregistered images.
+        added = True
+        while added:
+            added = False
+            for a in [i for i, im in enumerate(recon.images) if im.status == "anchor"]:
+                for u in [i for i, im in enumerate(recon.images) if im.status == "unregistered"]:
+                    if (a, u) in checked_h:
+                        continue
+                    checked_h.add((a, u))
+                    if try_homography_transfer(recon, a, u, cfg):
+                        added = dirty = True
+                        note(f"homography {recon.images[u].name}")
+        if dirty:
+            triangulate_tracks(recon, cfg)
+            bundle(recon, cfg)
+            triangulate_tracks(recon, cfg)
+            dirty, since_full = False, 0
+        unreg = [i for i, im in enumerate(recon.images) if im.status == "unregistered"]
+        if not unreg:
+            break
+        counts = {i: matched_track_count(recon, i) for i in unreg}
+        for i, c in counts.items():
+            recon.images[i].num_matched_tracks = c
+        candidates = [i for i in unreg if i not in failed_pnp]
+        qualified = [i for i in candidates if counts[i] >= cfg.min_track_matches]
+        if qualified:
+            # The paper's rule: the qualifying image with the fewest matched tracks (wide baseline).
+            u = min(qualified, key=lambda i: counts[i])
+        else:
+            # Before asking for clicks, try the best-connected image above a lower bar (PnP still has to succeed).
+            weak = [i for i in candidates if counts[i] >= cfg.fallback_min_track_matches]
+            u = max(weak, key=lambda i: counts[i]) if weak else -1
+        if u >= 0:
+            if register_image_pnp(recon, u, cfg):
+                failed_pnp.clear()
+                triangulate_tracks(recon, cfg)
+                since_full += 1
+                if since_full >= cfg.full_ba_every:
+                    bundle(recon, cfg)
+                    since_full = 0
+                else:
+                    local_cfg = SfmConfig(**{**cfg.__dict__, "ba_max_nfev": cfg.local_ba_max_nfev})
+                    bundle(recon, local_cfg, window=local_window(recon, u, cfg.local_ba_window))
+                triangulate_tracks(recon, cfg)
+                note(f"pnp {recon.images[u].name}")
+            else:
+                failed_pnp.add(u)
+            continue
+        # No image has enough tracks: ask for an anchor, fewest matched tracks first.
+        got = False
+        for u in sorted(unreg, key=lambda i: counts[i]):
+            name = recon.images[u].name
+            reason = f"only {counts[u]} matches to triangulated tracks (< {cfg.min_track_matches})"
+            recon.needs_anchor.append((name, reason, counts[u]))
+            clicks = pending.pop(name, None)
+            if clicks is None and request_anchor is not None:
+                clicks = request_anchor(name, reason, counts[u])
+            if clicks is None:
+                recon.images[u].message = f"needs anchor clicks: {reason}"
+                continue
+            try:
+                register_anchor(recon, u, clicks, cfg)
+            except DegenerateAnchors as e:
+                recon.images[u].status, recon.images[u].message = "failed", f"anchor clicks rejected: {e}"
+                continue
+            failed_pnp.clear()
+            got = dirty = True
+            note(f"anchor {name}")
+            break
+        if not got:
+            break
+    if since_full:
+        bundle(recon, cfg)
+    for i, im in enumerate(recon.images):
+        if im.status == "unregistered" and i in failed_pnp and not im.message.startswith("needs"):
+            im.message = "PnP failed: " + im.message
+    recon.timings_secs["registration"] = time.perf_counter() - t_reg
+    recon.timings_secs["total"] = time.perf_counter() - t_start
+    return recon

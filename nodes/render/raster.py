@@ -1,0 +1,378 @@
+"""Element-ID, depth and shade rasters of a :class:`BimScene` seen by a distorted pinhole camera.
+
+The scene is drawn with a small OpenGL 3.3 program (one draw call, no multisampling, integer
+colour target) into an *undistorted* image that covers the distorted photo's field of view with
+a margin; the result is then resampled (nearest neighbour, so ids stay exact) through the shared
+radial distortion model of :mod:`constructaide.camera` onto the photo's pixel grid.
+
+The OpenGL context is EGL (headless) and thread-bound: create and use a :class:`GLRasterizer`
+on one thread. Outputs, all (H, W) at photo size, OpenCV pixel convention:
+
+* ``ids`` uint32: 1-based element index, 0 background, :data:`scene.GROUND_INDEX` ground plane;
+* ``depth_m`` float32: camera-frame z in metres, 0 where nothing was hit;
+* ``shade`` float32 in [0, 1]: per-face Lambert shade (fixed world light), 0 on background.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+from numpy.typing import NDArray
+
+from constructaide.camera import invert_rigid, pixels_to_normalized
+from nodes.render.scene import GROUND_INDEX, BimScene
+from schemas.messages import Intrinsics
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+
+_LUT_WIDTH = 4096
+_NEAR_M = 0.05
+
+_VERT = """
+#version 330 core
+layout(location = 0) in vec3 position;
+layout(location = 1) in uint element;
+layout(location = 2) in float shade;
+uniform mat4 clip_from_world;
+uniform mat4 camera_from_world;
+uniform usampler2D visible;
+flat out uint v_element;
+out float v_z;
+out float v_shade;
+void main() {
+    uint vis = element >= 16777215u ? 1u
+        : texelFetch(visible, ivec2(int(element % 4096u), int(element / 4096u)), 0).r;
+    v_element = element;
+    v_shade = shade;
+    v_z = (camera_from_world * vec4(position, 1.0)).z;
+    gl_Position = vis == 0u ? vec4(2.0, 2.0, 2.0, 1.0) : clip_from_world * vec4(position, 1.0);
+}
+"""
+
+_FRAG = """
+#version 330 core
+flat in uint v_element;
+in float v_z;
+in float v_shade;
+layout(location = 0) out uint out_id;
+layout(location = 1) out vec2 out_depth_shade;
+void main() {
+    out_id = v_element;
+    out_depth_shade = vec2(v_z, v_shade);
+}
+"""
+
+
+@dataclass(frozen=True)
+class RasterResult:
+    """Per-pixel renders at photo size (see module docstring)."""
+
+    ids: NDArray[np.uint32]
+    depth_m: NDArray[np.float32]
+    shade: NDArray[np.float32]
+
+
+@dataclass(frozen=True)
+class RenderGeometry:
+    """Undistorted render camera covering a distorted photo, and the photo->render lookup.
+
+    ``render_intrinsics`` has no distortion; ``lookup_flat`` (H*W,) int64 indexes the render's
+    flattened pixels (nearest neighbour) for every photo pixel, or is ``None`` when the photo has
+    no distortion and the render is the photo grid itself.
+    """
+
+    render_intrinsics: Intrinsics
+    lookup_flat: NDArray[np.int64] | None
+
+
+def projection_from_intrinsics(intr: Intrinsics, near_m: float, far_m: float) -> NDArray[np.float64]:
+    """(4, 4) OpenGL clip_from_camera for an OpenCV camera; GL row ``j`` (from the bottom) = pixel row ``v = j``.
+
+    So ``glReadPixels`` rows come out in image order without a flip.
+    """
+    w, h, f = intr.width_px, intr.height_px, intr.f_px
+    P = np.zeros((4, 4))
+    P[0, 0] = 2.0 * f / w
+    P[0, 2] = (2.0 * intr.cx_px + 1.0) / w - 1.0
+    P[1, 1] = 2.0 * f / h
+    P[1, 2] = (2.0 * intr.cy_px + 1.0) / h - 1.0
+    P[2, 2] = (far_m + near_m) / (far_m - near_m)
+    P[2, 3] = -2.0 * far_m * near_m / (far_m - near_m)
+    P[3, 2] = 1.0
+    return P
+
+
+@lru_cache(maxsize=16)
+def render_geometry(intr: Intrinsics, margin_px: int = 4) -> RenderGeometry:
+    """Undistorted render camera and lookup table for ``intr`` (cached per Intrinsics)."""
+    if intr.width_px <= 0 or intr.height_px <= 0 or intr.f_px <= 0:
+        raise ValueError(f"bad intrinsics: {intr}")
+    if intr.k1 == 0.0 and intr.k2 == 0.0:
+        return RenderGeometry(render_intrinsics=intr, lookup_flat=None)
+    w, h = intr.width_px, intr.height_px
+    uu, vv = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    xy = pixels_to_normalized(intr, np.stack([uu.ravel(), vv.ravel()], axis=1))
+    if not np.all(np.isfinite(xy)):
+        raise ValueError(f"distortion k1={intr.k1}, k2={intr.k2} is not invertible over the image")
+    f = intr.f_px
+    xmin, ymin = xy.min(0)
+    xmax, ymax = xy.max(0)
+    cx = -xmin * f + margin_px
+    cy = -ymin * f + margin_px
+    rw = int(np.ceil((xmax - xmin) * f)) + 2 * margin_px + 1
+    rh = int(np.ceil((ymax - ymin) * f)) + 2 * margin_px + 1
+    if rw * rh > 16 * w * h:
+        raise ValueError(f"distortion k1={intr.k1}, k2={intr.k2} needs an unreasonably wide undistorted render")
+    ru = np.clip(np.rint(xy[:, 0] * f + cx).astype(np.int64), 0, rw - 1)
+    rv = np.clip(np.rint(xy[:, 1] * f + cy).astype(np.int64), 0, rh - 1)
+    r_intr = Intrinsics(width_px=rw, height_px=rh, f_px=f, cx_px=cx, cy_px=cy)
+    return RenderGeometry(render_intrinsics=r_intr, lookup_flat=rv * rw + ru)
+
+
+def scene_far_m(scene: BimScene, world_from_camera: NDArray[np.float64], extra_m: float = 0.0) -> float:
+    """Far plane: distance from the camera to the farthest scene bbox corner, padded."""
+    c = world_from_camera[:3, 3]
+    corners = np.array(
+        [[x, y, z] for x in (scene.bbox_min_m[0], scene.bbox_max_m[0]) for y in (scene.bbox_min_m[1], scene.bbox_max_m[1])
+         for z in (scene.bbox_min_m[2], scene.bbox_max_m[2])]
+    )
+    return float(np.linalg.norm(corners - c, axis=1).max() * 1.5 + extra_m + 1.0)
+
+
+class GLRasterizer:
+    """Headless OpenGL renderer of element ids / depth / shade; owns one EGL context.
+
+    Create and use on a single thread. ``offscreen`` exposes the underlying
+    ``pyrender.OffscreenRenderer`` so photoreal renders share the context.
+    """
+
+    def __init__(self) -> None:
+        import pyrender
+
+        self.offscreen = pyrender.OffscreenRenderer(64, 64)
+        self._program = 0
+        self._vao = 0
+        self._buffers: list[int] = []
+        self._ground_vao = 0
+        self._ground_buffers: list[int] = []
+        self._num_vertices = 0
+        self._scene: BimScene | None = None
+        self._lut_tex = 0
+        self._lut_shape = (0, 0)
+        self._fbo = 0
+        self._fbo_size = (0, 0)
+        self._rbos: list[int] = []
+        self._build_program()
+
+    # -- GL plumbing --------------------------------------------------------------------------------
+
+    def make_current(self) -> None:
+        self.offscreen._platform.make_current()
+
+    def _build_program(self) -> None:
+        from OpenGL import GL
+        from OpenGL.GL import shaders
+
+        self.make_current()
+        vs = shaders.compileShader(_VERT, GL.GL_VERTEX_SHADER)
+        fs = shaders.compileShader(_FRAG, GL.GL_FRAGMENT_SHADER)
+        self._program = shaders.compileProgram(vs, fs, validate=False)
+        self._u_clip = GL.glGetUniformLocation(self._program, "clip_from_world")
+        self._u_cam = GL.glGetUniformLocation(self._program, "camera_from_world")
+        self._u_vis = GL.glGetUniformLocation(self._program, "visible")
+
+    @staticmethod
+    def _make_vao(positions: NDArray[np.float32], index: NDArray[np.uint32], shade: NDArray[np.float32]):
+        from OpenGL import GL
+
+        vao = GL.glGenVertexArrays(1)
+        GL.glBindVertexArray(vao)
+        bufs = list(GL.glGenBuffers(3))
+        for loc, (buf, arr) in enumerate(zip(bufs, (positions, index, shade), strict=True)):
+            data = np.ascontiguousarray(arr)
+            GL.glBindBuffer(GL.GL_ARRAY_BUFFER, buf)
+            GL.glBufferData(GL.GL_ARRAY_BUFFER, data.nbytes, data if data.size else None, GL.GL_STATIC_DRAW)
+            GL.glEnableVertexAttribArray(loc)
+            if loc == 0:
+                GL.glVertexAttribPointer(loc, 3, GL.GL_FLOAT, GL.GL_FALSE, 0, ctypes.c_void_p(0))
+            elif loc == 1:
+                GL.glVertexAttribIPointer(loc, 1, GL.GL_UNSIGNED_INT, 0, ctypes.c_void_p(0))
+            else:
+                GL.glVertexAttribPointer(loc, 1, GL.GL_FLOAT, GL.GL_FALSE, 0, ctypes.c_void_p(0))
+        GL.glBindVertexArray(0)
+        return vao, bufs
+
+    def _upload(self, scene: BimScene) -> None:
+        from OpenGL import GL
+
+        if self._vao:
+            GL.glDeleteVertexArrays(1, [self._vao])
+            GL.glDeleteBuffers(len(self._buffers), self._buffers)
+        self._vao, self._buffers = self._make_vao(scene.positions_m, scene.element_index, scene.shade)
+        self._num_vertices = len(scene.element_index)
+        rows = (scene.num_elements + 1 + _LUT_WIDTH - 1) // _LUT_WIDTH
+        if self._lut_tex:
+            GL.glDeleteTextures([self._lut_tex])
+        self._lut_tex = GL.glGenTextures(1)
+        GL.glBindTexture(GL.GL_TEXTURE_2D, self._lut_tex)
+        GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MIN_FILTER, GL.GL_NEAREST)
+        GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MAG_FILTER, GL.GL_NEAREST)
+        GL.glPixelStorei(GL.GL_UNPACK_ALIGNMENT, 1)
+        GL.glTexImage2D(
+            GL.GL_TEXTURE_2D, 0, GL.GL_R8UI, _LUT_WIDTH, rows, 0, GL.GL_RED_INTEGER, GL.GL_UNSIGNED_BYTE,
+            np.zeros(_LUT_WIDTH * rows, np.uint8),
+        )
+        self._lut_shape = (rows, _LUT_WIDTH)
+        self._scene = scene
+
+    def _set_ground(self, scene: BimScene, ground_z_m: float, extent_m: float) -> None:
+        from OpenGL import GL
+
+        if self._ground_vao:
+            GL.glDeleteVertexArrays(1, [self._ground_vao])
+            GL.glDeleteBuffers(len(self._ground_buffers), self._ground_buffers)
+        c = 0.5 * (scene.bbox_min_m + scene.bbox_max_m)
+        x0, x1, y0, y1 = c[0] - extent_m, c[0] + extent_m, c[1] - extent_m, c[1] + extent_m
+        quad = np.array(
+            [[x0, y0], [x1, y0], [x1, y1], [x0, y0], [x1, y1], [x0, y1]], np.float64
+        )
+        pos = np.column_stack([quad, np.full(6, ground_z_m)]).astype(np.float32)
+        self._ground_vao, self._ground_buffers = self._make_vao(
+            pos, np.full(6, GROUND_INDEX, np.uint32), np.full(6, 0.5, np.float32)
+        )
+
+    def _ensure_fbo(self, w: int, h: int) -> None:
+        from OpenGL import GL
+
+        if self._fbo and self._fbo_size == (w, h):
+            GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._fbo)
+            return
+        if self._fbo:
+            GL.glDeleteFramebuffers(1, [self._fbo])
+            GL.glDeleteRenderbuffers(len(self._rbos), self._rbos)
+        self._fbo = GL.glGenFramebuffers(1)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._fbo)
+        self._rbos = list(GL.glGenRenderbuffers(3))
+        for rbo, fmt, attach in zip(
+            self._rbos,
+            (GL.GL_R32UI, GL.GL_RG32F, GL.GL_DEPTH_COMPONENT32F),
+            (GL.GL_COLOR_ATTACHMENT0, GL.GL_COLOR_ATTACHMENT1, GL.GL_DEPTH_ATTACHMENT),
+            strict=True,
+        ):
+            GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, rbo)
+            GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, fmt, w, h)
+            GL.glFramebufferRenderbuffer(GL.GL_FRAMEBUFFER, attach, GL.GL_RENDERBUFFER, rbo)
+        status = GL.glCheckFramebufferStatus(GL.GL_FRAMEBUFFER)
+        if status != GL.GL_FRAMEBUFFER_COMPLETE:
+            raise RuntimeError(f"OpenGL framebuffer incomplete ({status})")
+        self._fbo_size = (w, h)
+
+    # -- rendering ----------------------------------------------------------------------------------
+
+    def render_undistorted(
+        self,
+        scene: BimScene,
+        intr: Intrinsics,
+        world_from_camera: NDArray[np.float64],
+        visible: NDArray[np.bool_],
+        ground_z_m: float | None = None,
+    ) -> RasterResult:
+        """Render with an undistorted ``intr`` (k1, k2 ignored). ``visible`` is (num_elements + 1,) bool."""
+        from OpenGL import GL
+
+        if visible.shape != (scene.num_elements + 1,):
+            raise ValueError(f"visible mask has shape {visible.shape}, expected ({scene.num_elements + 1},)")
+        self.make_current()
+        if self._scene is not scene:
+            self._upload(scene)
+        w, h = intr.width_px, intr.height_px
+        ground_extent = 0.0
+        if ground_z_m is not None:
+            ground_extent = 4.0 * float(np.max(scene.bbox_max_m - scene.bbox_min_m)) + 50.0
+            self._set_ground(scene, ground_z_m, ground_extent)
+        far = scene_far_m(scene, world_from_camera, 2.0 * ground_extent)
+        camera_from_world = invert_rigid(np.asarray(world_from_camera, np.float64))
+        clip_from_world = projection_from_intrinsics(intr, _NEAR_M, far) @ camera_from_world
+
+        lut = np.zeros(self._lut_shape[0] * self._lut_shape[1], np.uint8)
+        lut[: len(visible)] = visible
+        lut[0] = 0
+        GL.glActiveTexture(GL.GL_TEXTURE0)
+        GL.glBindTexture(GL.GL_TEXTURE_2D, self._lut_tex)
+        GL.glPixelStorei(GL.GL_UNPACK_ALIGNMENT, 1)
+        GL.glTexSubImage2D(
+            GL.GL_TEXTURE_2D, 0, 0, 0, self._lut_shape[1], self._lut_shape[0], GL.GL_RED_INTEGER, GL.GL_UNSIGNED_BYTE, lut
+        )
+
+        self._ensure_fbo(w, h)
+        GL.glDrawBuffers(2, [GL.GL_COLOR_ATTACHMENT0, GL.GL_COLOR_ATTACHMENT1])
+        GL.glViewport(0, 0, w, h)
+        GL.glDisable(GL.GL_MULTISAMPLE)
+        GL.glDisable(GL.GL_BLEND)
+        GL.glDisable(GL.GL_CULL_FACE)
+        GL.glEnable(GL.GL_DEPTH_TEST)
+        GL.glDepthFunc(GL.GL_LESS)
+        GL.glDepthMask(GL.GL_TRUE)
+        GL.glClearBufferuiv(GL.GL_COLOR, 0, np.zeros(4, np.uint32))
+        GL.glClearBufferfv(GL.GL_COLOR, 1, np.zeros(4, np.float32))
+        GL.glClearBufferfv(GL.GL_DEPTH, 0, np.ones(1, np.float32))
+        GL.glUseProgram(self._program)
+        GL.glUniformMatrix4fv(self._u_clip, 1, GL.GL_TRUE, clip_from_world.astype(np.float32))
+        GL.glUniformMatrix4fv(self._u_cam, 1, GL.GL_TRUE, camera_from_world.astype(np.float32))
+        GL.glUniform1i(self._u_vis, 0)
+        if self._num_vertices:
+            GL.glBindVertexArray(self._vao)
+            GL.glDrawArrays(GL.GL_TRIANGLES, 0, self._num_vertices)
+        if ground_z_m is not None:
+            GL.glBindVertexArray(self._ground_vao)
+            GL.glDrawArrays(GL.GL_TRIANGLES, 0, 6)
+        GL.glBindVertexArray(0)
+        GL.glUseProgram(0)
+
+        GL.glPixelStorei(GL.GL_PACK_ALIGNMENT, 1)
+        GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT0)
+        ids = np.empty((h, w), np.uint32)
+        GL.glReadPixels(0, 0, w, h, GL.GL_RED_INTEGER, GL.GL_UNSIGNED_INT, ids)
+        GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT1)
+        zs = np.empty((h, w, 2), np.float32)
+        GL.glReadPixels(0, 0, w, h, GL.GL_RG, GL.GL_FLOAT, zs)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, 0)
+        return RasterResult(ids=ids, depth_m=zs[..., 0], shade=zs[..., 1])
+
+    def render(
+        self,
+        scene: BimScene,
+        intr: Intrinsics,
+        world_from_camera: NDArray[np.float64],
+        visible: NDArray[np.bool_] | None = None,
+        ground_z_m: float | None = None,
+    ) -> RasterResult:
+        """Render at photo size with the photo's lens distortion (see module docstring).
+
+        ``visible`` (num_elements + 1,) bool selects drawn elements (default all);
+        ``ground_z_m`` adds an opaque ground plane (index :data:`GROUND_INDEX`) at that height.
+        """
+        if visible is None:
+            visible = np.ones(scene.num_elements + 1, bool)
+        geo = render_geometry(intr)
+        raw = self.render_undistorted(scene, geo.render_intrinsics, world_from_camera, visible, ground_z_m)
+        if geo.lookup_flat is None:
+            return raw
+        shape = (intr.height_px, intr.width_px)
+        idx = geo.lookup_flat
+        return RasterResult(
+            ids=raw.ids.ravel()[idx].reshape(shape),
+            depth_m=raw.depth_m.ravel()[idx].reshape(shape),
+            shade=raw.shade.ravel()[idx].reshape(shape),
+        )
+
+    def close(self) -> None:
+        """Free GL objects and the EGL context."""
+        try:
+            self.offscreen.delete()
+        except Exception:  # context may already be gone at interpreter exit
+            pass

@@ -1,0 +1,180 @@
+"""The occlude node end to end on the in-process bus: photos, registrations, sparse cloud, model, annotations."""
+
+from __future__ import annotations
+
+import hashlib
+
+import cv2
+import numpy as np
+import pytest
+from occlude_scenes import iou, static_scene
+
+from constructaide.bimgeom import meshes_to_glb
+from constructaide.camera import pose_to_tuple
+from constructaide.runtime import start_node
+from constructaide.runtime.local import LocalBus
+from nodes.occlude.node import SPEC, Config
+from schemas import keys
+from schemas.messages import (
+    Annotation,
+    BimModel,
+    OcclusionMask,
+    Photo,
+    Registration,
+    SparseCloud,
+    ViewpointGroup,
+    ViewpointNeighbour,
+)
+
+SITE = "t"
+DAY_NS = 86_400 * 10**9
+
+
+def _frames(scene, n: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """The scene with a red vehicle at a different place in each frame; returns images and truth masks."""
+    h, w = scene.image.shape[:2]
+    images, truths = [], []
+    for i in range(n):
+        img = scene.image.copy()
+        truth = np.zeros((h, w), np.uint8)
+        x0 = int(w * (0.1 + 0.25 * i))
+        cv2.rectangle(truth, (x0, int(h * 0.6)), (x0 + w // 8, int(h * 0.75)), 255, -1)
+        img[truth > 0] = (30, 40, 210)
+        images.append(img)
+        truths.append(truth)
+    return images, truths
+
+
+def _photo(img: np.ndarray, camera: str | None, t_ns: int) -> Photo:
+    data = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes()
+    pid = hashlib.sha256(data).hexdigest()[:16]
+    return Photo(site=SITE, photo_id=pid, camera_id=camera, capture_time_ns=t_ns, data=data)
+
+
+def _is(kind: str, photo_id: str, status: str | None = None):
+    def where(key: str, msg: OcclusionMask) -> bool:
+        return msg.kind == kind and msg.photo_id == photo_id and (status is None or msg.status == status)
+
+    return where
+
+
+def _mask(msg: OcclusionMask) -> np.ndarray:
+    return cv2.imdecode(np.frombuffer(msg.mask_png, np.uint8), cv2.IMREAD_GRAYSCALE)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return static_scene(5)
+
+
+def test_node_fixed_camera_static_user_combined(scene) -> None:
+    images, truths = _frames(scene, 3)
+    photos = [_photo(img, "cam-a", (i + 1) * DAY_NS) for i, img in enumerate(images)]
+    model = BimModel(site=SITE, revision="r1", geometry_glb=meshes_to_glb(scene.model_meshes), terrain_height_m=0.0)
+    pts = scene.points_m.astype(np.float32)
+    n = len(pts)
+    cloud = SparseCloud(
+        site=SITE,
+        revision=1,
+        photo_ids=tuple(p.photo_id for p in photos),
+        points_xyz_f32=pts.tobytes(),
+        colors_rgb_u8=np.zeros((n, 3), np.uint8).tobytes(),
+        obs_point_i32=np.tile(np.arange(n, dtype=np.int32), 3).tobytes(),
+        obs_photo_i32=np.repeat(np.arange(3, dtype=np.int32), n).tobytes(),
+        obs_pixel_f32=np.tile(scene.pixels_px.astype(np.float32), (3, 1)).tobytes(),
+    )
+    with LocalBus() as bus, start_node(SPEC, Config(site=SITE), bus) as node:
+        got = bus.collect(keys.pattern(keys.OCCLUSION, site=SITE))
+        errors = bus.collect(keys.pattern(keys.ERRORS, site=SITE))
+        bus.publish(keys.key(keys.BIM_MODEL, site=SITE), model, latched=True)
+        bus.publish(keys.key(keys.PHOTO, site=SITE, camera="cam-a"), photos[0])
+        first = got.wait(where=_is("dynamic", photos[0].photo_id))[0][1]
+        assert first.status == "not_enough_views" and first.mask_png == b""
+        for p in photos[1:]:
+            bus.publish(keys.key(keys.PHOTO, site=SITE, camera="cam-a"), p)
+        for i, p in enumerate(photos):
+            dyn = got.wait(where=_is("dynamic", p.photo_id, "ok"))[0][1]
+            assert dyn.background_jpeg and dyn.num_views >= 1
+            assert iou(_mask(dyn), truths[i]) > 0.8
+        # the first frame was recomputed once the second arrived; the others were computed once
+        dyn_msgs = [m for _, m in got.items if m.kind == "dynamic"]
+        assert sum(m.photo_id == photos[2].photo_id for m in dyn_msgs) == 1
+
+        for p in photos:
+            reg = Registration(
+                site=SITE,
+                photo_id=p.photo_id,
+                camera_id="cam-a",
+                intrinsics=scene.intrinsics,
+                world_from_camera=pose_to_tuple(scene.world_from_camera),
+                status="auto",
+            )
+            bus.publish(keys.key(keys.REGISTRATION, site=SITE, camera="cam-a", photo=p.photo_id), reg)
+        bus.publish(keys.key(keys.SPARSE, site=SITE), cloud)
+        for p in photos:
+            st = got.wait(
+                where=lambda k, m, pid=p.photo_id: m.kind == "static" and m.photo_id == pid and m.num_views > 0
+            )
+            assert iou(_mask(st[-1][1]), scene.truth) > 0.7
+
+        poly = ((10.0, 10.0), (200.0, 10.0), (200.0, 120.0), (10.0, 120.0))
+        ann = Annotation(site=SITE, annotation_id="a1", kind="occluder", photo_id=photos[1].photo_id, polygon_px=poly)
+        bus.publish(keys.key(keys.ANNOTATION, site=SITE, annotation="a1"), ann)
+        user1 = got.wait(where=_is("user", photos[1].photo_id))[0][1]
+        user2 = got.wait(where=_is("user", photos[2].photo_id))[0][1]
+        assert node.wait_idle(30.0)
+        assert not any(m.kind == "user" and m.photo_id == photos[0].photo_id for _, m in got.items)
+        for u in (user1, user2):
+            m = _mask(u)
+            assert m[60, 100] == 255 and m[300, 500] == 0
+            assert abs(np.count_nonzero(m) - 191 * 111) < 400
+        comb = [m for _, m in got.items if m.kind == "combined" and m.photo_id == photos[2].photo_id][-1]
+        c = _mask(comb)
+        assert c[60, 100] == 255  # user
+        assert np.count_nonzero(c[scene.truth > 0]) > 0.7 * np.count_nonzero(scene.truth)  # static
+        assert np.count_nonzero(c[truths[2] > 0]) > 0.8 * np.count_nonzero(truths[2])  # dynamic
+        assert errors.items == []
+
+
+def test_node_phone_photos_use_viewpoint_group(scene) -> None:
+    images, truths = _frames(scene, 2)
+    # the second phone photo is zoomed: neighbour pixels = 1.1 x this photo's pixels about the centre
+    h, w = images[1].shape[:2]
+    A = cv2.getRotationMatrix2D((w / 2, h / 2), 0.0, 1.1)
+    zoomed = cv2.warpAffine(images[1], A, (w, h))
+    photos = [_photo(images[0], None, DAY_NS), _photo(zoomed, None, 2 * DAY_NS)]
+    this_from_neighbour = np.linalg.inv(np.vstack([A, [0, 0, 1]]))
+    group = ViewpointGroup(
+        site=SITE,
+        photo_id=photos[0].photo_id,
+        neighbours=(
+            ViewpointNeighbour(
+                photo_id=photos[1].photo_id,
+                this_from_neighbour=tuple(float(x) for x in this_from_neighbour.ravel()),
+                inlier_ratio=0.9,
+                num_matches=200,
+            ),
+        ),
+    )
+    with LocalBus() as bus, start_node(SPEC, Config(site=SITE), bus):
+        got = bus.collect(keys.pattern(keys.OCCLUSION, site=SITE))
+        errors = bus.collect(keys.pattern(keys.ERRORS, site=SITE))
+        for p in photos:
+            bus.publish(keys.key(keys.PHOTO, site=SITE, camera=None), p)
+        got.wait(where=_is("dynamic", photos[1].photo_id, "not_enough_views"))
+        bus.publish(keys.key(keys.VIEWPOINTS, site=SITE, photo=photos[0].photo_id), group)
+        dyn = got.wait(where=_is("dynamic", photos[0].photo_id, "ok"))[0][1]
+        assert iou(_mask(dyn), truths[0]) > 0.75
+        # the group also gives photo 1 its neighbour (inverse homography)
+        dyn1 = got.wait(where=_is("dynamic", photos[1].photo_id, "ok"))[0][1]
+        assert dyn1.num_views == 1
+        bad = ViewpointGroup(
+            site=SITE,
+            photo_id=photos[0].photo_id,
+            neighbours=(
+                ViewpointNeighbour(photo_id="x", this_from_neighbour=(1.0, 2.0), inlier_ratio=1, num_matches=9),
+            ),
+        )
+        bus.publish(keys.key(keys.VIEWPOINTS, site=SITE, photo=photos[0].photo_id), bad)
+        err = errors.wait()[0][1]
+        assert "expected 9" in err.reason

@@ -1,0 +1,133 @@
+"""The register node through the in-process LocalBus: queueing before anchors, anchors, fast path, outputs."""
+
+from __future__ import annotations
+
+import hashlib
+
+import numpy as np
+from test_register_stream_scene import PlaneScene, anchor_clicks, encode_jpeg, jitter, mast_camera
+
+from constructaide.runtime import start_node
+from constructaide.runtime.local import LocalBus
+from nodes.register.node import SPEC, Config
+from schemas import keys
+from schemas.messages import AnchorClicks, AnchorPoint, NeedsAnchor, NodeError, Photo, Registration, SparseCloud
+
+W, H = 640, 360
+SITE = "t"
+
+
+def make_photo(data: bytes, camera: str | None, t_s: int) -> Photo:
+    return Photo(
+        site=SITE,
+        photo_id=hashlib.sha256(data).hexdigest()[:16],
+        camera_id=camera,
+        capture_time_ns=1_800_000_000_000_000_000 + t_s * 1_000_000_000,
+        data=data,
+        width_px=W,
+        height_px=H,
+    )
+
+
+def clicks_msg(photo_id: str, px: np.ndarray, pts: np.ndarray) -> AnchorClicks:
+    return AnchorClicks(
+        site=SITE,
+        photo_id=photo_id,
+        points=tuple(
+            AnchorPoint(pixel_px=(float(u), float(v)), point_in_world_m=tuple(float(x) for x in p))
+            for (u, v), p in zip(px, pts, strict=True)
+        ),
+    )
+
+
+def test_node_queues_until_anchor_then_registers_everything() -> None:
+    scene = PlaneScene(0)
+    intr, T = mast_camera(W, H)
+    rng = np.random.default_rng(5)
+    frames = [(intr, T)] + [jitter(T, intr, rng, 0.3, 0.005) for _ in range(3)]
+    photos = [make_photo(encode_jpeg(scene.render(i, t)), "cam-a", k) for k, (i, t) in enumerate(frames)]
+    with LocalBus() as bus, start_node(SPEC, Config(site=SITE), bus) as node:
+        regs = bus.collect(keys.pattern(keys.REGISTRATION, site=SITE))
+        needs = bus.collect(keys.pattern(keys.NEEDS_ANCHOR, site=SITE))
+        views = bus.collect(keys.pattern(keys.VIEWPOINTS, site=SITE))
+        sparse = bus.collect(keys.key(keys.SPARSE, site=SITE))
+        errors = bus.collect(keys.key(keys.ERRORS, site=SITE))
+        # Frames before any anchor: queued, one NeedsAnchor for the camera, no registration yet.
+        for p in photos[1:]:
+            bus.publish(keys.key(keys.PHOTO, site=SITE, camera="cam-a"), p)
+        bus.publish(keys.key(keys.PHOTO, site=SITE, camera="cam-a"), photos[0])
+        ((nkey, need),) = needs.wait(1, timeout=30)
+        assert isinstance(need, NeedsAnchor) and need.photo_id == photos[1].photo_id
+        assert node.wait_idle(30)
+        assert regs.items == []
+        # Bad clicks: a NodeError, the node keeps going.
+        px, pts = anchor_clicks(intr, T, noise_px=0.2)
+        bus.publish(
+            keys.key(keys.ANCHORS, site=SITE, photo=photos[0].photo_id), clicks_msg(photos[0].photo_id, px[:3], pts[:3])
+        )
+        ((_, err),) = errors.wait(1, timeout=30)
+        assert isinstance(err, NodeError) and "at least 4" in err.reason
+        # Good clicks: the anchor, then every queued frame by the fast path.
+        bus.publish(
+            keys.key(keys.ANCHORS, site=SITE, photo=photos[0].photo_id), clicks_msg(photos[0].photo_id, px, pts)
+        )
+        items = regs.wait(4, timeout=60)
+        by_id = {m.photo_id: (k, m) for k, m in items}
+        assert set(by_id) == {p.photo_id for p in photos}
+        key0, anchor = by_id[photos[0].photo_id]
+        assert isinstance(anchor, Registration) and anchor.status == "anchor"
+        assert key0 == f"constructaide/{SITE}/registration/cam-a/{photos[0].photo_id}"
+        for p in photos[1:]:
+            r = by_id[p.photo_id][1]
+            assert r.status == "auto" and r.method == "fastpath" and r.num_inliers > 50, r.message
+            assert r.processing_ms > 0 and r.reprojection_rms_px < 1.0
+        ((_, cloud),) = sparse.wait(1, timeout=10)
+        assert isinstance(cloud, SparseCloud) and cloud.photo_ids == (photos[0].photo_id,)
+        assert len(cloud.points_xyz_f32) == 12 * (len(cloud.colors_rgb_u8) // 3)
+        assert node.wait_idle(30)
+        groups = {m.photo_id: m for _, m in views.items}
+        last = groups[photos[-1].photo_id]
+        assert {n.photo_id for n in last.neighbours} >= {p.photo_id for p in photos[:-1]}
+
+
+def test_node_uses_bim_depth_and_bim_updates_do_not_reregister() -> None:
+    from constructaide.bimgeom import meshes_to_glb
+    from schemas.messages import BimElement, BimModel, BimUpdate
+
+    scene = PlaneScene(0)
+    meshes = {}
+    for i, pl in enumerate(scene.planes):
+        v = np.array(
+            [pl.origin, pl.origin + pl.u * pl.size_a, pl.origin + pl.u * pl.size_a + pl.v * pl.size_b, pl.origin + pl.v * pl.size_b]
+        )
+        meshes[f"el{i}"] = (v, np.array([[0, 1, 2], [0, 2, 3]], np.int32))
+    model = BimModel(
+        site=SITE,
+        revision="r1",
+        elements=tuple(BimElement(global_id=k, ifc_class="IfcWall", geometry_ref=k) for k in meshes),
+        geometry_glb=meshes_to_glb(meshes),
+    )
+    intr, T = mast_camera(W, H)
+    anchor = make_photo(encode_jpeg(scene.render(intr, T)), "cam-b", 0)
+    with LocalBus() as bus, start_node(SPEC, Config(site=SITE), bus) as node:
+        regs = bus.collect(keys.pattern(keys.REGISTRATION, site=SITE))
+        sparse = bus.collect(keys.key(keys.SPARSE, site=SITE))
+        errors = bus.collect(keys.key(keys.ERRORS, site=SITE))
+        bus.publish(keys.key(keys.BIM_MODEL, site=SITE), model)
+        # Anchor clicks before the photo: they wait for it.
+        px, pts = anchor_clicks(intr, T, noise_px=0.2)
+        bus.publish(keys.key(keys.ANCHORS, site=SITE, photo=anchor.photo_id), clicks_msg(anchor.photo_id, px, pts))
+        bus.publish(keys.key(keys.PHOTO, site=SITE, camera="cam-b"), anchor)
+        ((_, reg),) = regs.wait(1, timeout=60)
+        assert reg.status == "anchor"
+        ((_, cloud),) = sparse.wait(1, timeout=30)
+        xyz = np.frombuffer(cloud.points_xyz_f32, "<f4").reshape(-1, 3)
+        assert len(xyz) > 200  # anchor features got 3D points from the BIM depth
+        # Points lie on the model: facade (y = 20), ground (z = 0) or the box.
+        on_model = (np.abs(xyz[:, 1] - 20) < 0.1) | (np.abs(xyz[:, 2]) < 0.1) | (
+            (np.abs(xyz[:, 0]) < 2.1) & (xyz[:, 1] > 11.9) & (xyz[:, 1] < 15.1)
+        )
+        assert on_model.mean() > 0.95
+        bus.publish(keys.key(keys.BIM_UPDATE, site=SITE), BimUpdate(site=SITE, base_revision="r1", revision="r2", removed=("el2",)))
+        assert node.wait_idle(30)
+        assert len(regs.items) == 1 and errors.items == []
