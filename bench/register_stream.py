@@ -90,8 +90,10 @@ def load_site():
     return site, cams, anchors, model.tasks, meshes, ground
 
 
-def run(site, cams, anchors, tasks, meshes, ground, *, fast: bool, scale2: bool, cameras: list[str]):
-    """Register every fixed-camera frame; returns per-frame records."""
+def run(
+    site, cams, anchors, tasks, meshes, ground, *, fast: bool, scale2: bool, cameras: list[str], phones: bool = False
+):
+    """Register every fixed-camera frame (then, optionally, the phone photos); returns per-photo records."""
     depth = MeshDepthLookup(meshes, elements_at=standing_elements(tasks, meshes.keys()), ground_height_m=ground)
     reg = StreamingRegistrar(StreamConfig(), depth_lookup=depth)
     records = []
@@ -110,7 +112,13 @@ def run(site, cams, anchors, tasks, meshes, ground, *, fast: bool, scale2: bool,
                     raise SystemExit(f"no anchor clicks for the first frame {rel}")
                 out = reg.register_anchor(photo, *click_arrays(clicks, scale2))
                 records.append(
-                    {"rel": rel, "method": "anchor", "ms": out.registration.processing_ms, "reg": out.registration}
+                    {
+                        "rel": rel,
+                        "method": "anchor",
+                        "ms": out.registration.processing_ms,
+                        "reg": out.registration,
+                        "first": True,
+                    }
                 )
                 continue
             out = reg.register(photo)
@@ -127,6 +135,27 @@ def run(site, cams, anchors, tasks, meshes, ground, *, fast: bool, scale2: bool,
                     "reg": r,
                     "asked_anchor": asked,
                     "message": r.message,
+                }
+            )
+    if phones:
+        for path in sorted((site / "photos" / "phone").rglob("*.jpg")):
+            rel = str(path.relative_to(site / "photos"))
+            photo = PhotoInput(rel, FrameImage(path.read_bytes()), capture_time_ns=cams[rel]["capture_time_utc_ns"])
+            clicks = anchors.get(rel)
+            if clicks is not None:
+                out = reg.register_anchor(photo, *click_arrays(clicks, False))
+                records.append({"rel": rel, "method": "anchor", "ms": 0.0, "reg": out.registration, "phone": True})
+                continue
+            out = reg.register(photo)
+            r = out.registration
+            records.append(
+                {
+                    "rel": rel,
+                    "method": r.method or "failed",
+                    "ms": r.processing_ms,
+                    "reg": r,
+                    "phone": True,
+                    "asked_anchor": out.needs_anchor is not None,
                 }
             )
     depth.close()
@@ -154,8 +183,10 @@ def main(argv: list[str] | None = None) -> int:
     # Accuracy at native resolution.
     acc = {}
     for fast in (True, False):
-        recs = run(site, cams, anchors, tasks, meshes, ground, fast=fast, scale2=False, cameras=cameras)
-        acc[fast] = recs
+        recs = run(site, cams, anchors, tasks, meshes, ground, fast=fast, scale2=False, cameras=cameras, phones=fast)
+        acc[fast] = [r for r in recs if not r.get("phone")]
+        if fast:
+            phone_recs = [r for r in recs if r.get("phone")]
     # Timing at 1920x1080 (upscaled frames), several runs of the fast path; the full path once.
     fast_ms, fast_all, fast_share = [], [], []
     for _ in range(runs):
@@ -172,10 +203,10 @@ def main(argv: list[str] | None = None) -> int:
     for fast, recs in acc.items():
         name = "fast path (camera id)" if fast else "full path (no camera id)"
         scored = [(r, score(r["reg"], site, r["rel"], cams)) for r in recs if r["method"] not in ("anchor", "failed")]
-        anchors_scored = [score(r["reg"], site, r["rel"], cams) for r in recs if r["method"] == "anchor"]
+        anchors_scored = [score(r["reg"], site, r["rel"], cams) for r in recs if r.get("first")]
         methods: dict[str, int] = {}
         for r in recs:
-            if r["method"] != "anchor" or r is not recs[0]:
+            if not r.get("first"):
                 methods[r["method"]] = methods.get(r["method"], 0) + 1
         asked = sum(bool(r.get("asked_anchor")) for r in recs)
         row = [
@@ -209,6 +240,19 @@ def main(argv: list[str] | None = None) -> int:
         "methods",
     ]
     acc_table = table(headers, rows)
+    phone_rows = []
+    for r in phone_recs:
+        reg_ = r["reg"]
+        if reg_.status == "failed":
+            phone_rows.append([r["rel"], "failed", "-", "-", "-", "yes" if r.get("asked_anchor") else "no"])
+            continue
+        sc = score(reg_, site, r["rel"], cams)
+        phone_rows.append([r["rel"], r["method"], sc["angle_deg"], sc["centre_m"], sc["reproj_pct_width"], "-"])
+    phone_table = table(
+        ["phone photo", "result", "angle err (deg)", "centre err (m)", "reproj (% width)", "anchor requested"],
+        phone_rows,
+    )
+    print(phone_table)
     fast_med = median(fast_ms)
     full_med = median(full_ms)
     timing_rows = [
@@ -229,6 +273,11 @@ reprojection error of 200 true 3D checkpoints per frame in % of the width).
 Accuracy at native 960x540:
 
 {acc_table}
+
+Phone photos of the site (registered after the fixed cameras, on the same registrar; anchors.json clicks used
+where the site provides them, otherwise the full path):
+
+{phone_table}
 
 Timing per 1920x1080 frame (the same frames upscaled 2x, bicubic, JPEG q92 — the `default` 1920x1080 site is not
 rendered by this bench); fast path: median over frames, median of {runs} run(s); full path: median over frames of

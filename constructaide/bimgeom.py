@@ -35,9 +35,11 @@ def meshes_to_glb(
         f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
         if len(v) == 0 or len(f) == 0:
             continue
-        mesh = trimesh.Trimesh(vertices=v, faces=f, process=False)
+        visual = None
         if colors_rgba is not None and ref in colors_rgba:
-            mesh.visual.face_colors = np.tile(np.asarray(colors_rgba[ref], dtype=np.uint8), (len(f), 1))
+            rgba = np.tile(np.asarray(colors_rgba[ref], dtype=np.uint8), (len(f), 1))
+            visual = trimesh.visual.ColorVisuals(face_colors=rgba)
+        mesh = trimesh.Trimesh(vertices=v, faces=f, process=False, visual=visual)
         scene.add_geometry(mesh, node_name=ref, geom_name=ref)
     if not scene.geometry:
         return b""
@@ -54,9 +56,12 @@ def glb_to_meshes(glb: bytes) -> dict[str, Mesh]:
     if glb[:4] != b"glTF":
         raise ValueError("geometry is not a binary glTF (GLB magic missing)")
     try:
-        scene = trimesh.load(io.BytesIO(glb), file_type="glb", process=False, force="scene")
+        loaded = trimesh.load(io.BytesIO(glb), file_type="glb", process=False, force="scene")
     except Exception as exc:  # trimesh raises many types on corrupt input
         raise ValueError(f"cannot decode GLB: {exc}") from exc
+    if not isinstance(loaded, trimesh.Scene):
+        raise ValueError(f"GLB decoded to {type(loaded).__name__}, expected a scene")
+    scene = loaded
     out: dict[str, Mesh] = {}
     for node in scene.graph.nodes_geometry:
         transform, geom_name = scene.graph[node]

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import datetime as dt
 import glob
+import io
 from pathlib import Path
 
 import numpy as np
 import pytest
+import trimesh
 
 from constructaide.bimgeom import glb_to_meshes, load_bim_model_glb
 from nodes.ingest.ifc import IfcLoadError, load_site_model
@@ -87,6 +89,12 @@ def test_metadata_units_and_grouping(models: dict) -> None:
     assert any(m for m in haus.by_material if m)
     assert any(t for t in haus.by_type if t)
     assert haus.warnings == ()
+    # IFC surface styles become mesh colours in the GLB (the FZK-Haus styles every element).
+    assert all(m.rgba is not None for m in haus.meshes.values())
+    assert len({m.rgba for m in haus.meshes.values()}) >= 5
+    glb = to_bim_model(haus, "t", "r").geometry_glb
+    scene = trimesh.load(io.BytesIO(glb), file_type="glb", force="scene")
+    assert all(g.visual.kind is not None for g in scene.geometry.values())
     # webifc_example.ifc has dangling references: tolerated, reported.
     assert any("dangling reference" in w for w in models["webifc_example.ifc"].warnings)
     assert haus.gps is not None and abs(haus.gps.lat_deg - 49.1) < 0.01 and abs(haus.gps.lon_deg - 8.44) < 0.01
@@ -363,3 +371,74 @@ def test_synthetic_site_ifc_elements_and_schedule(tmp_path: Path) -> None:
         assert site.planned_state(gid, start_ns - 1) == "not_started"
         assert site.planned_state(gid, (start_ns + finish_ns) // 2) == "under_construction"
         assert site.planned_state(gid, finish_ns) == "complete"
+
+
+@needs_data
+def test_ifc2x3_schedule_time_control(tmp_path: Path) -> None:
+    """IFC2X3 keeps task dates in IfcScheduleTimeControl (IfcRelAssignsTasks); products by
+    IfcRelAssignsToProcess (task -> products) and a storey through IfcRelAssignsToProduct."""
+    import ifcopenshell
+    import ifcopenshell.guid
+
+    src = IFC_DIR / "webifc_duplex.ifc"
+    f = ifcopenshell.open(str(src))
+    oh = f.by_type("IfcOwnerHistory")[0]
+
+    def when(y: int, mo: int, d: int, h: int) -> object:
+        return f.create_entity(
+            "IfcDateAndTime",
+            DateComponent=f.create_entity("IfcCalendarDate", DayComponent=d, MonthComponent=mo, YearComponent=y),
+            TimeComponent=f.create_entity("IfcLocalTime", HourComponent=h, MinuteComponent=0, SecondComponent=0.0),
+        )
+
+    def task(name: str, start: object, finish: object, actual_finish: object | None = None) -> object:
+        t = f.create_entity("IfcTask", GlobalId=ifcopenshell.guid.new(), OwnerHistory=oh, Name=name, TaskId=name)
+        stc = f.create_entity(
+            "IfcScheduleTimeControl",
+            GlobalId=ifcopenshell.guid.new(),
+            OwnerHistory=oh,
+            ScheduleStart=start,
+            ScheduleFinish=finish,
+            ActualFinish=actual_finish,
+        )
+        ws = f.create_entity(
+            "IfcWorkSchedule", GlobalId=ifcopenshell.guid.new(), OwnerHistory=oh, Name="Plan", CreationDate=start,
+            StartTime=start,
+        )  # fmt: skip
+        f.create_entity(
+            "IfcRelAssignsTasks", GlobalId=ifcopenshell.guid.new(), OwnerHistory=oh, RelatedObjects=[t],
+            RelatingControl=ws, TimeForTask=stc,
+        )  # fmt: skip
+        return t
+
+    walls = sorted(f.by_type("IfcWallStandardCase"), key=lambda w: w.GlobalId)[:2]
+    t_walls = task("walls", when(2024, 5, 2, 8), when(2024, 5, 3, 17), when(2024, 5, 6, 12))
+    f.create_entity(
+        "IfcRelAssignsToProcess", GlobalId=ifcopenshell.guid.new(), OwnerHistory=oh, RelatedObjects=walls,
+        RelatingProcess=t_walls,
+    )  # fmt: skip
+    storey = f.by_type("IfcBuildingStorey")[0]
+    t_storey = task("storey", when(2024, 4, 1, 8), when(2024, 6, 1, 17))
+    f.create_entity(
+        "IfcRelAssignsToProduct", GlobalId=ifcopenshell.guid.new(), OwnerHistory=oh, RelatedObjects=[t_storey],
+        RelatingProduct=storey,
+    )  # fmt: skip
+    path = tmp_path / "duplex_4d.ifc"
+    f.write(str(path))
+
+    site = load_site_model([path], tz="America/New_York")
+    by_name = {t.name: t for t in site.tasks}
+    assert set(by_name) == {"walls", "storey"}
+    tw = by_name["walls"]
+    assert sorted(tw.element_ids) == sorted(w.GlobalId for w in walls)
+    assert tw.planned_start_ns == utc_ns(2024, 5, 2, 12)  # 08:00 EDT
+    assert tw.planned_finish_ns == utc_ns(2024, 5, 3, 21)
+    assert tw.actual_finish_ns == utc_ns(2024, 5, 6, 16)
+    on_storey = {g for g, e in site.elements.items() if e.storey == (storey.Name or storey.GlobalId)}
+    # The storey task gets the storey's elements except the two walls the wall task names.
+    assert set(by_name["storey"].element_ids) == on_storey - {w.GlobalId for w in walls}
+    assert len(on_storey) > 10
+    w0 = walls[0].GlobalId
+    assert site.planned_state(w0, utc_ns(2024, 5, 3, 12)) == "under_construction"
+    assert site.actual_state(w0, utc_ns(2024, 5, 4, 12)) is not None
+    assert site.schedule_status(w0, utc_ns(2024, 5, 4, 12)) == "late"  # planned done, not actually finished

@@ -116,3 +116,20 @@ def test_node_reports_bad_model_and_keeps_watching(tmp_path: Path) -> None:
             (watch / "a.jpg").write_bytes(jpeg(5))
             ((_, photo),) = photos.wait(count=1, timeout=30.0)
             assert photo.filename == "a.jpg" and photo.width_px == 60
+
+
+def test_watched_photos_not_republished_after_restart(tmp_path: Path) -> None:
+    watch = tmp_path / "inbox"
+    watch.mkdir()
+    (watch / "a.jpg").write_bytes(jpeg(11))
+    cfg = Config(site="r", tz="UTC", watch_dir=str(watch), poll_secs=0.05)
+    with LocalBus() as bus:
+        photos = bus.collect(keys.pattern(keys.PHOTO, site="r"))
+        with start_node(SPEC, cfg, bus):
+            photos.wait(count=1, timeout=30.0)
+        assert (watch / ".constructaide-seen").is_file()
+        (watch / "b.jpg").write_bytes(jpeg(12))
+        with start_node(SPEC, cfg, bus):  # restarted: a.jpg is known, only b.jpg is new
+            got = photos.wait(count=2, timeout=30.0)
+        assert [m.filename for _, m in got] == ["a.jpg", "b.jpg"]
+        assert len(photos.items) == 2

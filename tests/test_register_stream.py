@@ -121,14 +121,21 @@ def test_bumped_camera_takes_full_path_then_needs_anchor_when_moved(scene) -> No
 
 def test_full_path_pnp_with_bim_depth_and_map_growth(scene) -> None:
     intr, T = mast_camera(W, H)
-    reg = StreamingRegistrar(StreamConfig(), depth_lookup=scene.depth_lookup, site="t")
+    ip = cam.centered_intrinsics(W, H, cam.focal_from_fov(W, 55.0))
+    views = [((-6.0, -2.0, 1.7), (0.0, 16.0, 3.0)), ((7.0, -3.0, 1.8), (-1.0, 16.0, 4.0))]
+    # Default: BIM-depth points from one anchor are not trusted for other viewpoints -> anchor requested.
+    cautious = StreamingRegistrar(StreamConfig(), depth_lookup=scene.depth_lookup, site="t")
     px, pts = anchor_clicks(intr, T, noise_px=0.3)
+    cautious.register_anchor(photo(scene, "a0", intr, T), px, pts)
+    assert len(cautious.map) > 300 and cautious.map.fixed.all() and not cautious.map.confirmed.any()
+    out = cautious.register(photo(scene, "p0", ip, cam.look_at(*views[0]), camera_id=None))
+    assert out.registration.status == "failed" and out.needs_anchor
+    # Trusting the model (nothing unmodelled in front of it here): PnP on BIM points registers phone photos.
+    reg = StreamingRegistrar(StreamConfig(trust_bim_depth=True), depth_lookup=scene.depth_lookup, site="t")
     reg.register_anchor(photo(scene, "a0", intr, T), px, pts)
     n_points = len(reg.map)
-    assert n_points > 300 and reg.map.fixed.all()  # BIM points
-    ip = cam.centered_intrinsics(W, H, cam.focal_from_fov(W, 55.0))
     sizes = [n_points]
-    for i, (eye, target) in enumerate([((-6.0, -2.0, 1.7), (0.0, 16.0, 3.0)), ((7.0, -3.0, 1.8), (-1.0, 16.0, 4.0))]):
+    for i, (eye, target) in enumerate(views):
         Tp = cam.look_at(eye, target)
         out = reg.register(photo(scene, f"p{i}", ip, Tp, camera_id=None))
         r = out.registration
@@ -139,20 +146,24 @@ def test_full_path_pnp_with_bim_depth_and_map_growth(scene) -> None:
         assert abs(r.intrinsics.f_px / ip.f_px - 1) < 0.01  # focal solved from a 50 deg prior
         sizes.append(len(reg.map))
     assert sizes[2] > sizes[1]  # new tracks triangulated between the two phone photos
+    assert reg.map.confirmed[:n_points].sum() > 100  # BIM points reproduced by two-view triangulation
     cloud = reg.sparse_arrays()
     assert cloud["points_xyz"].shape == (len(reg.map), 3) and len(cloud["obs_point"]) >= len(reg.map)
     # Phone photos from different places are not one viewpoint.
     assert "p1" not in reg.viewpoints.neighbours("p0")
 
 
-def test_two_anchors_triangulate_without_bim(scene) -> None:
-    reg = StreamingRegistrar(StreamConfig(), site="t")
+@pytest.mark.parametrize("with_bim", [False, True])
+def test_two_anchors_triangulate_and_confirm(scene, with_bim: bool) -> None:
+    reg = StreamingRegistrar(StreamConfig(), depth_lookup=scene.depth_lookup if with_bim else None, site="t")
     ip = cam.centered_intrinsics(W, H, cam.focal_from_fov(W, 55.0))
     for i, eye in enumerate([(-5.0, -3.0, 2.0), (5.0, -3.0, 2.5)]):
         Ta = cam.look_at(eye, (0.0, 16.0, 3.0))
         px, pts = anchor_clicks(ip, Ta, noise_px=0.3, seed=i)
         reg.register_anchor(photo(scene, f"a{i}", ip, Ta, camera_id=None), px, pts)
     assert len(reg.map) > 200
+    if with_bim:  # the second anchor's views confirm BIM-depth points of the first
+        assert (reg.map.confirmed & reg.map.fixed).sum() > 50
     Tq = cam.look_at((0.0, -4.0, 1.6), (0.0, 16.0, 3.0))
     out = reg.register(photo(scene, "q", ip, Tq, camera_id=None))
     assert out.registration.method == "pnp", out.registration.message

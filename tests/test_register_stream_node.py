@@ -98,7 +98,12 @@ def test_node_uses_bim_depth_and_bim_updates_do_not_reregister() -> None:
     meshes = {}
     for i, pl in enumerate(scene.planes):
         v = np.array(
-            [pl.origin, pl.origin + pl.u * pl.size_a, pl.origin + pl.u * pl.size_a + pl.v * pl.size_b, pl.origin + pl.v * pl.size_b]
+            [
+                pl.origin,
+                pl.origin + pl.u * pl.size_a,
+                pl.origin + pl.u * pl.size_a + pl.v * pl.size_b,
+                pl.origin + pl.v * pl.size_b,
+            ]
         )
         meshes[f"el{i}"] = (v, np.array([[0, 1, 2], [0, 2, 3]], np.int32))
     model = BimModel(
@@ -124,10 +129,15 @@ def test_node_uses_bim_depth_and_bim_updates_do_not_reregister() -> None:
         xyz = np.frombuffer(cloud.points_xyz_f32, "<f4").reshape(-1, 3)
         assert len(xyz) > 200  # anchor features got 3D points from the BIM depth
         # Points lie on the model: facade (y = 20), ground (z = 0) or the box.
-        on_model = (np.abs(xyz[:, 1] - 20) < 0.1) | (np.abs(xyz[:, 2]) < 0.1) | (
-            (np.abs(xyz[:, 0]) < 2.1) & (xyz[:, 1] > 11.9) & (xyz[:, 1] < 15.1)
+        on_model = (
+            (np.abs(xyz[:, 1] - 20) < 0.1)
+            | (np.abs(xyz[:, 2]) < 0.1)
+            | ((np.abs(xyz[:, 0]) < 2.1) & (xyz[:, 1] > 11.9) & (xyz[:, 1] < 15.1))
         )
         assert on_model.mean() > 0.95
-        bus.publish(keys.key(keys.BIM_UPDATE, site=SITE), BimUpdate(site=SITE, base_revision="r1", revision="r2", removed=("el2",)))
+        bus.publish(
+            keys.key(keys.BIM_UPDATE, site=SITE),
+            BimUpdate(site=SITE, base_revision="r1", revision="r2", removed=("el2",)),
+        )
         assert node.wait_idle(30)
         assert len(regs.items) == 1 and errors.items == []

@@ -97,3 +97,30 @@ def test_bad_input_is_a_user_error(tmp_path: Path) -> None:
         build_site(tmp_path, size="tiny", progress=False)
     with pytest.raises(UserError, match="unknown site size"):
         ensure_site("huge", 0, tmp_path / "cache")
+
+
+def test_undistortion_maps_match_the_camera_model() -> None:
+    from constructaide.camera import centered_intrinsics, normalized_to_pixels
+    from constructaide.synth.render import undistortion_maps
+
+    intr = centered_intrinsics(400, 300, 330.0, -0.1, 0.02)
+    x, y = undistortion_maps(intr)
+    back = normalized_to_pixels(intr, np.stack([x.ravel(), y.ravel()], 1))
+    u, v = np.meshgrid(np.arange(400.0), np.arange(300.0))
+    err = np.abs(back - np.stack([u.ravel(), v.ravel()], 1))
+    assert err.max() < 0.02  # re-distorting the map lands on the pixel it came from
+
+
+def test_sun_position_agrees_with_pvlib() -> None:
+    import datetime as dt
+
+    import pandas as pd
+    import pvlib
+
+    from constructaide.synth.sun import sun_azimuth_elevation_deg
+
+    for when in (dt.datetime(2026, 3, 9, 11, 0, tzinfo=dt.UTC), dt.datetime(2026, 4, 20, 14, 30, tzinfo=dt.UTC)):
+        az, el = sun_azimuth_elevation_deg(when, 51.8583, 5.8647)
+        ref = pvlib.solarposition.get_solarposition(pd.DatetimeIndex([when]), 51.8583, 5.8647)
+        assert abs(az - float(ref["azimuth"].iloc[0])) < 1.0
+        assert abs(el - float(ref["elevation"].iloc[0])) < 1.0

@@ -11,6 +11,11 @@ from tqdm import tqdm
 from constructaide.errors import UserError
 
 
+def _advance(bar: tqdm, name: str) -> None:
+    bar.set_postfix_str(name.rsplit("/", 1)[-1])
+    bar.update(1)
+
+
 def bim_summary_main(argv: list[str] | None = None) -> int:
     """Print element counts by class and storey, the schedule and element states at an instant."""
     from nodes.ingest.ifc import load_site_model
@@ -34,7 +39,7 @@ def bim_summary_main(argv: list[str] | None = None) -> int:
             tz=args.tz,
             schedule_path=args.schedule,
             on_missing="drop" if args.drop_missing else "error",
-            progress=lambda name: (bar.set_postfix_str(name.rsplit("/", 1)[-1]), bar.update(1)),
+            progress=lambda name: _advance(bar, name),
         )
         bar.close()
     except ValueError as exc:  # IfcLoadError, ScheduleError

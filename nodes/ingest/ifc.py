@@ -16,11 +16,16 @@ import re
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+import ifcopenshell
+import ifcopenshell.geom
+import ifcopenshell.ifcopenshell_wrapper
+import ifcopenshell.util.element as ue
+import ifcopenshell.util.unit as uu
 import numpy as np
 
 from nodes.ingest.model import ElementMesh, MapConversion, SiteModel
 from nodes.ingest.schedule import load_schedule, resolve_elements, tasks_from_ifc, validate_tasks, zone
-from schemas.messages import BimElement, GeoPoint
+from schemas.messages import BimElement, GeoPoint, ScheduleTask
 
 SUPPORTED_SCHEMAS = ("IFC2X3", "IFC4", "IFC4X3")
 EXCLUDED_CLASSES = (
@@ -53,7 +58,7 @@ def _check_spf(path: Path) -> None:
         head = fh.read(8192)
         fh.seek(max(0, size - 4096))
         tail = fh.read()
-    if not head.lstrip().startswith(b"ISO-10303-21;"):
+    if not head.removeprefix(b"\xef\xbb\xbf").lstrip().startswith(b"ISO-10303-21;"):
         raise IfcLoadError(f"{path}: not an IFC-SPF file (no 'ISO-10303-21;' header)")
     m = _SCHEMA_RE.search(head)
     if not m:
@@ -65,13 +70,11 @@ def _check_spf(path: Path) -> None:
         raise IfcLoadError(f"{path}: truncated IFC file (no 'END-ISO-10303-21;' at the end)")
 
 
-def open_ifc(path: str | Path) -> tuple[object, list[str]]:
+def open_ifc(path: str | Path) -> tuple[ifcopenshell.file, list[str]]:
     """Open one IFC file with ifcopenshell after sanity checks: (file, warnings).
 
     Raises IfcLoadError for missing, empty, non-IFC, truncated, unknown-schema or malformed files.
     """
-    import ifcopenshell
-
     p = Path(path)
     if not p.is_file():
         raise IfcLoadError(f"{p}: no such IFC file")
@@ -98,31 +101,53 @@ def open_ifc(path: str | Path) -> tuple[object, list[str]]:
 
 
 def _ifc_log() -> str:
-    import ifcopenshell.ifcopenshell_wrapper as w
-
     try:
-        return str(w.get_log())
+        return str(ifcopenshell.ifcopenshell_wrapper.get_log())
     except Exception:  # older/newer wrappers without a log accessor
         return ""
 
 
-def _excluded_instances(f: object) -> list[object]:
-    out: list[object] = []
+def _excluded_instances(f: ifcopenshell.file) -> list[ifcopenshell.entity_instance]:
+    out: list[ifcopenshell.entity_instance] = []
     for cls in EXCLUDED_CLASSES:
         try:
-            out.extend(f.by_type(cls))  # type: ignore[attr-defined]
+            out.extend(f.by_type(cls))
         except RuntimeError:  # class not in this schema
             pass
     return out
 
 
-def iterate_geometry(f: object, threads: int | None = None) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-    """World-coordinate triangle meshes in metres: ``{step id: (vertices (N,3) f64, faces (M,3) i32)}``.
+RGBA = tuple[int, int, int, int]
+
+
+def _dominant_rgba(geometry: object) -> RGBA | None:
+    """0-255 RGBA of the surface style covering most faces of one iterator shape, if any."""
+    try:
+        materials = geometry.materials  # type: ignore[attr-defined]
+        if not materials:
+            return None
+        ids = np.asarray(geometry.material_ids, dtype=np.int64)  # type: ignore[attr-defined]
+        best = int(np.bincount(ids[ids >= 0]).argmax()) if (ids >= 0).any() else 0
+        mat = materials[best]
+        r, g, b = (float(c) for c in mat.diffuse.components)
+        transparency = float(mat.transparency or 0.0)
+    except (AttributeError, IndexError, TypeError, ValueError):  # styles the wrapper cannot express
+        return None
+    if not all(math.isfinite(c) for c in (r, g, b)):
+        return None  # a style without a colour
+    alpha = 1.0 - transparency if math.isfinite(transparency) else 1.0
+    to8 = [int(round(min(max(c, 0.0), 1.0) * 255)) for c in (r, g, b, alpha)]
+    return (to8[0], to8[1], to8[2], to8[3])
+
+
+def iterate_geometry(
+    f: ifcopenshell.file, threads: int | None = None
+) -> dict[int, tuple[np.ndarray, np.ndarray, RGBA | None]]:
+    """World-coordinate triangle meshes in metres with their main surface colour:
+    ``{step id: (vertices (N,3) f64, faces (M,3) i32, rgba or None)}``.
 
     Elements whose geometry ifcopenshell cannot build are skipped by the iterator.
     """
-    import ifcopenshell.geom
-
     settings = ifcopenshell.geom.settings()
     settings.set("use-world-coords", True)
     n_threads = max(1, threads if threads is not None else min(os.cpu_count() or 1, 8))
@@ -131,24 +156,24 @@ def iterate_geometry(f: object, threads: int | None = None) -> dict[int, tuple[n
         it = ifcopenshell.geom.iterator(settings, f, n_threads, exclude=excluded)
     else:
         it = ifcopenshell.geom.iterator(settings, f, n_threads)
-    out: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    out: dict[int, tuple[np.ndarray, np.ndarray, RGBA | None]] = {}
     if it.initialize():
         while True:
             shape = it.get()
             verts = np.asarray(shape.geometry.verts, dtype=np.float64).reshape(-1, 3)
             faces = np.asarray(shape.geometry.faces, dtype=np.int32).reshape(-1, 3)
             if len(faces):
-                out[shape.id] = (verts, faces)
+                out[shape.id] = (verts, faces, _dominant_rgba(shape.geometry))
             if not it.next():
                 break
     return out
 
 
-def _body_products(f: object) -> set[int]:
+def _body_products(f: ifcopenshell.file) -> set[int]:
     """Step ids of non-excluded products that have a representation named 'Body'."""
-    excluded = {e.id() for e in _excluded_instances(f)}  # type: ignore[attr-defined]
+    excluded = {e.id() for e in _excluded_instances(f)}
     out = set()
-    for p in f.by_type("IfcProduct"):  # type: ignore[attr-defined]
+    for p in f.by_type("IfcProduct"):
         if p.id() in excluded or p.Representation is None:
             continue
         if any(r.RepresentationIdentifier == "Body" for r in p.Representation.Representations or ()):
@@ -156,9 +181,7 @@ def _body_products(f: object) -> set[int]:
     return out
 
 
-def _material_name(element: object) -> str:
-    import ifcopenshell.util.element as ue
-
+def _material_name(element: ifcopenshell.entity_instance) -> str:
     try:
         mat = ue.get_material(element, should_skip_usage=True)
     except Exception:  # malformed material associations: treat as no material
@@ -183,9 +206,7 @@ def _material_name(element: object) -> str:
     return " / ".join(dict.fromkeys(n for n in names if n))
 
 
-def _storey_name(element: object) -> str:
-    import ifcopenshell.util.element as ue
-
+def _storey_name(element: ifcopenshell.entity_instance) -> str:
     node = ue.get_container(element)
     while node is not None and not node.is_a("IfcBuildingStorey"):
         if node.is_a("IfcBuilding") or node.is_a("IfcSite") or node.is_a("IfcProject"):
@@ -194,9 +215,7 @@ def _storey_name(element: object) -> str:
     return (node.Name or node.LongName or node.GlobalId) if node is not None else ""
 
 
-def _type_name(element: object) -> str:
-    import ifcopenshell.util.element as ue
-
+def _type_name(element: ifcopenshell.entity_instance) -> str:
     t = ue.get_type(element)
     return (t.Name or "") if t is not None else ""
 
@@ -209,8 +228,8 @@ def _dms(value: Sequence[int] | None) -> float | None:
     return d + m / 60.0 + s / 3600.0 + us / 3.6e9
 
 
-def _site_gps(f: object, unit_scale: float) -> GeoPoint | None:
-    for site in f.by_type("IfcSite"):  # type: ignore[attr-defined]
+def _site_gps(f: ifcopenshell.file, unit_scale: float) -> GeoPoint | None:
+    for site in f.by_type("IfcSite"):
         lat, lon = _dms(site.RefLatitude), _dms(site.RefLongitude)
         if lat is None or lon is None or (lat == 0.0 and lon == 0.0):
             continue
@@ -221,10 +240,10 @@ def _site_gps(f: object, unit_scale: float) -> GeoPoint | None:
     return None
 
 
-def _map_conversion(f: object) -> MapConversion | None:
-    if f.schema == "IFC2X3":  # type: ignore[attr-defined]
+def _map_conversion(f: ifcopenshell.file) -> MapConversion | None:
+    if f.schema == "IFC2X3":
         return None
-    convs = f.by_type("IfcMapConversion")  # type: ignore[attr-defined]
+    convs = f.by_type("IfcMapConversion")
     if not convs:
         return None
     c = convs[0]
@@ -239,6 +258,24 @@ def _map_conversion(f: object) -> MapConversion | None:
         crs_name=(crs.Name or "") if crs is not None else "",
         crs_description=(getattr(crs, "Description", None) or "") if crs is not None else "",
     )
+
+
+def _parts(product: ifcopenshell.entity_instance) -> set[ifcopenshell.entity_instance]:
+    """What a product stands for in a schedule: itself, its aggregated parts and, for spatial
+    structure, the elements it contains, recursively (openings and their fillings excluded:
+    a door hosted by a wall belongs to its own storey and task)."""
+    out: set[ifcopenshell.entity_instance] = set()
+    stack = [product]
+    while stack:
+        x = stack.pop()
+        if x in out:
+            continue
+        out.add(x)
+        for rel in getattr(x, "ContainsElements", None) or ():
+            stack.extend(rel.RelatedElements)
+        for rel in getattr(x, "IsDecomposedBy", None) or ():
+            stack.extend(rel.RelatedObjects)
+    return out
 
 
 def auto_origin_offset(lo: np.ndarray, hi: np.ndarray) -> tuple[float, float, float]:
@@ -268,16 +305,14 @@ def load_site_model(
     ``on_missing``: what to do with schedule references to elements not in the model.
     Raises IfcLoadError / ScheduleError with one clear line.
     """
-    import ifcopenshell.util.element as ue
-    import ifcopenshell.util.unit as uu
-
     if not paths:
         raise IfcLoadError("no IFC files given")
     zi = zone(tz)
     elements: dict[str, BimElement] = {}
     world_meshes: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    colors: dict[str, RGBA] = {}
     warnings: list[str] = []
-    files: list[tuple[object, Path]] = []
+    files: list[tuple[ifcopenshell.file, Path]] = []
     map_conv: MapConversion | None = None
     gps: GeoPoint | None = None
     schemas: list[str] = []
@@ -287,17 +322,17 @@ def load_site_model(
             progress(str(p))
         f, open_warnings = open_ifc(p)
         warnings.extend(open_warnings)
-        schemas.append(f.schema)  # type: ignore[attr-defined]
+        schemas.append(f.schema)
         unit_scale = float(uu.calculate_unit_scale(f))
         meshes = iterate_geometry(f, threads)
         if not meshes:
             raise IfcLoadError(f"{p}: contains no elements with 3D geometry")
         failed = _body_products(f) - set(meshes)
         if failed:
-            names = ", ".join(f"{f.by_id(i).is_a()} {f.by_id(i).GlobalId}" for i in sorted(failed)[:3])  # type: ignore[attr-defined]
+            names = ", ".join(f"{f.by_id(i).is_a()} {f.by_id(i).GlobalId}" for i in sorted(failed)[:3])
             warnings.append(f"{p.name}: {len(failed)} element(s) with a Body representation gave no geometry ({names})")
-        for step_id, (verts, faces) in meshes.items():
-            el = f.by_id(step_id)  # type: ignore[attr-defined]
+        for step_id, (verts, faces, rgba) in meshes.items():
+            el = f.by_id(step_id)
             gid = el.GlobalId
             if gid in elements:
                 warnings.append(f"{p.name}: GlobalId {gid} ({el.is_a()}) already loaded from another file; kept first")
@@ -312,6 +347,8 @@ def load_site_model(
                 geometry_ref=gid,
             )
             world_meshes[gid] = (verts, faces)
+            if rgba is not None:
+                colors[gid] = rgba
         files.append((f, p))
         map_conv = map_conv or _map_conversion(f)
         gps = gps or _site_gps(f, unit_scale)
@@ -323,7 +360,7 @@ def load_site_model(
     meshes_local: dict[str, ElementMesh] = {}
     for gid, (verts, faces) in world_meshes.items():
         v = verts - off
-        meshes_local[gid] = ElementMesh(vertices_m=v, faces=faces)
+        meshes_local[gid] = ElementMesh(vertices_m=v, faces=faces, rgba=colors.get(gid))
         b_lo, b_hi = v.min(axis=0), v.max(axis=0)
         e = elements[gid]
         elements[gid] = BimElement(
@@ -340,20 +377,12 @@ def load_site_model(
 
     # Schedules inside the IFC files.
     all_ids = set(elements)
-    tasks = []
+    tasks: list[ScheduleTask] = []
     for f, p in files:
 
-        def expand(product: object) -> set[str]:
-            found = {product.GlobalId} & all_ids  # type: ignore[attr-defined]
-            try:
-                if product.is_a("IfcTypeObject"):  # type: ignore[attr-defined]
-                    members = set(ue.get_types(product))
-                else:
-                    members = set(ue.get_decomposition(product))
-            except Exception:  # relationship shapes ifcopenshell cannot follow
-                members = set()
-            found |= {m.GlobalId for m in members if hasattr(m, "GlobalId")} & all_ids
-            return found
+        def expand(product: ifcopenshell.entity_instance) -> set[str]:
+            members = set(ue.get_types(product)) if product.is_a("IfcTypeObject") else _parts(product)
+            return {m.GlobalId for m in members | {product} if hasattr(m, "GlobalId")} & all_ids
 
         tasks.extend(tasks_from_ifc(f, all_ids, zi, source=str(p), expand=expand))
     site = SiteModel(

@@ -28,10 +28,12 @@ from schemas.messages import BimElement, GeoPoint, ScheduleTask
 
 @dataclass(frozen=True, slots=True)
 class ElementMesh:
-    """Triangle mesh of one element: ``vertices_m`` (N, 3) float64 site-local metres, ``faces`` (M, 3) int32."""
+    """Triangle mesh of one element: ``vertices_m`` (N, 3) float64 site-local metres, ``faces`` (M, 3) int32,
+    ``rgba`` the main IFC surface style colour (0-255) when the model has one."""
 
     vertices_m: npt.NDArray[np.float64]
     faces: npt.NDArray[np.int32]
+    rgba: tuple[int, int, int, int] | None = None
 
     def geometry_hash(self) -> str:
         """sha256 (hex, 16 chars) of the vertices rounded to 0.1 mm and the faces."""

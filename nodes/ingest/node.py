@@ -55,7 +55,8 @@ class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=Tr
     use_receive_time: bool = False
     """Accept uploaded photos without EXIF time, stamped with the time they arrived."""
     seen_path: str = ""
-    """File persisting the content hashes already published (dedupe across restarts)."""
+    """File persisting the content hashes already published (dedupe across restarts); "" = the
+    hidden file ``.constructaide-seen`` in ``watch_dir`` when writable, else memory only."""
     seen_capacity: int = 100_000
     max_pixels: int = MAX_PIXELS
     future_tolerance_s: float = 600.0
@@ -74,10 +75,24 @@ class IngestNode:
         self._model_sig: tuple[tuple[int, int], ...] | None = None
         self._lock = threading.Lock()
         self.watcher = FolderWatcher(config.watch_dir) if config.watch_dir else None
-        self.seen = SeenHashes(config.seen_capacity, config.seen_path or None)
+        self.seen = SeenHashes(config.seen_capacity, self._seen_path())
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="ingest-poll", daemon=True)
         self._thread.start()
+
+    def _seen_path(self) -> Path | None:
+        if self.config.seen_path:
+            return Path(self.config.seen_path)
+        if not self.config.watch_dir:
+            return None
+        path = Path(self.config.watch_dir) / ".constructaide-seen"
+        try:
+            with path.open("a", encoding="ascii"):
+                pass
+        except OSError as exc:
+            self.ctx.log.warning("cannot persist seen photo hashes in %s (%s); memory only", path, exc)
+            return None
+        return path
 
     # -- model -------------------------------------------------------------------------------
 
@@ -94,10 +109,10 @@ class IngestNode:
                 out.append((-1, -1))
         return tuple(out)
 
-    def _load(self) -> tuple[SiteModel, str]:
+    def _load(self) -> SiteModel:
         c = self.config
         offset = self.site_model.origin_offset_m if self.site_model is not None else None
-        site_model = load_site_model(
+        return load_site_model(
             c.ifc,
             tz=c.tz or "UTC",
             schedule_path=c.schedule or None,
@@ -105,7 +120,6 @@ class IngestNode:
             origin_offset_m=offset,
             on_missing=c.on_missing,
         )
-        return site_model, revision_id(self._model_paths())
 
     def reload(self) -> BimUpdate | None:
         """Load the configured files; publish the first revision as ``BimModel``, later changed
@@ -115,10 +129,17 @@ class IngestNode:
             return None
         with self._lock:
             sig = self._signature()
-            site_model, rev = self._load()
-            self._model_sig = sig
+            missing = [str(p) for p in self._model_paths() if not p.is_file()]
+            if missing:
+                raise ValueError(f"model file(s) not found: {', '.join(missing)}")
+            rev = revision_id(self._model_paths())
             if self.site_model is not None and rev == self.revision:
+                self._model_sig = sig  # touched, same content
                 return None
+            site_model = self._load()
+            self._model_sig = sig
+            if site_model.tasks and not self.config.tz:
+                self.ctx.log.warning("no site tz configured: schedule dates without offset are taken as UTC")
             old, old_rev = self.site_model, self.revision
             self.site_model, self.revision = site_model, rev
             for w in site_model.warnings:

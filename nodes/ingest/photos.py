@@ -13,10 +13,12 @@ import datetime as dt
 import hashlib
 import io
 import math
+import struct
 import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 
 from PIL import Image, ImageOps, UnidentifiedImageError
@@ -96,18 +98,28 @@ def decode_image(data: bytes, max_pixels: int = MAX_PIXELS) -> DecodedImage:
     with im:
         exif = im.getexif()
         media_type = "image/png" if fmt == "PNG" else "image/jpeg"
-        orientation = int(exif.get(_ORIENTATION, 1) or 1)
+        try:
+            orientation = int(exif.get(_ORIENTATION, 1) or 1)
+        except (TypeError, ValueError):
+            orientation = 1  # unreadable tag: leave the image as stored
         if not 2 <= orientation <= 8:
             return DecodedImage(data, media_type, w, h, exif, False)
         upright = ImageOps.exif_transpose(im)
-    exif_out = Image.Exif()
-    exif_out.load(exif.tobytes())
-    exif_out[_ORIENTATION] = 1
+        icc = im.info.get("icc_profile")
+    # Re-encode upright with the original EXIF (orientation reset) and colour profile.
+    extra: dict[str, Any] = {"icc_profile": icc} if icc else {}
+    try:
+        exif_out = Image.Exif()
+        exif_out.load(exif.tobytes())
+        exif_out[_ORIENTATION] = 1
+        extra["exif"] = exif_out.tobytes()
+    except (ValueError, TypeError, OSError, struct.error):
+        pass  # EXIF Pillow cannot re-serialise: store without it (the Photo fields keep its values)
     buf = io.BytesIO()
     if fmt == "PNG":
-        upright.save(buf, format="PNG", exif=exif_out.tobytes())
+        upright.save(buf, format="PNG", **extra)
     else:
-        upright.convert("RGB").save(buf, format="JPEG", quality=JPEG_QUALITY, exif=exif_out.tobytes())
+        upright.convert("RGB").save(buf, format="JPEG", quality=JPEG_QUALITY, **extra)
     return DecodedImage(buf.getvalue(), media_type, upright.width, upright.height, exif, True)
 
 
@@ -175,9 +187,9 @@ def exif_gps(exif: Image.Exif) -> GeoPoint | None:
     if 2 not in gps or 4 not in gps:
         return None
 
-    def deg(dms: object) -> float | None:
+    def deg(dms: Any) -> float | None:
         try:
-            d, m, s = (_rational(x) for x in dms)  # type: ignore[union-attr]
+            d, m, s = (_rational(x) for x in dms)
         except (TypeError, ValueError):
             return None
         if d is None or m is None or s is None:

@@ -20,9 +20,13 @@ def revision_id(paths: Iterable[str | Path]) -> str:
         h.update(Path(p).name.encode())
         h.update(b"\0")
         with Path(p).open("rb") as fh:
-            for chunk in iter(lambda fh=fh: fh.read(1 << 20), b""):
+            while chunk := fh.read(1 << 20):
                 h.update(chunk)
     return h.hexdigest()[:12]
+
+
+def _colors(site_model: SiteModel, refs: Iterable[str]) -> dict[str, tuple[int, int, int, int]]:
+    return {r: m.rgba for r in refs if (m := site_model.meshes.get(r)) is not None and m.rgba is not None}
 
 
 def to_bim_model(site_model: SiteModel, site: str, revision: str) -> BimModel:
@@ -30,7 +34,7 @@ def to_bim_model(site_model: SiteModel, site: str, revision: str) -> BimModel:
     element named by its geometry_ref (site-local metres, z up)."""
     meshes = {
         e.geometry_ref: (m.vertices_m, m.faces)
-        for gid, e in site_model.elements.items()
+        for e in site_model.elements.values()
         if (m := site_model.meshes.get(e.geometry_ref)) is not None
     }
     mc = site_model.map_conversion
@@ -39,7 +43,7 @@ def to_bim_model(site_model: SiteModel, site: str, revision: str) -> BimModel:
         revision=revision,
         elements=tuple(site_model.elements.values()),
         tasks=site_model.tasks,
-        geometry_glb=meshes_to_glb(meshes),
+        geometry_glb=meshes_to_glb(meshes, _colors(site_model, meshes)),
         origin_offset_m=site_model.origin_offset_m,
         crs_name=mc.crs_name if mc is not None else "",
         gps=site_model.gps,
@@ -80,6 +84,6 @@ def diff_models(old: SiteModel, new: SiteModel, *, site: str, base_revision: str
         added=tuple(added),
         removed=removed,
         changed=tuple(changed),
-        geometry_glb=meshes_to_glb(meshes) if meshes else b"",
+        geometry_glb=meshes_to_glb(meshes, _colors(new, meshes)) if meshes else b"",
         tasks=new.tasks if new.tasks != old.tasks else None,
     )

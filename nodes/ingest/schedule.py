@@ -17,9 +17,17 @@ import xml.etree.ElementTree as ET
 from collections.abc import Callable, Collection, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal, cast
 from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 
+import msgspec
+
 from schemas.messages import ScheduleTask
+
+if TYPE_CHECKING:  # ifcopenshell is imported lazily: CSV / MS Project schedules do not need it
+    import ifcopenshell
+
+TaskType = Literal["construction", "demolition", "temporary", "other"]
 
 
 class ScheduleError(ValueError):
@@ -180,7 +188,7 @@ def resolve_elements(
             missing[t.task_id] = bad
             if on_missing == "drop":
                 keep = tuple(e for e in t.element_ids if e in element_ids)
-                t = ScheduleTask(**{**_as_dict(t), "element_ids": keep})
+                t = msgspec.structs.replace(t, element_ids=keep)
         out.append(t)
     if missing and on_missing == "error":
         n_ids = len({e for v in missing.values() for e in v})
@@ -192,16 +200,12 @@ def resolve_elements(
     return tuple(out)
 
 
-def _as_dict(t: ScheduleTask) -> dict[str, object]:
-    return {f: getattr(t, f) for f in t.__struct_fields__}
-
-
 # ---------------------------------------------------------------------------------------------
 # IFC (IfcWorkSchedule / IfcTask / IfcTaskTime / IfcRelSequence / IfcRelAssignsTo*)
 # ---------------------------------------------------------------------------------------------
 
 
-def _ifc_time(value: object, tz: ZoneInfo, *, end_of_day: bool = False) -> int | None:
+def _ifc_time(value: Any, tz: ZoneInfo, *, end_of_day: bool = False) -> int | None:
     import ifcopenshell
     import ifcopenshell.util.date
 
@@ -218,7 +222,7 @@ def _ifc_time(value: object, tz: ZoneInfo, *, end_of_day: bool = False) -> int |
     return None
 
 
-_TASK_TYPES = {
+_TASK_TYPES: dict[str, TaskType] = {
     "CONSTRUCTION": "construction",
     "DEMOLITION": "demolition",
     "DISMANTLE": "demolition",
@@ -227,11 +231,11 @@ _TASK_TYPES = {
 
 
 def tasks_from_ifc(
-    ifc_file: object,
+    ifc_file: ifcopenshell.file,
     element_ids: Collection[str],
     tz: ZoneInfo,
     source: str = "IFC",
-    expand: Callable[[object], set[str]] | None = None,
+    expand: Callable[[ifcopenshell.entity_instance], set[str]] | None = None,
     id_prefix: str | None = None,
 ) -> tuple[ScheduleTask, ...]:
     """ScheduleTasks of every IfcTask in an open ifcopenshell file.
@@ -247,10 +251,7 @@ def tasks_from_ifc(
     ``task_id`` is the IfcTask GlobalId, or ``id_prefix`` + Identification when ``id_prefix`` is
     given and identifications are unique (stable ids for schedules converted on the fly).
     """
-    import ifcopenshell
-
     f = ifc_file
-    assert isinstance(f, ifcopenshell.file)
     tasks = f.by_type("IfcTask")
     if not tasks:
         return ()
@@ -359,7 +360,7 @@ def tasks_from_ifc(
                 actual_finish_ns=a_finish,
                 element_ids=tuple(sorted(elements)),
                 predecessor_ids=tuple(preds.get(t.id(), ())),
-                task_type=_TASK_TYPES.get(predefined, "construction") if predefined else "construction",  # type: ignore[arg-type]
+                task_type=_TASK_TYPES.get(predefined, "construction"),
             )
         )
     return validate_tasks(out, source)
@@ -436,27 +437,27 @@ def tasks_from_p6(path: str | Path, tz: ZoneInfo) -> tuple[ScheduleTask, ...]:
         except ImportError as exc:
             raise ScheduleError(f"{p}: P6 XER import needs the 'xerparser' package; export P6 XML instead") from exc
 
-        conv: object = P6XER2Ifc()
-        conv.xer = str(p)  # type: ignore[attr-defined]
+        conv: Any = P6XER2Ifc()
+        conv.xer = str(p)
     else:
         from ifc4d.p62ifc import P62Ifc
 
         conv = P62Ifc()
-        conv.xml = str(p)  # type: ignore[attr-defined]
+        conv.xml = str(p)
     try:
         with contextlib.redirect_stdout(io.StringIO()):
             if hasattr(conv, "parse_xml"):
                 conv.parse_xml()
             else:
-                conv.parse_xer()  # type: ignore[attr-defined]
+                conv.parse_xer()
             settings = {
                 "work_plan": getattr(conv, "work_plan", None),
-                "project": conv.project,  # type: ignore[attr-defined]
-                "calendars": conv.calendars,  # type: ignore[attr-defined]
-                "wbs": conv.wbs,  # type: ignore[attr-defined]
-                "root_activities": conv.root_activites,  # type: ignore[attr-defined]
-                "activities": conv.activities,  # type: ignore[attr-defined]
-                "relationships": conv.relationships,  # type: ignore[attr-defined]
+                "project": conv.project,
+                "calendars": conv.calendars,
+                "wbs": conv.wbs,
+                "root_activities": conv.root_activites,
+                "activities": conv.activities,
+                "relationships": conv.relationships,
                 "resources": getattr(conv, "resources", {}),
             }
             gen = ScheduleIfcGenerator(None, None, settings)
@@ -493,7 +494,7 @@ class _CsvTask:
     name: str
     start: int
     finish: int
-    kind: str
+    kind: TaskType
     actual_start: int | None = None
     actual_finish: int | None = None
     elements: list[str] = field(default_factory=list)
@@ -566,7 +567,8 @@ def tasks_from_csv(
         g = groups.get(task_id)
         if g is None:
             kind = get("task_type").lower()
-            g = groups[task_id] = _CsvTask(get("task_name"), start, finish, kind if kind in _KINDS else "construction")
+            task_type = cast(TaskType, kind) if kind in _KINDS else "construction"
+            g = groups[task_id] = _CsvTask(get("task_name"), start, finish, task_type)
         g.start, g.finish = min(g.start, start), max(g.finish, finish)
         if a_start is not None:
             g.actual_start = a_start if g.actual_start is None else min(g.actual_start, a_start)
@@ -584,7 +586,7 @@ def tasks_from_csv(
             actual_start_ns=g.actual_start,
             actual_finish_ns=g.actual_finish,
             element_ids=tuple(g.elements),
-            task_type=g.kind,  # type: ignore[arg-type]
+            task_type=g.kind,
         )
         for tid, g in groups.items()
     ]

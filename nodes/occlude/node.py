@@ -56,6 +56,7 @@ class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=Tr
     depth_margin_m: float = 0.3  # static: point closer than the model by more than this occludes
     normal_angle_deg: float = 30.0  # static: normal disagreement that occludes
     terrain_height_m: float | None = None  # site ground level; else BimModel's, else estimated from the cloud
+    static_excludes_dynamic: bool = True  # static mask minus the photo's dynamic mask
     sparse_growth: float = 0.2  # recompute a static mask when a photo's observations grew by this fraction
     jpeg_quality: int = 90
 
@@ -363,7 +364,14 @@ class OccludeNode:
             self._terrain_height_m(),
             self.static_params,
         )
-        self._publish(photo_id, "static", res.status, res.mask, started, num_views=res.num_points)
+        mask = res.mask
+        status, png = self.masks.get((photo_id, "dynamic"), ("", b""))
+        if self.config.static_excludes_dynamic and status == "ok" and png:
+            # what moves between views is a dynamic occluder, not a static one (the combined mask has both)
+            dyn = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_GRAYSCALE)
+            if dyn is not None and dyn.shape == mask.shape:
+                mask = mask & ~dyn
+        self._publish(photo_id, "static", res.status, mask, started, num_views=res.num_points)
 
     def _user(self, photo_id: str) -> None:
         info = self.photos.get(photo_id)

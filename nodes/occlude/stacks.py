@@ -209,6 +209,15 @@ class TimelapseStore:
         times = tuple(self.frames[n].capture_time_ns for n in ids)
         return AlignedStack(photo_id, np.stack(images), np.stack(valids), tuple(ids), times, frame.capture_time_ns)
 
+    def warp_full_image(self, photo_id: str, neighbour_id: str, image: NDArray[np.generic]) -> NDArray[np.generic]:
+        """Warp a full-resolution image of ``neighbour_id`` (e.g. a mask) into ``photo_id``'s working view
+        with the same homography the stack uses (nearest-neighbour sampling, zero outside)."""
+        frame = self.frames[photo_id]
+        H = self.candidate_neighbours(photo_id)[neighbour_id]
+        h, w = frame.image_small.shape[:2]
+        H_small = scale_matrix(frame.scale) @ H
+        return cv2.warpPerspective(image, H_small, (w, h), flags=cv2.INTER_NEAREST, borderValue=0)
+
     def forget(self, photo_id: str) -> None:
         """Drop a photo and every homography that mentions it."""
         frame = self.frames.pop(photo_id, None)

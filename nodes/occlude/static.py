@@ -40,6 +40,8 @@ class StaticParams:
     slic_ruler: float = 12.0
     slic_iterations: int = 4
     vote_fraction: float = 0.5  # flood a superpixel when occluding >= this fraction of its judged points
+    propagate_rounds: int = 3  # spread labels to point-less superpixels of similar colour (0: paper, no spreading)
+    propagate_lab_dist: float = 6.0  # max mean-Lab distance (OpenCV 8-bit Lab units) for spreading
     bilateral_diameter_px: int = 9
     bilateral_sigma_color: float = 0.1
     bilateral_sigma_space_px: float = 4.0
@@ -162,7 +164,49 @@ def superpixel_flood(
     n_occ = np.bincount(lab_of[occluding], minlength=nlab)
     n_judged = np.bincount(lab_of[judged], minlength=nlab)
     flooded = (n_occ >= 1) & (n_occ >= params.vote_fraction * n_judged)
+    if params.propagate_rounds > 0:
+        state = np.where(flooded, 1, np.where(n_judged > 0, -1, 0)).astype(np.int8)
+        state = propagate_labels(labels, lab, state, params.propagate_rounds, params.propagate_lab_dist)
+        flooded = state > 0
     return flooded[labels].astype(np.uint8)
+
+
+def propagate_labels(
+    labels: NDArray[np.int32], lab: U8, state: NDArray[np.int8], rounds: int, max_dist: float
+) -> NDArray[np.int8]:
+    """Give superpixels without points (state 0) the state (+1 occluded, -1 clear) of their most
+    similar adjacent labelled superpixel when their mean Lab colours are closer than ``max_dist``;
+    repeated ``rounds`` times so labels spread along uniform surfaces (a fence panel, the ground)."""
+    n = len(state)
+    counts = np.maximum(np.bincount(labels.ravel(), minlength=n), 1).astype(np.float64)
+    mean = np.stack(
+        [
+            np.bincount(labels.ravel(), weights=lab[..., c].ravel().astype(np.float64), minlength=n) / counts
+            for c in range(3)
+        ],
+        axis=1,
+    )
+    pairs = np.concatenate(
+        [
+            np.stack([labels[:, :-1].ravel(), labels[:, 1:].ravel()], axis=1),
+            np.stack([labels[:-1, :].ravel(), labels[1:, :].ravel()], axis=1),
+        ]
+    )
+    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+    pairs = np.unique(np.concatenate([pairs, pairs[:, ::-1]]), axis=0)  # (E, 2): (unknown candidate, neighbour)
+    dist = np.linalg.norm(mean[pairs[:, 0]] - mean[pairs[:, 1]], axis=1)
+    state = state.copy()
+    for _ in range(rounds):
+        ok = (state[pairs[:, 0]] == 0) & (state[pairs[:, 1]] != 0) & (dist < max_dist)
+        if not ok.any():
+            break
+        cand, nb, d = pairs[ok, 0], pairs[ok, 1], dist[ok]
+        order = np.lexsort((d, cand))  # per candidate, nearest neighbour first
+        cand, nb = cand[order], nb[order]
+        first = np.ones(len(cand), bool)
+        first[1:] = cand[1:] != cand[:-1]
+        state[cand[first]] = state[nb[first]]
+    return state
 
 
 def below_terrain(maps: ModelMaps, terrain_height_m: float, margin_m: float) -> NDArray[np.bool_]:

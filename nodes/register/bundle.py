@@ -76,7 +76,7 @@ class BundleProblem:
 
 @dataclass
 class BundleOptions:
-    loss: str = "huber"
+    loss: str = "soft_l1"
     loss_scale_px: float = 2.0
     refine_distortion: bool = True
     refine_principal_point: bool = False

@@ -70,6 +70,11 @@ class ColmapModel:
     errors_px: np.ndarray
 
 
+def _f(value: float) -> str:
+    """Shortest exact text of a float (numpy scalars included)."""
+    return repr(float(value))
+
+
 def write_text_model(model: ColmapModel, out_dir: Path) -> None:
     """Write cameras.txt, images.txt, points3D.txt (one camera per image, ids from 1)."""
     out_dir = Path(out_dir)
@@ -85,13 +90,13 @@ def write_text_model(model: ColmapModel, out_dir: Path) -> None:
         cid = iid = k + 1
         x = im.intrinsics
         cams.append(
-            f"{cid} RADIAL {x.width_px} {x.height_px} {x.f_px!r} {x.cx_px + 0.5!r} {x.cy_px + 0.5!r} {x.k1!r} {x.k2!r}"
+            f"{cid} RADIAL {x.width_px} {x.height_px} {_f(x.f_px)} {_f(x.cx_px + 0.5)} {_f(x.cy_px + 0.5)} {_f(x.k1)} {_f(x.k2)}"
         )
         T = cam.invert_rigid(np.asarray(im.world_from_camera, dtype=np.float64))
         q = rotation_to_quaternion(T[:3, :3])
         t = T[:3, 3]
         name = im.name.replace(" ", "_") if " " in im.name else im.name
-        imgs.append(f"{iid} {q[0]!r} {q[1]!r} {q[2]!r} {q[3]!r} {t[0]!r} {t[1]!r} {t[2]!r} {cid} {name}")
+        imgs.append(f"{iid} {_f(q[0])} {_f(q[1])} {_f(q[2])} {_f(q[3])} {_f(t[0])} {_f(t[1])} {_f(t[2])} {cid} {name}")
         row = []
         for j, (uv, p) in enumerate(zip(im.points2d_px, im.point3d_index, strict=True)):
             pid = int(p) + 1 if p >= 0 else -1
@@ -106,7 +111,7 @@ def write_text_model(model: ColmapModel, out_dir: Path) -> None:
         c = model.colors[p]
         tr = " ".join(f"{i} {j}" for i, j in tracks.get(pid, []))
         pts.append(
-            f"{pid} {X[0]!r} {X[1]!r} {X[2]!r} {int(c[0])} {int(c[1])} {int(c[2])} {model.errors_px[p]:.4f} {tr}"
+            f"{pid} {_f(X[0])} {_f(X[1])} {_f(X[2])} {int(c[0])} {int(c[1])} {int(c[2])} {model.errors_px[p]:.4f} {tr}"
         )
     (out_dir / "cameras.txt").write_text("\n".join(cams) + "\n")
     (out_dir / "images.txt").write_text("\n".join(imgs) + "\n")

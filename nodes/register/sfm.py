@@ -47,11 +47,12 @@ class SfmConfig:
     ratio: float = 0.8
     fundamental_threshold_frac: float = 0.0015
     min_pair_inliers: int = 20
-    preemptive_features: int = 300
+    preemptive_features: int = 0
     preemptive_min_matches: int = 6
     homography_min_inlier_ratio: float = 0.8
     homography_min_matches: int = 30
     homography_threshold_frac: float = 0.005
+    homography_max_rotation_deviation: float = 0.03
     min_track_matches: int = 60
     fallback_min_track_matches: int = 25
     pnp_inlier_frac: float = 0.01
@@ -113,6 +114,8 @@ class ImageState:
     click_inliers: np.ndarray | None = None
     anchor: AnchorSolution | None = None
     num_matched_tracks: int = 0
+    # Focal supported by this image's own clicks (solved, not the prior): the bundle adjustment's prior for it.
+    solved_focal_px: float | None = None
 
     @property
     def width_px(self) -> int:
@@ -387,12 +390,34 @@ def register_anchor(recon: Reconstruction, idx: int, clicks: Clicks, cfg: SfmCon
     sol = solve_anchor(px, world, im.width_px, im.height_px, focal_px=focal_prior(im, cfg))
     im.intrinsics, im.world_from_camera = sol.intrinsics, sol.world_from_camera
     im.status, im.method, im.anchor = "anchor", "anchor", sol
+    im.solved_focal_px = sol.intrinsics.f_px if sol.focal_solved else None
     im.clicks, im.click_inliers = (px, world), ~sol.outlier_mask
     im.num_inliers = int(np.sum(~sol.outlier_mask))
     im.rms_px = sol.rms_px
     n_out = int(sol.outlier_mask.sum())
     im.message = f"{len(px)} clicks, rms {sol.rms_px:.2f} px" + (f", {n_out} flagged as mis-clicks" if n_out else "")
     return sol
+
+
+def rotation_homography_deviation(
+    H_b_from_a: np.ndarray, intr_a: Intrinsics, width_b: int, height_b: int
+) -> tuple[float, float]:
+    """How far a pixel homography (a -> b) is from a rotation about a shared camera centre plus a zoom.
+
+    With centred principal points, ``H' = diag(f_b, f_b, 1) R diag(1/f_a, 1/f_a, 1)``; so the rows of
+    ``A = H' diag(f_a, f_a, 1)`` are ``f_b R_0, f_b R_1, R_2`` up to scale. Returns (deviation, f_b): deviation is
+    the largest of |row-norm ratio - 1| of the first two rows and the rows' pairwise |cosines|.
+    """
+    Ta = np.array([[1, 0, -intr_a.cx_px], [0, 1, -intr_a.cy_px], [0, 0, 1.0]])
+    Tb = np.array([[1, 0, -(width_b - 1) / 2], [0, 1, -(height_b - 1) / 2], [0, 0, 1.0]])
+    A = Tb @ H_b_from_a @ np.linalg.inv(Ta) @ np.diag([intr_a.f_px, intr_a.f_px, 1.0])
+    n = np.linalg.norm(A, axis=1)
+    if np.any(n < 1e-12):
+        return float("inf"), float("nan")
+    U = A / n[:, None]
+    cos = [abs(U[0] @ U[1]), abs(U[0] @ U[2]), abs(U[1] @ U[2])]
+    dev = max(abs(n[0] / n[1] - 1.0), *cos)
+    return float(dev), float((n[0] + n[1]) / 2 / n[2])
 
 
 def try_homography_transfer(recon: Reconstruction, anchor_idx: int, idx: int, cfg: SfmConfig) -> bool:
@@ -406,6 +431,11 @@ def try_homography_transfer(recon: Reconstruction, anchor_idx: int, idx: int, cf
     thr = max(1.0, cfg.homography_threshold_frac * im.width_px)
     H, ratio = homography_inlier_ratio(a.features.keypoints_px, im.features.keypoints_px, m, thr)
     if H is None or ratio < cfg.homography_min_inlier_ratio:
+        return False
+    # A plane (a facade) also gives one homography for most matches from far-apart viewpoints; transferring
+    # clicks off that plane would then be wrong. Only rotation(+zoom)-like homographies qualify.
+    dev, _ = rotation_homography_deviation(H, a.intrinsics, im.width_px, im.height_px)
+    if dev > cfg.homography_max_rotation_deviation:
         return False
     keep = a.click_inliers if a.click_inliers is not None else np.ones(len(a.clicks[0]), bool)
     px_a, world = a.clicks[0][keep], a.clicks[1][keep]
@@ -425,6 +455,7 @@ def try_homography_transfer(recon: Reconstruction, anchor_idx: int, idx: int, cf
         return False
     im.intrinsics, im.world_from_camera = sol.intrinsics, sol.world_from_camera
     im.status, im.method = "auto", "homography"
+    im.solved_focal_px = sol.intrinsics.f_px if sol.focal_solved else None
     im.clicks, im.click_inliers = (warped[inside], world[inside]), ~sol.outlier_mask
     im.num_inliers, im.rms_px = int(inside.sum()), sol.rms_px
     im.message = f"homography from {a.name} ({ratio:.0%} inliers), {int(inside.sum())} warped clicks"
@@ -487,7 +518,7 @@ def solve_pose_epipolar(
         return r
 
     x0 = np.concatenate([rvec0, t0] + ([[np.log(intr.f_px)]] if solve_focal else []))
-    sol = least_squares(res, x0, method="trf", loss="huber", f_scale=loss_scale_px, x_scale="jac", max_nfev=100)
+    sol = least_squares(res, x0, method="trf", loss="soft_l1", f_scale=loss_scale_px, x_scale="jac", max_nfev=100)
     f = float(np.exp(sol.x[6])) if solve_focal else intr.f_px
     return sol.x[:3], sol.x[3:6], f
 
@@ -717,7 +748,7 @@ def bundle(recon: Reconstruction, cfg: SfmConfig, window: list[int] | None = Non
         click_world=np.vstack(click_w) if click_w else np.zeros((0, 3)),
         click_px=np.vstack(click_x) if click_x else np.zeros((0, 2)),
     )
-    f_prior = np.array([focal_prior(recon.images[i], cfg) for i in reg])
+    f_prior = np.array([recon.images[i].solved_focal_px or focal_prior(recon.images[i], cfg) for i in reg])
     sigma = np.array([_focal_sigma_frac(recon.images[i], cfg) for i in reg]) * f_prior
     opts = BundleOptions(
         focal_prior_px=f_prior,

@@ -77,9 +77,16 @@ class StreamConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     min_pnp_inliers: int = 30
     min_pnp_inlier_fraction: float = 0.3
     max_focal_change: float = 0.3
+    max_tilt_from_upright_deg: float | None = 60.0
+    """Reject automatic solutions whose image-up direction is further than this from world +z (None: off)."""
     pnp_inlier_fraction_of_width: float = 0.01
     min_triangulation_angle_deg: float = 2.0
     max_triangulation_error_px: float = 4.0
+    confirm_tolerance: float = 0.02
+    trust_bim_depth: bool = False
+    """Use BIM-depth points for other viewpoints before a second view confirms them (only where nothing
+    unmodelled stands in front of the model)."""
+    """A BIM-depth point is confirmed when a two-view triangulation lands within this fraction of its range."""
     homography_px: float = 4.0
     homography_min_inlier_ratio: float = 0.8
     homography_max_rms_px: float = 3.0
@@ -236,6 +243,7 @@ class PointMap:
         self.xyz = np.zeros((0, 3))
         self.rgb = np.zeros((0, 3), np.uint8)
         self.fixed_flags = np.zeros(0, bool)
+        self.confirmed_flags = np.zeros(0, bool)
         self.obs: list[list[tuple[int, int]]] = []
         self._n = 0
 
@@ -247,8 +255,18 @@ class PointMap:
         """(P,) bool: points taken from the BIM model (held fixed in bundle adjustment)."""
         return self.fixed_flags[: self._n]
 
+    @property
+    def confirmed(self) -> np.ndarray:
+        """(P,) bool: points seen consistently from two viewpoints (BIM-depth points start unconfirmed)."""
+        return self.confirmed_flags[: self._n]
+
     def add(
-        self, xyz: np.ndarray, rgb: np.ndarray, obs: list[list[tuple[int, int]]], fixed: bool = False
+        self,
+        xyz: np.ndarray,
+        rgb: np.ndarray,
+        obs: list[list[tuple[int, int]]],
+        fixed: bool = False,
+        confirmed: bool = True,
     ) -> np.ndarray:
         """Append points (P, 3) with colours (P, 3) and observations; returns their ids (P,)."""
         xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
@@ -261,11 +279,14 @@ class PointMap:
             rgb_grown[: self._n] = self.rgb[: self._n]
             fixed_grown = np.zeros(cap, bool)
             fixed_grown[: self._n] = self.fixed_flags[: self._n]
-            self.xyz, self.rgb, self.fixed_flags = grown, rgb_grown, fixed_grown
+            conf_grown = np.zeros(cap, bool)
+            conf_grown[: self._n] = self.confirmed_flags[: self._n]
+            self.xyz, self.rgb, self.fixed_flags, self.confirmed_flags = grown, rgb_grown, fixed_grown, conf_grown
         ids = np.arange(self._n, self._n + n)
         self.xyz[ids] = xyz
         self.rgb[ids] = np.asarray(rgb, np.uint8).reshape(-1, 3)
         self.fixed_flags[ids] = fixed
+        self.confirmed_flags[ids] = confirmed
         self.obs.extend(obs)
         self._n += n
         return ids
@@ -945,15 +966,22 @@ class StreamingRegistrar:
         prefix = (note + "; ") if note else ""
         # 2D-3D correspondences through the candidates' map points.
         kp_to_point: dict[int, int] = {}
+        confirmed = self.map.confirmed
         for ki, m in matches.items():
+            # Unconfirmed BIM-depth points only serve the camera that produced them (same centre: depth is moot).
+            same_camera = photo.camera_id is not None and self.keys[ki].camera_id == photo.camera_id
             pids = self.keys[ki].point_ids[m[:, 1]]
             for kp, pid in zip(m[:, 0], pids, strict=True):
-                if pid >= 0 and kp not in kp_to_point:
+                if pid >= 0 and kp not in kp_to_point and (same_camera or confirmed[pid] or c.trust_bim_depth):
                     kp_to_point[int(kp)] = int(pid)
         num_tracks = len(kp_to_point)
         result = None
+        rejected = ""
         if num_tracks >= c.min_pnp_inliers:
             result = self._pnp(feats, kp_to_point, intr0, photo.focal_px is None)
+            if result is not None and not self._upright(result[1]):
+                rejected = f"; a PnP solution tilted {self._tilt_deg(result[1]):.0f} deg from upright was rejected"
+                result = None
         method = "pnp"
         if result is None:
             result = self._homography_transfer(feats, homographies, intr0)
@@ -961,7 +989,7 @@ class StreamingRegistrar:
         if result is None:
             reason = (
                 f"{prefix}not registered: {num_tracks} matched 3D tracks (need {c.min_pnp_inliers}) and no registered "
-                f"photo from the same viewpoint; please click anchors"
+                f"photo from the same viewpoint{rejected}; please click anchors"
             )
             return Outcome(self._failed(photo, reason, t0), needs_anchor=reason, num_matched_tracks=num_tracks)
         intr, world_from_camera, num_inliers, rms, inlier_kp = result
@@ -982,6 +1010,16 @@ class StreamingRegistrar:
         msg = f"{prefix}full path: {method} with {num_inliers} inliers from {len(matches)} matched image(s)"
         reg = self._registration(photo, "auto", method, intr, world_from_camera, num_inliers, rms, msg, t0)
         return Outcome(reg, num_matched_tracks=num_tracks, viewpoint_changed=sorted(set(changed)), map_changed=True)
+
+    @staticmethod
+    def _tilt_deg(world_from_camera: np.ndarray) -> float:
+        """Angle between the image's up direction (camera -y) and world up (+z), degrees."""
+        up = -np.asarray(world_from_camera)[:3, 1]
+        return float(np.degrees(np.arccos(np.clip(up[2] / np.linalg.norm(up), -1.0, 1.0))))
+
+    def _upright(self, world_from_camera: np.ndarray) -> bool:
+        limit = self.config.max_tilt_from_upright_deg
+        return limit is None or self._tilt_deg(world_from_camera) <= limit
 
     def _camera_focal(self, camera_id: str | None) -> float | None:
         if camera_id is None or camera_id not in self.tracks:
@@ -1181,7 +1219,11 @@ class StreamingRegistrar:
             ok = np.all(np.isfinite(pts), axis=1)
             if ok.any():
                 ids = self.map.add(
-                    pts[ok], self._colors_at(image, kp[free[ok]]), [[(kidx, int(i))] for i in free[ok]], fixed=True
+                    pts[ok],
+                    self._colors_at(image, kp[free[ok]]),
+                    [[(kidx, int(i))] for i in free[ok]],
+                    fixed=True,
+                    confirmed=False,
                 )
                 key.point_ids[free[ok]] = ids
         # Triangulate new tracks with each matched key image.
@@ -1208,7 +1250,42 @@ class StreamingRegistrar:
             ids = self.map.add(pts[valid], self._colors_at(image, kp[mv[:, 0]]), obs)
             key.point_ids[mv[:, 0]] = ids
             other.point_ids[mv[:, 1]] = ids
+        self._confirm_points(key, matches)
         return changed
+
+    def _confirm_points(self, key: KeyImage, matches: dict[int, np.ndarray]) -> None:
+        """Confirm BIM-depth points that a two-view triangulation reproduces (within ``confirm_tolerance``).
+
+        A depth looked up on the model is wrong wherever something unmodelled (a fence, a crane, scaffolding)
+        stands in front; such points must not register other viewpoints until a second view agrees.
+        """
+        c = self.config
+        kp = key.feats.keypoints_px.astype(np.float64)
+        for ki, m in matches.items():
+            other = self.keys[ki]
+            ids_a, ids_b = key.point_ids[m[:, 0]], other.point_ids[m[:, 1]]
+            has = (ids_a >= 0) | (ids_b >= 0)
+            if not has.any():
+                continue
+            mh = m[has]
+            tri, valid = triangulate_pairs(
+                key.intrinsics,
+                key.world_from_camera,
+                kp[mh[:, 0]],
+                other.intrinsics,
+                other.world_from_camera,
+                other.feats.keypoints_px[mh[:, 1]].astype(np.float64),
+                c.min_triangulation_angle_deg,
+                c.max_triangulation_error_px,
+            )
+            rng = np.linalg.norm(tri - key.world_from_camera[:3, 3], axis=1)
+            for ids in (ids_a[has], ids_b[has]):
+                sel = valid & (ids >= 0)
+                if not sel.any():
+                    continue
+                dist = np.linalg.norm(self.map.points()[ids[sel]] - tri[sel], axis=1)
+                agree = dist < c.confirm_tolerance * rng[sel]
+                self.map.confirmed_flags[ids[sel][agree]] = True
 
     def _key_rms(self, kidx: int) -> float:
         key = self.keys[kidx]

@@ -1,0 +1,112 @@
+"""Anchor registration from clicks: accuracy bands, focal solving, degenerate and adversarial input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from constructaide import camera as cam
+from nodes.register.anchors import DegenerateAnchors, solve_anchor
+
+W, H = 1920, 1080
+
+
+def setup(seed: int = 0, n: int = 10, f_px: float = 1500.0, noise_px: float = 1.0, planar: bool = False):
+    rng = np.random.default_rng(seed)
+    T = cam.look_at([12.0, -22.0, 6.0], [0.0, 0.0, 2.5])
+    hi = [5, 5, 0.0] if planar else [5, 5, 6]
+    pts = rng.uniform([-5, -5, 0], hi, (n, 3))
+    intr = cam.centered_intrinsics(W, H, f_px)
+    px, z = cam.project_points(intr, cam.invert_rigid(T), pts)
+    assert np.all(z > 0)
+    return T, pts, px + rng.normal(0, noise_px, px.shape)
+
+
+def test_pose_from_clicks_with_known_focal():
+    T, pts, px = setup()
+    sol = solve_anchor(px, pts, W, H, focal_px=1500.0, solve_focal=False)
+    assert cam.viewing_angle_deg(sol.world_from_camera, T) < 0.2
+    assert np.linalg.norm(sol.world_from_camera[:3, 3] - T[:3, 3]) < 0.15  # 0.6 % of ~25 m
+    assert sol.rms_px < 1.6
+    assert sol.residuals_px.shape == (10,)
+    assert not sol.focal_solved
+    assert sol.intrinsics.cx_px == pytest.approx((W - 1) / 2)
+    assert sol.intrinsics.k1 == 0.0 and sol.intrinsics.k2 == 0.0
+    assert not sol.outlier_mask.any()
+
+
+def test_focal_solved_without_prior_from_six_noncoplanar_clicks():
+    T, pts, px = setup(seed=1, n=12, f_px=1800.0, noise_px=0.5)
+    sol = solve_anchor(px, pts, W, H)  # prior = 50 deg FOV = 2059 px
+    assert sol.focal_solved
+    assert sol.intrinsics.f_px == pytest.approx(1800.0, rel=0.03)
+    assert cam.viewing_angle_deg(sol.world_from_camera, T) < 0.3
+
+
+def test_four_coplanar_clicks_keep_prior_focal():
+    T, pts, px = setup(seed=2, n=4, planar=True, noise_px=0.3)
+    sol = solve_anchor(px, pts, W, H, focal_px=1500.0)
+    assert not sol.focal_solved
+    assert sol.intrinsics.f_px == 1500.0
+    assert cam.viewing_angle_deg(sol.world_from_camera, T) < 0.5
+    with pytest.raises(DegenerateAnchors, match="non-coplanar"):
+        solve_anchor(px, pts, W, H, focal_px=1500.0, solve_focal=True)
+
+
+def test_default_focal_is_fifty_degree_fov():
+    T, pts, px = setup(seed=3, n=5, f_px=float(cam.focal_from_fov(W, 50.0)))
+    sol = solve_anchor(px, pts, W, H)
+    assert sol.intrinsics.f_px == pytest.approx(cam.focal_from_fov(W, 50.0))
+
+
+def test_misclick_is_flagged_and_excluded():
+    T, pts, px = setup(seed=4, n=10)
+    bad = px.copy()
+    bad[6] += [45.0, -30.0]
+    sol = solve_anchor(bad, pts, W, H, focal_px=1500.0)
+    assert sol.outlier_mask.tolist() == [k == 6 for k in range(10)]
+    assert sol.residuals_px[6] > 30.0
+    assert sol.rms_px < 2.0  # over the kept clicks
+    assert cam.viewing_angle_deg(sol.world_from_camera, T) < 0.3
+
+
+@pytest.mark.parametrize(
+    ("mutate", "match"),
+    [
+        (lambda px, pts: (px[:3], pts[:3]), "at least 4"),
+        (lambda px, pts: (np.c_[np.linspace(100, 900, 6), np.linspace(50, 500, 6)], pts[:6]), "pixels are collinear"),
+        (lambda px, pts: (px[:6], np.c_[np.linspace(0, 5, 6), np.linspace(0, 2, 6), np.ones(6)]), "points are collinear"),
+        (lambda px, pts: (px[:5], np.vstack([pts[:2], pts[:2], pts[:1]])), "distinct"),
+        (lambda px, pts: (px[:5], np.repeat(pts[:1], 5, axis=0)), "coincide"),
+        (lambda px, pts: (np.where(np.arange(12)[:, None] == 2, np.nan, px[:12]), pts[:12]), "NaN"),
+        (lambda px, pts: (px[:6], pts[:5]), "6 pixels but 5"),
+        (lambda px, pts: (px[:6, :1], pts[:6]), "shape"),
+    ],
+)
+def test_degenerate_clicks_rejected(mutate, match):
+    _, pts, px = setup(seed=5, n=12)
+    a, b = mutate(px, pts)
+    with pytest.raises(DegenerateAnchors, match=match):
+        solve_anchor(a, b, W, H, focal_px=1500.0)
+
+
+def test_points_behind_camera_rejected():
+    rng = np.random.default_rng(6)
+    T = cam.look_at([0, 0, 0], [0, 1, 0])
+    pts = rng.uniform([-3, -8, -3], [3, -4, 3], (8, 3))  # all behind the camera
+    p_cam = pts @ cam.invert_rigid(T)[:3, :3].T + cam.invert_rigid(T)[:3, 3]
+    px = 1500.0 * p_cam[:, :2] / p_cam[:, 2:3] + [(W - 1) / 2, (H - 1) / 2]
+    with pytest.raises(DegenerateAnchors, match="behind the camera"):
+        solve_anchor(px, pts, W, H, focal_px=1500.0)
+
+
+def test_shuffled_pairing_rejected():
+    _, pts, px = setup(seed=7, n=8)
+    with pytest.raises(DegenerateAnchors):
+        solve_anchor(px[::-1], pts, W, H, focal_px=1500.0)
+
+
+def test_bad_focal_prior_rejected():
+    _, pts, px = setup(seed=8, n=6)
+    with pytest.raises(DegenerateAnchors, match="focal"):
+        solve_anchor(px, pts, W, H, focal_px=-3.0)

@@ -1,0 +1,222 @@
+"""Model-assisted SfM on seeded synthetic scenes (features made without images: projections + descriptors)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from constructaide import camera as cam
+from nodes.register import sfm
+from nodes.register.features import Features
+
+W, H, F = 1024, 768, 900.0
+
+
+def scene_points(rng: np.random.Generator, n: int = 1500) -> np.ndarray:
+    """Points on a facade (y = 0), a side wall (x = 5) and the ground (z = 0): a building corner."""
+    k = n // 3
+    facade = np.c_[rng.uniform(-5, 5, k), np.zeros(k), rng.uniform(0, 6, k)]
+    side = np.c_[np.full(k, 5.0), rng.uniform(0, 6, k), rng.uniform(0, 6, k)]
+    ground = np.c_[rng.uniform(-5, 5, n - 2 * k), rng.uniform(-8, 0, n - 2 * k), np.zeros(n - 2 * k)]
+    return np.vstack([facade, side, ground])
+
+
+def arc_cameras(n: int, radius: float = 20.0, span_deg: float = 80.0) -> list[np.ndarray]:
+    out = []
+    for a in np.radians(np.linspace(-span_deg / 2, span_deg / 2, n) - 60):
+        eye = [radius * np.cos(a), radius * np.sin(a), 3.0]
+        out.append(cam.look_at(eye, [1.0, -2.0, 2.5]))
+    return out
+
+
+def make_features(
+    rng: np.random.Generator,
+    points: np.ndarray,
+    descriptors: np.ndarray,
+    world_from_camera: np.ndarray,
+    f_px: float = F,
+    noise_px: float = 0.3,
+    clutter: int = 150,
+) -> tuple[Features, np.ndarray]:
+    """Features of one synthetic view; returns them and, per feature, the scene point index (-1 clutter)."""
+    intr = cam.centered_intrinsics(W, H, f_px)
+    px, z = cam.project_points(intr, cam.invert_rigid(world_from_camera), points)
+    vis = np.nonzero((z > 0) & (px[:, 0] > 2) & (px[:, 0] < W - 3) & (px[:, 1] > 2) & (px[:, 1] < H - 3))[0]
+    kp = px[vis] + rng.normal(0, noise_px, (len(vis), 2))
+    desc = descriptors[vis] + rng.normal(0, 0.02, (len(vis), 128))
+    kp = np.vstack([kp, rng.uniform([0, 0], [W - 1, H - 1], (clutter, 2))])
+    desc = np.vstack([desc, rng.normal(size=(clutter, 128))])
+    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+    ids = np.r_[vis, -np.ones(clutter, int)]
+    order = rng.permutation(len(kp))
+    feats = Features(kp[order].astype(np.float32), desc[order].astype(np.float32), np.ones(len(kp), np.float32), W, H)
+    return feats, ids[order]
+
+
+def clicks_for(
+    rng: np.random.Generator, points: np.ndarray, world_from_camera: np.ndarray, n: int = 10, noise_px: float = 0.5
+) -> sfm.Clicks:
+    intr = cam.centered_intrinsics(W, H, F)
+    px, z = cam.project_points(intr, cam.invert_rigid(world_from_camera), points)
+    vis = np.nonzero((z > 0) & (px[:, 0] > 20) & (px[:, 0] < W - 20) & (px[:, 1] > 20) & (px[:, 1] < H - 20))[0]
+    pick = rng.choice(vis, n, replace=False)
+    return px[pick] + rng.normal(0, noise_px, (n, 2)), points[pick]
+
+
+@pytest.fixture(scope="module")
+def synthetic_run():
+    rng = np.random.default_rng(7)
+    pts = scene_points(rng)
+    desc = rng.normal(size=(len(pts), 128))
+    poses = arc_cameras(7)
+    # A view from camera 0's centre, rotated by 4 degrees and zoomed: a homography of the anchor.
+    rot = cam.rodrigues_to_matrix([0.0, np.radians(4.0), 0.0])
+    turned = poses[0].copy()
+    turned[:3, :3] = poses[0][:3, :3] @ rot
+    poses.append(turned)
+    recon = sfm.Reconstruction()
+    for k, T in enumerate(poses):
+        feats, _ = make_features(rng, pts, desc, T, f_px=F * (1.1 if k == len(poses) - 1 else 1.0))
+        sfm.add_image(recon, f"view{k}", feats)
+    # An unrelated image (other scene): must end unregistered, asking for an anchor.
+    other = scene_points(rng, 600) + [0, 0, 50]
+    feats, _ = make_features(rng, other, rng.normal(size=(600, 128)), cam.look_at([0, -20, 53], [0, 0, 53]))
+    sfm.add_image(recon, "stranger", feats)
+    anchors = {"view0": clicks_for(rng, pts, poses[0]), "view2": clicks_for(rng, pts, poses[2])}
+    requests: list[str] = []
+
+    def request(name: str, reason: str, n: int):
+        requests.append(name)
+        return None
+
+    cfg = sfm.SfmConfig(focal_px=F)
+    sfm.reconstruct(recon, anchors, cfg, request_anchor=request)
+    return recon, poses, pts, requests
+
+
+def test_every_view_registered_accurately(synthetic_run):
+    recon, poses, pts, _ = synthetic_run
+    for k, T in enumerate(poses):
+        im = recon.images[recon.index(f"view{k}")]
+        assert im.registered, (im.name, im.message)
+        angle = cam.viewing_angle_deg(im.world_from_camera, T)
+        dist = np.linalg.norm(im.world_from_camera[:3, 3] - T[:3, 3])
+        assert angle < 0.15, (im.name, angle)
+        assert dist < 0.08, (im.name, dist)  # 0.4 % of the 20 m camera distance
+
+
+def test_methods_follow_the_algorithm(synthetic_run):
+    recon, poses, _, requests = synthetic_run
+    by = {im.name: im for im in recon.images}
+    assert by["view0"].status == "anchor"
+    assert by[f"view{len(poses) - 1}"].method == "homography"
+    assert by[f"view{len(poses) - 1}"].intrinsics.f_px == pytest.approx(F * 1.1, rel=0.01)
+    assert {im.method for im in recon.images if im.registered} >= {"anchor", "homography", "pnp"}
+    # The second anchor is only used when the algorithm asks for one (no triangulated tracks yet).
+    assert by["view2"].status == "anchor"
+    assert any(n == "view2" for n, _, _ in recon.needs_anchor)
+    assert by["stranger"].status == "unregistered"
+    assert "anchor" in by["stranger"].message
+    assert "stranger" in requests
+
+
+def test_points_triangulated_in_model_frame(synthetic_run):
+    recon, _, pts, _ = synthetic_run
+    P, _, obs_p, obs_i, obs_px = recon.sparse_arrays()
+    assert len(P) > 500
+    # Every triangulated point lies near the true scene surface (distance to the nearest true point).
+    d = np.min(np.linalg.norm(P[:, None, :] - pts[None, ::3, :], axis=2), axis=1)
+    assert np.median(d) < 0.3
+    assert len(obs_p) >= 2 * len(P)
+    assert set(obs_i.tolist()) <= set(recon.registered_indices())
+
+
+def test_no_triangulation_from_narrow_rays():
+    rng = np.random.default_rng(3)
+    pts = scene_points(rng, 600)
+    desc = rng.normal(size=(len(pts), 128))
+    T0 = cam.look_at([0, -20, 3], [0, 0, 3])
+    T1 = cam.look_at([0.3, -20, 3], [0, 0, 3])  # 0.9 degree baseline at 20 m
+    recon = sfm.Reconstruction()
+    for k, T in enumerate((T0, T1)):
+        sfm.add_image(recon, f"v{k}", make_features(rng, pts, desc, T)[0])
+    cfg = sfm.SfmConfig(focal_px=F)
+    recon.pairs[(0, 1)] = sfm.verify_pair(recon.images[0].features, recon.images[1].features, cfg)
+    sfm.build_tracks(recon)
+    for k, T in enumerate((T0, T1)):
+        recon.images[k].status = "anchor"
+        recon.images[k].intrinsics = cam.centered_intrinsics(W, H, F)
+        recon.images[k].world_from_camera = T
+    assert len(recon.track_obs) > 100
+    assert sfm.triangulate_tracks(recon, cfg) == 0
+    assert sfm.triangulate_tracks(recon, sfm.SfmConfig(focal_px=F, min_triangulation_angle_deg=0.5)) > 100
+
+
+def test_epipolar_term_pulls_pose_to_the_lines():
+    """The paper's constrained PnP: with wrong 2D-3D tracks the epipolar lines of anchor clicks correct the pose."""
+    rng = np.random.default_rng(5)
+    pts = scene_points(rng, 300)
+    T = cam.look_at([15, -15, 4], [0, 0, 2])
+    intr = cam.centered_intrinsics(W, H, F)
+    cfw = cam.invert_rigid(T)
+    px, _ = cam.project_points(intr, cfw, pts)
+    clicks = pts[:12]
+    cpx, _ = cam.project_points(intr, cfw, clicks)
+    # Epipolar lines through the true click projections (random directions).
+    ang = rng.uniform(0, np.pi, 12)
+    n = np.c_[np.sin(ang), -np.cos(ang)]
+    lines = np.c_[n, -np.sum(n * cpx, axis=1)]
+    rv0 = cam.matrix_to_rodrigues(cfw[:3, :3]) + [0.01, -0.01, 0.005]
+    t0 = cfw[:3, 3] + [0.3, -0.2, 0.1]
+    # Track pixels biased by 3 px: without the term the pose follows the bias.
+    biased = px + [3.0, 0.0]
+    rv_a, t_a, _ = sfm.solve_pose_epipolar(intr, rv0, t0, pts, biased, clicks, lines, 0.0, False, 2.0)
+    rv_b, t_b, _ = sfm.solve_pose_epipolar(intr, rv0, t0, pts, biased, clicks, lines, 20.0, False, 2.0)
+
+    def line_dist(rv, t):
+        q = sfm._project(intr, rv, t, F, clicks)
+        return float(np.mean(np.abs(np.sum(q * lines[:, :2], axis=1) + lines[:, 2])))
+
+    assert line_dist(rv_b, t_b) < 0.8 * line_dist(rv_a, t_a)
+
+
+def test_incremental_add_image_links_tracks(synthetic_run):
+    recon, poses, pts, _ = synthetic_run
+    rng = np.random.default_rng(11)
+    desc_rng = np.random.default_rng(7)
+    scene_points(desc_rng)
+    desc = desc_rng.normal(size=(len(pts), 128))
+    T_new = cam.look_at([20 * np.cos(np.radians(-75)), 20 * np.sin(np.radians(-75)), 3.5], [1.0, -2.0, 2.5])
+    feats, _ = make_features(rng, pts, desc, T_new)
+    cfg = sfm.SfmConfig(focal_px=F)
+    idx = sfm.add_image(recon, "late", feats)
+    kept = sfm.match_image(recon, idx, recon.registered_indices(), cfg)
+    assert kept >= 2
+    assert sfm.link_image_tracks(recon, idx) > 100
+    assert sfm.matched_track_count(recon, idx) >= cfg.min_track_matches
+    assert sfm.register_image_pnp(recon, idx, cfg)
+    stats = sfm.bundle(recon, cfg, window=sfm.local_window(recon, idx, 4))
+    assert stats["final_rms_px"] < 1.0
+    im = recon.images[idx]
+    assert cam.viewing_angle_deg(im.world_from_camera, T_new) < 0.2
+    assert np.linalg.norm(im.world_from_camera[:3, 3] - T_new[:3, 3]) < 0.1
+
+
+def test_plane_homography_from_a_translated_view_is_not_rotation_like():
+    """A facade seen from two far-apart places fits one homography; the click transfer must refuse it."""
+    intr = cam.centered_intrinsics(W, H, F)
+    Ta, Tb = cam.look_at([0, -20, 3], [0, 0, 3]), cam.look_at([8, -18, 3], [0, 0, 3])
+    Tc = Ta.copy()
+    Tc[:3, :3] = Ta[:3, :3] @ cam.rodrigues_to_matrix([0.02, 0.05, 0.0])
+    rng = np.random.default_rng(9)
+    plane = np.c_[rng.uniform(-6, 6, 50), np.zeros(50), rng.uniform(0, 6, 50)]
+    pa = cam.project_points(intr, cam.invert_rigid(Ta), plane)[0]
+    import cv2
+
+    for T, expect_ok in ((Tb, False), (Tc, True)):
+        pb = cam.project_points(cam.centered_intrinsics(W, H, F * 1.2), cam.invert_rigid(T), plane)[0]
+        Hm, _ = cv2.findHomography(pa, pb, 0)
+        dev, f_b = sfm.rotation_homography_deviation(Hm, intr, W, H)
+        assert (dev < 0.03) == expect_ok, dev
+        if expect_ok:
+            assert f_b == pytest.approx(F * 1.2, rel=1e-3)
