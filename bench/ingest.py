@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import glob
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -84,6 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     if not cases:
         print(f"no IFC data under {DATA}", file=sys.stderr)
         return 1
+    load_before = os.getloadavg()[0]
     base_rss = median([run_child("import", [])["maxrss_mib"] for _ in range(runs)])
     rows = []
     for name, paths in cases:
@@ -126,8 +128,9 @@ def main(argv: list[str] | None = None) -> int:
         f"IFC -> SiteModel (`load_site_model`: geometry iterator with 2 threads, metadata, IFC schedule) and "
         f"SiteModel -> BimModel GLB (`to_bim_model`), each in a fresh subprocess, median of {runs} run(s). "
         f"Baseline: ifcopenshell's bare geometry iterator (open + iterate, no metadata). Peak RSS includes "
-        f"the interpreter with ifcopenshell/trimesh imported: {base_rss:.0f} MiB for imports alone.\n\n"
-        + table(headers, rows)
+        f"the interpreter with ifcopenshell/trimesh imported: {base_rss:.0f} MiB for imports alone. "
+        f"Machine load average (1 min) at start / end: {load_before:.1f} / {os.getloadavg()[0]:.1f} "
+        f"(the machine is shared; seconds scale with it).\n\n" + table(headers, rows)
     )
     print(body)
     if not args.no_write:

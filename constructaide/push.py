@@ -14,13 +14,14 @@ from schemas import keys
 
 
 def main(argv: list[str]) -> int:
-    from nodes.ingest.photos import photo_from_file
+    from nodes.ingest.photos import PhotoError, photo_from_file
 
     p = argparse.ArgumentParser(prog="constructaide push", description="Publish photo files (JPEG/PNG) on the bus.")
     p.add_argument("files", nargs="+", type=Path)
     p.add_argument("--camera", default=None, help="fixed camera id (omit for phone photos)")
     p.add_argument("--site", default="demo")
     p.add_argument("--tz", default="UTC", help="site IANA time zone for photos whose EXIF has no offset")
+    p.add_argument("--use-mtime", action="store_true", help="stamp photos without EXIF time with the file time")
     p.add_argument("--wait-for", default="*", help="node that must be live before publishing (default: any)")
     p.add_argument("--timeout", type=float, default=30.0)
     add_bus_args(p)
@@ -41,7 +42,10 @@ def main(argv: list[str]) -> int:
             ) from None
         sent = 0
         for f in tqdm(args.files, desc="push", unit="photo", file=sys.stderr):
-            photo = photo_from_file(f, camera_id=args.camera, site=args.site, tz=args.tz)
+            try:
+                photo = photo_from_file(f, camera_id=args.camera, site=args.site, tz=args.tz, use_mtime=args.use_mtime)
+            except PhotoError as e:
+                raise UserError(f"{f}: {e} ({sent} photo(s) pushed before it)") from None
             bus.publish(keys.key(keys.PHOTO, site=args.site, camera=args.camera), photo)
             sent += 1
     print(f"pushed {sent} photo(s) to site {args.site}")

@@ -14,6 +14,7 @@ ROOT = "constructaide"
 PHONE = "phone"
 
 PHOTO = "constructaide/{site}/photo/{camera}"
+UPLOAD = "constructaide/{site}/upload/{camera}"  # raw JPEG/PNG bytes from camera software (ingest turns them into Photo)
 BIM_MODEL = "constructaide/{site}/bim/model"
 BIM_UPDATE = "constructaide/{site}/bim/update"
 ANCHORS = "constructaide/{site}/anchors/{photo}"
@@ -29,6 +30,7 @@ LIVELINESS = "constructaide/{site}/@live/{node}/{instance}"
 
 ALL_TEMPLATES: dict[str, str] = {
     "photo": PHOTO,
+    "upload": UPLOAD,
     "bim_model": BIM_MODEL,
     "bim_update": BIM_UPDATE,
     "anchors": ANCHORS,

@@ -178,3 +178,19 @@ def test_node_phone_photos_use_viewpoint_group(scene) -> None:
         bus.publish(keys.key(keys.VIEWPOINTS, site=SITE, photo=photos[0].photo_id), bad)
         err = errors.wait()[0][1]
         assert "expected 9" in err.reason
+
+
+def test_node_keeps_at_most_max_stored_photos(scene) -> None:
+    images, _ = _frames(scene, 3)
+    photos = [_photo(img, "cam-b", (i + 1) * DAY_NS) for i, img in enumerate(images)]
+    with LocalBus() as bus, start_node(SPEC, Config(site=SITE, max_stored_photos=2), bus) as node:
+        got = bus.collect(keys.pattern(keys.OCCLUSION, site=SITE))
+        for p in photos:
+            bus.publish(keys.key(keys.PHOTO, site=SITE, camera="cam-b"), p)
+        got.wait(where=_is("dynamic", photos[2].photo_id))
+        assert node.wait_idle(30.0)
+        assert list(node.obj.photos) == [photos[1].photo_id, photos[2].photo_id]
+        assert photos[0].photo_id not in node.obj.store.frames
+        # the newest frame's stack holds only the frame still kept
+        last = [m for _, m in got.items if m.kind == "dynamic" and m.photo_id == photos[2].photo_id][-1]
+        assert last.status == "ok" and last.num_views == 1

@@ -15,6 +15,7 @@ from nodes.occlude.static import (
     classify_points,
     estimate_point_normals,
     estimate_terrain_height,
+    propagate_labels,
     static_mask,
 )
 
@@ -130,3 +131,15 @@ def test_terrain_height_from_cloud(scene) -> None:
     z = estimate_terrain_height(scene.points_m, normals, flat)
     assert z is not None and abs(z - 0.0) < 0.1
     assert estimate_terrain_height(scene.points_m[:5], normals[:5], flat[:5]) is None
+
+
+def test_propagation_spreads_only_to_similar_adjacent_superpixels() -> None:
+    # four superpixels in a row: [occluded][unknown, same colour][unknown, other colour][clear]
+    labels = np.repeat(np.repeat(np.arange(4, dtype=np.int32)[None, :], 10, axis=0), 10, axis=1)
+    lab = np.zeros((10, 40, 3), np.uint8)
+    lab[:, :20] = (120, 130, 140)
+    lab[:, 20:] = (60, 128, 128)
+    state = np.array([1, 0, 0, -1], np.int8)
+    out = propagate_labels(labels, lab, state, rounds=3, max_dist=6.0)
+    assert out.tolist() == [1, 1, -1, -1]
+    assert propagate_labels(labels, lab, state, rounds=0, max_dist=6.0).tolist() == [1, 0, 0, -1]

@@ -245,3 +245,27 @@ def test_mesh_depth_lookup_matches_analytic_depth_and_schedule(scene) -> None:
     box_px = cam.project_points(intr, cam.invert_rigid(T), np.array([[0.0, 12.0, 1.5]]))[0]
     assert lookup(T, intr, box_px, 200)[0] < lookup(T, intr, box_px, 0)[0] - 2.0
     lookup.close()
+
+
+def test_fast_path_6dof_catches_a_moved_centre(scene) -> None:
+    intr, T = mast_camera(W, H)
+    px, pts = anchor_clicks(intr, T, noise_px=0.0)
+    Tm = T.copy()
+    Tm[:3, 3] += np.array([0.4, 0.0, -0.3])  # the mast leaned: 0.5 m
+    results = {}
+    for model in ("rotation", "auto"):
+        reg = StreamingRegistrar(StreamConfig(fast_model=model), depth_lookup=scene.depth_lookup, site="t")
+        reg.register_anchor(photo(scene, "a0", intr, T), px, pts)
+        results[model] = reg.register(photo(scene, "m", intr, Tm))
+        if model == "auto":  # tracking continues from the new centre
+            ij, Tj = jitter(Tm, intr, np.random.default_rng(2), 0.3, 0.005)
+            nxt = reg.register(photo(scene, "n", ij, Tj))
+            assert nxt.registration.method == "fastpath", nxt.registration.message
+            assert np.linalg.norm(pose_of(nxt)[:3, 3] - Tm[:3, 3]) < 0.15
+    rot, auto = results["rotation"].registration, results["auto"].registration
+    assert rot.method == "fastpath" and "moved" in rot.message  # flagged, but only rotation could be fitted
+    assert auto.method == "fastpath-6dof" and "moved" in auto.message
+    T_auto = pose_of(results["auto"])
+    assert np.linalg.norm(T_auto[:3, 3] - Tm[:3, 3]) < 0.15
+    assert cam.rotation_angle_deg(T_auto[:3, :3], Tm[:3, :3]) < 0.2
+    assert auto.reprojection_rms_px < rot.reprojection_rms_px

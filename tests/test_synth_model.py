@@ -124,3 +124,12 @@ def test_sun_position_agrees_with_pvlib() -> None:
         ref = pvlib.solarposition.get_solarposition(pd.DatetimeIndex([when]), 51.8583, 5.8647)
         assert abs(az - float(ref["azimuth"].iloc[0])) < 1.0
         assert abs(el - float(ref["elevation"].iloc[0])) < 1.0
+
+
+def test_ensure_site_builds_once_and_reuses(tmp_path: Path) -> None:
+    first = ensure_site("tiny", 1, tmp_path)
+    stamp = (first / "site.toml").stat().st_mtime_ns
+    again = ensure_site("tiny", 1, tmp_path)
+    assert again == first and (again / "site.toml").stat().st_mtime_ns == stamp
+    assert "tiny" in first.name and "seed1" in first.name
+    assert [p.name for p in tmp_path.iterdir() if not p.name.endswith(".lock")] == [first.name]  # no temp dirs left

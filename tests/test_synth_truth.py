@@ -256,7 +256,8 @@ def test_exif(site: Path) -> None:
         offset = dt.timedelta(hours=int(hh), minutes=int(mm)) * sign
         utc = (local - offset).replace(tzinfo=dt.UTC)
         assert int(utc.timestamp()) * 10**9 == cams[p]["capture_time_utc_ns"]
-        f35 = cams[p]["K"][0][0] * 36.0 / cams[p]["width"]
+        diag_px = np.hypot(cams[p]["width"], cams[p]["height"])
+        f35 = cams[p]["K"][0][0] * np.hypot(36.0, 24.0) / diag_px  # diagonal crop factor
         assert abs(sub[0xA405] - f35) <= 0.5
         assert float(sub[0x920A]) > 0
         lat = sum(float(x) / 60**i for i, x in enumerate(gps[0x0002]))

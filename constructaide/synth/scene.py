@@ -182,7 +182,7 @@ def dynamic_solids(layout: SiteLayout, top_m: float) -> list[Solid]:
     """Crane (in its own frame, mast at the origin), two trucks and two cabins (frames at footprint centre)."""
     out: list[Solid] = []
     crane = Solid("crane", "crane", "dynamic", radius_m=1.5)
-    hook_z = top_m + 12.0
+    hook_z = top_m + 5.0
     crane.add_box((-0.8, -0.8, 0.0), (0.8, 0.8, hook_z))
     crane.add_box((-10.0, -0.6, hook_z), (30.0, 0.6, hook_z + 1.4))
     crane.add_box((-9.5, -1.2, hook_z - 2.0), (-6.5, 1.2, hook_z))  # counterweight

@@ -29,7 +29,7 @@ from .schedule import hours_to_datetime, make_schedule
 from .sun import sun_azimuth_elevation_deg, sun_direction_world
 from .textures import make_textures, site_ground
 
-GENERATOR_VERSION = 4
+GENERATOR_VERSION = 5
 """Bump whenever outputs change; part of the ``ensure_site`` cache key."""
 
 _MATERIAL_RGBA = {
@@ -130,7 +130,8 @@ def build_site(out_dir: Path, seed: int = 0, size: str = "default", progress: bo
             )
             intr = plan.intrinsics
             f_mm = intr.f_px * plan.sensor_width_mm / intr.width_px
-            f35 = intr.f_px * 36.0 / intr.width_px
+            # 35 mm equivalent by the diagonal crop factor (36 x 24 mm frame), as cameras and exiftool do
+            f35 = intr.f_px * math.hypot(36.0, 24.0) / math.hypot(intr.width_px, intr.height_px)
             gps_pos = plan.world_from_camera[:3, 3]
             if plan.camera_id is None:  # phone GPS is a few metres off
                 gps_pos = gps_pos + np.array([*prng.normal(0.0, 3.0, 2), 0.0])

@@ -29,7 +29,7 @@ from schemas import keys
 from schemas.messages import BimModel, BimUpdate, Photo
 from schemas.messages import NodeError as NodeErrorMsg
 
-UPLOAD = getattr(keys, "UPLOAD", "constructaide/{site}/upload/{camera}")
+UPLOAD = keys.UPLOAD
 """Raw image bytes put by camera software; ``camera`` = camera id or ``phone``."""
 
 

@@ -180,8 +180,14 @@ class ModelRenderer:
             # undistorted normalised coordinates of every target pixel, and a pinhole canvas covering them
             uu, vv = np.meshgrid(np.arange(width_px, dtype=np.float64), np.arange(height_px, dtype=np.float64))
             xy = pixels_to_normalized(target, np.stack([uu.ravel(), vv.ravel()], axis=1))
-            x_min, y_min = xy.min(axis=0)
-            x_max, y_max = xy.max(axis=0)
+            # strong distortion can fold the undistortion outwards: keep the canvas within three times the
+            # pinhole field of view (pixels beyond it show no model)
+            half = np.array([width_px, height_px], np.float64) / target.f_px
+            centre = np.array([target.cx_px, target.cy_px]) / target.f_px
+            lo, hi = -centre - half, -centre + 2.0 * half
+            xy = np.where(np.isfinite(xy), xy, 1e9)
+            x_min, y_min = np.maximum(xy.min(axis=0), lo)
+            x_max, y_max = np.minimum(xy.max(axis=0), hi)
             f = target.f_px
             pad = 2.0
             cx = -x_min * f + pad

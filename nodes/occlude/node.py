@@ -51,6 +51,7 @@ class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=Tr
     working_width_px: int = 480  # dynamic masks are computed at this width, then upsampled
     static_working_width_px: int = 640  # static masks (model render, SLIC) at this width
     max_views: int = 6  # stack size: neighbours nearest in capture time
+    max_stored_photos: int = 2000  # photos kept for stacks and republishing; the oldest arrivals are dropped
     max_time_gap_days: float = 0.0  # 0: no limit on the time between a photo and its neighbours
     dynamic_threshold: float = 0.05  # squared HSV difference, any channel (paper)
     depth_margin_m: float = 0.3  # static: point closer than the model by more than this occludes
@@ -167,7 +168,10 @@ class OccludeNode:
     def on_photo(self, msg: Photo, key: str) -> None:
         img = decode_image(msg.data, f"photo {msg.photo_id}")
         h, w = img.shape[:2]
+        self.photos.pop(msg.photo_id, None)  # re-insert: dict order is arrival order
         self.photos[msg.photo_id] = _PhotoInfo(msg.camera_id, msg.capture_time_ns, msg.data, w, h)
+        while len(self.photos) > max(1, self.config.max_stored_photos):
+            self._forget(next(iter(self.photos)))
         self.store.add_photo(msg.photo_id, msg.camera_id, msg.capture_time_ns, img)
         self._dynamic(msg.photo_id, img)
         if msg.camera_id is not None:
@@ -259,6 +263,17 @@ class OccludeNode:
         for pid, p in self.photos.items():
             if pid == msg.photo_id or (camera_id is not None and p.camera_id == camera_id):
                 self._user(pid)
+
+    def _forget(self, photo_id: str) -> None:
+        """Drop everything kept about a photo (its masks stay published)."""
+        self.photos.pop(photo_id, None)
+        self.store.forget(photo_id)
+        self.registrations.pop(photo_id, None)
+        for kind in ("dynamic", "static", "user", "combined"):
+            self.masks.pop((photo_id, kind), None)
+        for d in (self.dynamic_stack_ids, self.static_obs_count, self.model_region, self.dynamic_used_region):
+            d.pop(photo_id, None)
+        self._dirty.discard(photo_id)
 
     def close(self) -> None:
         if self.renderer is not None:

@@ -234,7 +234,8 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
         """Pixels (M, 2), camera points (M, 3), and pieces for the Jacobian."""
         p = _cam_from_world(T[cams], X)
         z = np.where(p[:, 2] > 1e-9, p[:, 2], 1e-9)
-        xn, yn = p[:, 0] / z, p[:, 1] / z
+        # Bounded normalised coordinates: trial steps may throw points behind or far off a camera.
+        xn, yn = np.clip(p[:, 0] / z, -1e3, 1e3), np.clip(p[:, 1] / z, -1e3, 1e3)
         r2 = xn * xn + yn * yn
         D = 1 + k1[cams] * r2 + k2[cams] * r2 * r2
         u = f[cams] * xn * D + cx[cams]

@@ -65,7 +65,9 @@ class StreamConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     fast_max_rms_px: float = 2.0
     fast_max_rotation_deg: float = 5.0
     fast_solve_focal: bool = True
-    fast_model: Literal["rotation", "auto"] = "rotation"
+    fast_model: Literal["rotation", "auto"] = "auto"
+    """``auto``: when the rotation fit leaves more than half of ``fast_max_rms_px``, corners with BIM-depth points
+    refine the full 6-DOF pose + focal (a mast that swayed or a camera nudged along); ``rotation``: never."""
     replenish_fraction: float = 0.7
     # full path
     sift_max_features: int = 4000
@@ -843,22 +845,21 @@ class StreamingRegistrar:
             num_initial=st.num_initial,
             capture_time_ns=photo.capture_time_ns,
         )
-        if len(inl2) < c.replenish_fraction * st.num_initial:
-            self._replenish(new_state)
-        self.tracks[photo.camera_id] = new_state  # type: ignore[index]
+        if method == "fastpath-6dof":
+            self._init_track(photo, intr, world_from_camera)  # new centre: rays must start from it
+        else:
+            if len(inl2) < c.replenish_fraction * st.num_initial:
+                self._replenish(new_state)
+            self.tracks[photo.camera_id] = new_state  # type: ignore[index]
         inlier_ratio = len(h_inl) / max(n_ok, 1)
         changed = self._record(photo, intr, world_from_camera, method, fast_ratio=(inlier_ratio, len(inl2)))
-        reg = self._registration(
-            photo,
-            "auto",
-            method,
-            intr,
-            world_from_camera,
-            len(inl2),
-            rms,
-            f"tracked {n_ok}/{len(p0)} corners from {st.photo_id}",
-            t0,
-        )
+        note = f"tracked {n_ok}/{len(p0)} corners from {st.photo_id}"
+        if method == "fastpath-6dof":
+            moved = float(np.linalg.norm(world_from_camera[:3, 3] - st.center_in_world))
+            note += f"; camera centre moved {moved:.2f} m"
+        elif rms > 0.5 * c.fast_max_rms_px:
+            note += "; residual suggests the camera centre moved (no BIM depth to check)"
+        reg = self._registration(photo, "auto", method, intr, world_from_camera, len(inl2), rms, note, t0)
         return Outcome(reg, viewpoint_changed=changed), ""
 
     def _replenish(self, st: TrackState) -> None:
