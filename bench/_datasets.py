@@ -34,7 +34,8 @@ FOUNTAIN_DIR = DATA_ROOT / "strecha" / "fountain-P11"
 
 @dataclass
 class GtCamera:
-    """Ground-truth camera: K (3, 3) (may be non-square, off-centre), ``camera_from_world`` (4, 4)."""
+    """Ground-truth camera: K (3, 3) (may be non-square, off-centre), ``camera_from_world`` (4, 4), radial k1, k2
+    (the project's model, synthetic site only). ``name``: image path relative to the images folder."""
 
     name: str
     path: Path
@@ -42,6 +43,8 @@ class GtCamera:
     camera_from_world: np.ndarray
     width_px: int
     height_px: int
+    k1: float = 0.0
+    k2: float = 0.0
 
     @property
     def P(self) -> np.ndarray:
@@ -53,9 +56,11 @@ class GtCamera:
 
     def project(self, points_in_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pixels (N, 2) and depths (N,) of world points (N, 3)."""
-        X = np.c_[points_in_world, np.ones(len(points_in_world))]
-        x = X @ self.P.T
-        return x[:, :2] / x[:, 2:3], x[:, 2]
+        p = points_in_world @ self.camera_from_world[:3, :3].T + self.camera_from_world[:3, 3]
+        xy = p[:, :2] / p[:, 2:3]
+        xy = cam.distort_normalized(xy, self.k1, self.k2)
+        uv = xy @ self.K[:2, :2].T + self.K[:2, 2]
+        return uv, p[:, 2]
 
 
 def load_temple(root: Path = TEMPLE_DIR) -> list[GtCamera]:
@@ -162,3 +167,47 @@ def checkpoints(cams: list[GtCamera], max_points: int = 600, seed: int = 0, max_
     if len(X) > max_points:
         X = X[rng.choice(len(X), max_points, replace=False)]
     return X
+
+
+def load_synth(site_dir: Path) -> list[GtCamera]:
+    """Synthetic site cameras from ``truth/cameras.json`` (evaluation only), names relative to ``photos/``."""
+    import json
+
+    recs = json.loads((Path(site_dir) / "truth" / "cameras.json").read_text())
+    out = []
+    for rel in sorted(recs):
+        r = recs[rel]
+        T = np.asarray(r["world_from_camera"], dtype=np.float64)
+        out.append(
+            GtCamera(
+                rel,
+                Path(site_dir) / "photos" / rel,
+                np.asarray(r["K"], dtype=np.float64),
+                cam.invert_rigid(T),
+                int(r["width"]),
+                int(r["height"]),
+                float(r["k1"]),
+                float(r["k2"]),
+            )
+        )
+    return out
+
+
+def synth_checkpoints(site_dir: Path, cams: list[GtCamera], per_photo: int = 60, seed: int = 0) -> np.ndarray:
+    """Checkpoints (N, 3) on visible surfaces: ground-truth depth maps back-projected at random pixels."""
+    from constructaide.synth.truth import load_depth
+
+    rng = np.random.default_rng(seed)
+    pts = []
+    for c in cams:
+        depth = load_depth(site_dir, c.name)
+        vv, uu = np.nonzero(depth > 0)
+        pick = rng.choice(len(uu), min(per_photo, len(uu)), replace=False)
+        px = np.c_[uu[pick], vv[pick]].astype(np.float64)
+        xy_d = (px - c.K[:2, 2]) / [c.K[0, 0], c.K[1, 1]]
+        xy = cam.undistort_normalized(xy_d, c.k1, c.k2)
+        z = depth[vv[pick], uu[pick]].astype(np.float64)
+        p_cam = np.c_[xy * z[:, None], z]
+        T = c.world_from_camera
+        pts.append(p_cam @ T[:3, :3].T + T[:3, 3])
+    return np.vstack(pts)

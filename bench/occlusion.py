@@ -317,52 +317,23 @@ def overall(d: dict[str, Pooled]) -> Pooled:
     return o
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--size", default="small")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--quick", action="store_true", help="one timing run instead of three")
-    ap.add_argument(
-        "--registration",
-        choices=("system", "oracle", "both"),
-        default="both",
-        help="system: register batch pipeline; oracle: truth cameras (labelled); both: one row each",
-    )
-    ap.add_argument("--cache", type=Path, default=ROOT / ".cache" / "synth")
-    ap.add_argument("--no-write", action="store_true", help="do not touch BENCHMARKS.md")
-    args = ap.parse_args(argv)
+@dataclass
+class DynamicEval:
+    rows: list[list[object]]
+    persistent_frac: float
+    n_not_enough: int
+    masks: dict[str, np.ndarray]
+    images: dict[str, np.ndarray]
 
-    from constructaide.synth import ensure_site
 
-    site = ensure_site(args.size, args.seed, args.cache)
-    photos = load_photos(site)
-    t0 = time.perf_counter()
-    groups = sift_homographies(photos)
-    homography_secs = time.perf_counter() - t0
-    print(f"{len(photos)} photos, {len(groups)} same-viewpoint pairs ({homography_secs:.1f} s)", file=sys.stderr)
-
-    registrations: dict[str, tuple[dict[str, Registered], np.ndarray, float]] = {}
-    if args.registration in ("system", "both"):
-        t0 = time.perf_counter()
-        regs, cloud, _ = system_registration(site)
-        registrations["system registration (register batch)"] = (regs, cloud, time.perf_counter() - t0)
-    if args.registration in ("oracle", "both"):
-        t0 = time.perf_counter()
-        regs, cloud, _ = oracle_registration(site, photos)
-        registrations["ORACLE registration (truth cameras, truth-depth points)"] = (
-            regs,
-            cloud,
-            time.perf_counter() - t0,
-        )
-    for label, (regs, cloud, secs) in registrations.items():
-        print(f"{label}: {len(regs)}/{len(photos)} registered, {len(cloud)} points ({secs:.0f} s)", file=sys.stderr)
-    # the dynamic path uses the first (system when run) registration for the projected-model region
-    dyn_label, (dyn_regs, _, _) = next(iter(registrations.items()))
-
-    site_cfg = tomllib.loads((site / "site.toml").read_text()).get("site", {})
-    terrain = site_cfg.get("terrain_height_m")
-    renderer = ModelRenderer(glb_to_meshes((site / "model" / "building.glb").read_bytes()))
-
+def evaluate_dynamic(
+    site: Path,
+    photos: list[PhotoRec],
+    groups: dict[tuple[str, str], np.ndarray],
+    dyn_regs: dict[str, Registered],
+    renderer: ModelRenderer | None,
+) -> DynamicEval:
+    """Dynamic IoU per group (system and MOG2 baseline, all truth and transient truth)."""
     store = TimelapseStore(working_width_px=480, max_views=6)
     images = {}
     for p in photos:
@@ -388,7 +359,7 @@ def main(argv: list[str] | None = None) -> int:
         dh, dw = frame.image_small.shape[:2]
         reg = dyn_regs.get(p.rel)
         region = None
-        if reg is not None:
+        if reg is not None and renderer is not None:
             w, h, _ = working_size(W, H, 640)
             maps = renderer.render(reg.intrinsics, reg.world_from_camera, w, h)
             region = cv2.resize(maps.has_model.astype(np.uint8), (dw, dh), interpolation=cv2.INTER_NEAREST)
@@ -419,11 +390,6 @@ def main(argv: list[str] | None = None) -> int:
         sys_tr.setdefault(p.group, Pooled()).add(res.mask * keep, truth * keep)
         base_tr.setdefault(p.group, Pooled()).add(mog * keep, truth * keep)
 
-    static_res = {
-        label: evaluate_static(site, photos, images, regs, cloud, renderer, terrain, dyn_masks)
-        for label, (regs, cloud, _) in registrations.items()
-    }
-
     rows_d = []
     for g in sorted(sys_dyn) + ["overall"]:
 
@@ -442,6 +408,73 @@ def main(argv: list[str] | None = None) -> int:
                 round(bt.iou, 3),
             ]
         )
+    return DynamicEval(rows_d, persistent_px / max(truth_px, 1), n_not_enough, dyn_masks, images)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--size", default="small")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--quick", action="store_true", help="one timing run instead of three")
+    ap.add_argument(
+        "--registration",
+        choices=("system", "oracle", "both", "none"),
+        default="both",
+        help="system: register batch pipeline; oracle: truth cameras (labelled); both: one table each; "
+        "none: dynamic masks only (no model region, no static masks)",
+    )
+    ap.add_argument("--site-dir", type=Path, default=None, help="an existing site folder instead of ensure_site")
+    ap.add_argument(
+        "--also-dynamic",
+        type=Path,
+        action="append",
+        default=[],
+        help="another site folder (e.g. the default size, longer time-lapses) scored for dynamic masks only",
+    )
+    ap.add_argument("--cache", type=Path, default=ROOT / ".cache" / "synth")
+    ap.add_argument("--no-write", action="store_true", help="do not touch BENCHMARKS.md")
+    args = ap.parse_args(argv)
+
+    from constructaide.synth import ensure_site
+
+    site = args.site_dir if args.site_dir is not None else ensure_site(args.size, args.seed, args.cache)
+    photos = load_photos(site)
+    t0 = time.perf_counter()
+    groups = sift_homographies(photos)
+    homography_secs = time.perf_counter() - t0
+    print(f"{len(photos)} photos, {len(groups)} same-viewpoint pairs ({homography_secs:.1f} s)", file=sys.stderr)
+
+    registrations: dict[str, tuple[dict[str, Registered], np.ndarray, float]] = {}
+    if args.registration in ("system", "both"):
+        t0 = time.perf_counter()
+        regs, cloud, _ = system_registration(site)
+        registrations["system registration (register batch)"] = (regs, cloud, time.perf_counter() - t0)
+    if args.registration in ("oracle", "both"):
+        t0 = time.perf_counter()
+        regs, cloud, _ = oracle_registration(site, photos)
+        registrations["ORACLE registration (truth cameras, truth-depth points)"] = (
+            regs,
+            cloud,
+            time.perf_counter() - t0,
+        )
+    for label, (regs, cloud, secs) in registrations.items():
+        print(f"{label}: {len(regs)}/{len(photos)} registered, {len(cloud)} points ({secs:.0f} s)", file=sys.stderr)
+    # the dynamic path uses the first (system when run) registration for the projected-model region
+    dyn_label, (dyn_regs, dyn_cloud, _) = next(
+        iter(registrations.items()), ("no registration", ({}, np.zeros((0, 3)), 0.0))
+    )
+
+    site_cfg = tomllib.loads((site / "site.toml").read_text()).get("site", {})
+    terrain = site_cfg.get("terrain_height_m")
+    renderer = ModelRenderer(glb_to_meshes((site / "model" / "building.glb").read_bytes()))
+
+    dyn = evaluate_dynamic(site, photos, groups, dyn_regs, renderer)
+    images, dyn_masks, rows_d, n_not_enough = dyn.images, dyn.masks, dyn.rows, dyn.n_not_enough
+    static_res = {
+        label: evaluate_static(site, photos, images, regs, cloud, renderer, terrain, dyn_masks)
+        for label, (regs, cloud, _) in registrations.items()
+    }
+
     static_tables = []
     for label, res in static_res.items():
         rows_s = []
@@ -469,7 +502,7 @@ def main(argv: list[str] | None = None) -> int:
                     "photos",
                     "IoU (node output)",
                     "mean IoU",
-                    "IoU before minus dynamic",
+                    "IoU without subtracting dynamic",
                     "paper-only (baseline)",
                 ],
                 rows_s,
@@ -478,16 +511,14 @@ def main(argv: list[str] | None = None) -> int:
         ]
 
     runs = 1 if args.quick else 3
-    secs_hd = time_full_hd(
-        photos, groups, dyn_regs, renderer, terrain, per_photo_normals(dyn_regs, registrations[dyn_label][1]), runs
-    )
+    secs_hd = time_full_hd(photos, groups, dyn_regs, renderer, terrain, per_photo_normals(dyn_regs, dyn_cloud), runs)
     renderer.close()
     med = median(secs_hd)
 
     n_fixed = sum(p.camera_id is not None for p in photos)
     n_cams = len({p.camera_id for p in photos if p.camera_id is not None})
     body = [
-        f"Site `{args.size}` seed {args.seed}: {len(photos)} photos "
+        f"Site `{site.name}`: {len(photos)} photos "
         f"({n_fixed} fixed-camera over {n_cams} cameras, {len(photos) - n_fixed} phone), "
         f"{len(groups)} same-viewpoint pairs from SIFT + RANSAC with the "
         f"register node's rule (one homography explains >= 80 % of >= 30 matches) ({homography_secs:.0f} s). "
@@ -503,7 +534,7 @@ def main(argv: list[str] | None = None) -> int:
             rows_d,
         ),
         "",
-        f"Transient truth (analysis only): {persistent_px / max(truth_px, 1):.0%} of the true dynamic-occluder "
+        f"Transient truth (analysis only): {dyn.persistent_frac:.0%} of the true dynamic-occluder "
         "pixels sit at the same place in at least half of the photo's aligned neighbours (site cabins stay a "
         "week, the crane mast stands still while its jib turns); no time-lapse method can separate those from "
         "the background. The 'transient' columns score outside those pixels.",
@@ -517,6 +548,22 @@ def main(argv: list[str] | None = None) -> int:
         f"**{med:.3f} s** "
         "(machine shared with other jobs while measured).",
     ]
+    for extra in args.also_dynamic:
+        ex_photos = load_photos(extra)
+        ex_groups = sift_homographies(ex_photos)
+        ex = evaluate_dynamic(extra, ex_photos, ex_groups, {}, None)
+        body += [
+            "",
+            f"### dynamic on `{extra.name}` (no registration: temporal guard everywhere, no static masks)",
+            "",
+            f"{len(ex_photos)} photos, {len(ex_groups)} same-viewpoint pairs, {ex.n_not_enough} without a stack; "
+            f"{ex.persistent_frac:.0%} of true dynamic-occluder pixels are persistent in their stack.",
+            "",
+            table(
+                ["group", "photos", "IoU", "mean IoU", "MOG2 IoU (baseline)", "IoU transient truth", "MOG2 transient"],
+                ex.rows,
+            ),
+        ]
     text = "\n".join(body)
     print(text)
     if not args.no_write:

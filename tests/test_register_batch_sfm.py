@@ -220,3 +220,15 @@ def test_plane_homography_from_a_translated_view_is_not_rotation_like():
         assert (dev < 0.03) == expect_ok, dev
         if expect_ok:
             assert f_b == pytest.approx(F * 1.2, rel=1e-3)
+
+
+def test_retrieval_shortlist_keeps_neighbours(synthetic_run):
+    recon, poses, _, _ = synthetic_run
+    feats = [im.features for im in recon.images[: len(poses) + 1]]  # the 8 views and the stranger
+    cfg = sfm.SfmConfig(max_exhaustive_images=4, shortlist_size=2)
+    pairs = sfm.select_pairs(feats, cfg)
+    n = len(feats)
+    assert len(pairs) < n * (n - 1) // 2
+    for k in range(len(poses) - 2):  # arc neighbours (the last view is the rotated copy of view 0)
+        assert (k, k + 1) in pairs
+    assert sfm.select_pairs(feats, sfm.SfmConfig()) == [(i, j) for i in range(n) for j in range(i + 1, n)]

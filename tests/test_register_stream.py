@@ -269,3 +269,29 @@ def test_fast_path_6dof_catches_a_moved_centre(scene) -> None:
     assert np.linalg.norm(T_auto[:3, 3] - Tm[:3, 3]) < 0.15
     assert cam.rotation_angle_deg(T_auto[:3, :3], Tm[:3, :3]) < 0.2
     assert auto.reprojection_rms_px < rot.reprojection_rms_px
+
+
+def test_bag_of_words_shortlist_ranks_the_matching_image_first() -> None:
+    from nodes.register.features import Features
+    from nodes.register.streaming import KeyImage
+
+    rng = np.random.default_rng(0)
+    centres = rng.random((8, 40, 128)).astype(np.float32)  # 8 "places", 40 visual words each
+
+    def feats(place: int, n: int = 300) -> Features:
+        d = centres[place][rng.integers(0, 40, n)] + 0.02 * rng.standard_normal((n, 128)).astype(np.float32)
+        d = np.abs(d)
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        return Features(rng.random((n, 2)).astype(np.float32) * 100, d, np.ones(n, np.float32), 100, 100)
+
+    reg = StreamingRegistrar(StreamConfig(max_candidates=3, vocabulary_size=64), site="t")
+    intr, T = mast_camera(100, 100)
+    for place in range(8):
+        f = feats(place)
+        reg.key_index[f"k{place}"] = len(reg.keys)
+        reg.keys.append(KeyImage(f"k{place}", None, intr, T, f, np.full(len(f), -1), False))
+    chosen = reg._candidates(None, feats(5))
+    assert len(chosen) == 3 and chosen[0] == 5
+    # A fixed camera's own key images come first.
+    reg.keys[2].camera_id = "cam-x"
+    assert reg._candidates("cam-x", feats(5))[:2] == [2, 5]

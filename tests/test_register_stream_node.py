@@ -88,6 +88,14 @@ def test_node_queues_until_anchor_then_registers_everything() -> None:
         groups = {m.photo_id: m for _, m in views.items}
         last = groups[photos[-1].photo_id]
         assert {n.photo_id for n in last.neighbours} >= {p.photo_id for p in photos[:-1]}
+        # Late clicks on an automatically registered frame correct it (its pixels were kept).
+        i2, T2 = frames[2]
+        px2, pts2 = anchor_clicks(i2, T2, noise_px=0.2, seed=3)
+        bus.publish(
+            keys.key(keys.ANCHORS, site=SITE, photo=photos[2].photo_id), clicks_msg(photos[2].photo_id, px2, pts2)
+        )
+        fixed = regs.wait(5, timeout=60)[-1][1]
+        assert fixed.photo_id == photos[2].photo_id and fixed.status == "anchor" and "replaces" in fixed.message
 
 
 def test_node_uses_bim_depth_and_bim_updates_do_not_reregister() -> None:

@@ -19,6 +19,7 @@ F64 = NDArray[np.float64]
 
 FENCE_OFFSET_M = 5.0
 FENCE_HEIGHT_M = 2.2
+JIB_M = 30.0  # crane jib length beyond the mast
 
 
 @dataclass
@@ -182,9 +183,9 @@ def dynamic_solids(layout: SiteLayout, top_m: float) -> list[Solid]:
     """Crane (in its own frame, mast at the origin), two trucks and two cabins (frames at footprint centre)."""
     out: list[Solid] = []
     crane = Solid("crane", "crane", "dynamic", radius_m=1.5)
-    hook_z = top_m + 5.0
+    hook_z = top_m + 2.0
     crane.add_box((-0.8, -0.8, 0.0), (0.8, 0.8, hook_z))
-    crane.add_box((-10.0, -0.6, hook_z), (30.0, 0.6, hook_z + 1.4))
+    crane.add_box((-10.0, -0.6, hook_z), (JIB_M, 0.6, hook_z + 1.4))
     crane.add_box((-9.5, -1.2, hook_z - 2.0), (-6.5, 1.2, hook_z))  # counterweight
     crane.add_box((-1.0, -1.0, hook_z + 1.4), (1.0, 1.0, hook_z + 5.0))  # apex
     out.append(crane)
@@ -213,17 +214,29 @@ def dynamic_poses(
     layout: SiteLayout, rng: np.random.Generator, day: int, camera_xy: F64 | None = None
 ) -> dict[str, F64 | None]:
     """World pose per dynamic solid (None = absent) for one photo. Cabins move weekly, trucks and the crane
-    jib per photo. Objects closer than their radius + 2 m to ``camera_xy`` are dropped."""
-    poses: dict[str, F64 | None] = {"crane": _pose(*layout.crane_xy, float(rng.uniform(0, 360)))}
+    jib per photo. The jib never points within 25 degrees of a camera it could reach; vehicles closer than
+    their radius + 2 m to ``camera_xy`` are dropped."""
+    crane_xy = np.asarray(layout.crane_xy)
+    yaw = float(rng.uniform(0, 360))
+    if camera_xy is not None:
+        to_cam = np.asarray(camera_xy) - crane_xy
+        cam_deg = math.degrees(math.atan2(to_cam[1], to_cam[0]))
+        if np.hypot(*to_cam) < JIB_M + 8.0:
+            for _ in range(50):
+                off = abs((yaw - cam_deg + 180.0) % 360.0 - 180.0)  # jib to camera
+                if 25.0 < off < 155.0:  # clear of the jib and the counter-jib
+                    break
+                yaw = float(rng.uniform(0, 360))
+    poses: dict[str, F64 | None] = {"crane": _pose(*layout.crane_xy, yaw)}
     slots = rng.permutation(len(layout.truck_slots))
     for i in range(2):
-        x, y, yaw = layout.truck_slots[int(slots[i])]
-        poses[f"truck-{i}"] = _pose(x, y, yaw) if rng.random() < 0.75 else None
+        x, y, yaw_t = layout.truck_slots[int(slots[i])]
+        poses[f"truck-{i}"] = _pose(x, y, yaw_t) if rng.random() < 0.75 else None
     week_rng = np.random.default_rng(10_000 + day // 5)
     cslots = week_rng.permutation(len(layout.cabin_slots))
     for i in range(2):
-        x, y, yaw = layout.cabin_slots[int(cslots[i])]
-        poses[f"cabin-{i}"] = _pose(x, y, yaw)
+        x, y, yaw_c = layout.cabin_slots[int(cslots[i])]
+        poses[f"cabin-{i}"] = _pose(x, y, yaw_c)
     if camera_xy is not None:
         radius = {"crane": 1.5, "truck-0": 4.0, "truck-1": 4.0, "cabin-0": 3.5, "cabin-1": 3.5}
         for k, T in poses.items():

@@ -29,7 +29,7 @@ from .schedule import hours_to_datetime, make_schedule
 from .sun import sun_azimuth_elevation_deg, sun_direction_world
 from .textures import make_textures, site_ground
 
-GENERATOR_VERSION = 5
+GENERATOR_VERSION = 7
 """Bump whenever outputs change; part of the ``ensure_site`` cache key."""
 
 _MATERIAL_RGBA = {
@@ -123,7 +123,7 @@ def build_site(out_dir: Path, seed: int = 0, size: str = "default", progress: bo
         for i, plan in enumerate(tqdm(plans, desc=f"synth {size}", unit="photo", disable=not progress)):
             built = {k for k, t in finish.items() if t is not None and t <= plan.local_time}
             prng = np.random.default_rng([seed, 100, i])
-            cam_xy = plan.world_from_camera[:2, 3] if plan.camera_id is None else None
+            cam_xy = plan.world_from_camera[:2, 3]
             poses = dynamic_poses(layout, prng, plan.day, cam_xy)
             res = renderer.render(
                 plan.intrinsics, plan.world_from_camera, built, poses, _lighting(seed, plan.day, plan.local_time), prng
@@ -232,9 +232,9 @@ def ensure_site(size: str, seed: int, cache_dir: Path) -> Path:
         fcntl.flock(lock, fcntl.LOCK_EX)
         if (final / "site.toml").is_file():
             return final
+        for stale in cache_dir.glob(f".{key}.tmp-*"):  # left by a killed build; we hold the lock
+            shutil.rmtree(stale, ignore_errors=True)
         tmp = cache_dir / f".{key}.tmp-{os.getpid()}"
-        if tmp.exists():
-            shutil.rmtree(tmp)
         try:
             build_site(tmp, seed=seed, size=size, progress=size not in ("tiny", "small"))
             if final.exists():

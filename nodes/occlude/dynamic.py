@@ -6,12 +6,18 @@ Steps, all at working resolution except the last:
 2. background = per-pixel median of the normalised stack (the photo itself excluded);
 3. squared HSV difference between photo and background (hue circular, weighted by saturation
    because hue is noise on grey pixels);
-4. cross-bilateral filter of the difference guided by the photo; occluded where any channel
-   exceeds ``threshold`` (paper: 0.05), grown by hysteresis through pixels above a weaker
-   threshold and with enclosed holes filled (an occluder's colour may match the background
-   in places); blobs whose outline is a contrast edge of the background rather than of the
-   photo are ghosts of a neighbour's occluder and dropped (see :func:`remove_ghosts`);
-5. the soft mask is upsampled to full resolution with a guided filter driven by the photo.
+4. cross-bilateral filter of the difference guided by the photo (the per-pixel maximum over the
+   channels is filtered, so "any channel above threshold" becomes "score above threshold");
+   occluded where it exceeds ``threshold`` (paper: 0.05);
+5. temporal guard (beyond the paper): the photo must also differ from its nearest earlier and
+   nearest later neighbour, inside the projected model when it is known, so construction progress
+   between days is not taken for an occluder; changes between sky-like pixels (clouds) are ignored;
+6. the mask grows by hysteresis through pixels above a weaker threshold, enclosed holes are filled
+   (an occluder's colour may match the background in places), and blobs whose outline is a
+   contrast edge of the background rather than of the photo are ghosts of a neighbour's occluder
+   and dropped (see :func:`remove_ghosts`);
+7. the soft mask is upsampled to full resolution with a guided filter driven by the photo, only
+   inside the mask's bounding box.
 
 The clean background plate is the photo outside the mask and the (upsampled) median inside.
 """

@@ -4,9 +4,13 @@ For each sparse 3D point observed in the photo, compare it with the model surfac
 it occludes the model when it is more than ``depth_margin_m`` closer to the camera than every
 model surface around that pixel, or (within the margin) when its normal, estimated by PCA of its
 nearest neighbours in the cloud, differs from the model's normal by more than
-``normal_angle_deg``. SLIC superpixels holding occluding points are flooded; model pixels whose
-surface lies below the site terrain are occluded by the ground; the mask is smoothed with a
-cross-bilateral filter guided by the photo and upsampled with a guided filter.
+``normal_angle_deg`` (normals only where the neighbourhood is flat enough to trust). SLIC
+superpixels are flooded where occluding points are at least ``vote_fraction`` of the points judged
+in them (paper: any point), then the labels spread to point-less adjacent superpixels of similar
+colour (sparse clouds leave many superpixels without points). Model pixels whose surface lies
+below the site terrain are occluded by the ground. The mask is smoothed with a cross-bilateral
+filter guided by the photo, limited to the projected model (nothing else can be occluded) and
+upsampled with a guided filter.
 """
 
 from __future__ import annotations

@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from constructaide import camera as cam
 from constructaide.errors import UserError
 from nodes.register.colmap_io import ColmapImage, ColmapModel, write_text_model
 from nodes.register.features import Features, extract_features
@@ -113,7 +114,7 @@ def extract_all(
 
 def reconstruction_to_colmap(recon: Reconstruction) -> ColmapModel:
     """Registered images and triangulated points as a COLMAP model (every keypoint written as a 2D point)."""
-    pts, cols, obs_p, obs_i, obs_px = recon.sparse_arrays()
+    pts, cols, *_ = recon.sparse_arrays()
     ok = np.nonzero(np.all(np.isfinite(recon.points), axis=1))[0]
     remap = -np.ones(len(recon.points), int)
     remap[ok] = np.arange(len(ok))
@@ -128,8 +129,6 @@ def reconstruction_to_colmap(recon: Reconstruction) -> ColmapModel:
         images.append(ColmapImage(im.name, im.intrinsics, im.world_from_camera, im.features.keypoints_px, p3))
         sel = p3 >= 0
         if sel.any():
-            from constructaide import camera as cam
-
             proj, _ = cam.project_points(im.intrinsics, cam.invert_rigid(im.world_from_camera), pts[p3[sel]])
             e = np.linalg.norm(proj - im.features.keypoints_px[sel], axis=1)
             np.add.at(err_sum, p3[sel], np.nan_to_num(e, nan=0.0))
@@ -140,7 +139,7 @@ def reconstruction_to_colmap(recon: Reconstruction) -> ColmapModel:
 def image_report(recon: Reconstruction) -> list[dict]:
     out = []
     for im in recon.images:
-        d: dict = {"image": im.name, "status": im.status if im.status != "unregistered" else "unregistered"}
+        d: dict = {"image": im.name, "status": im.status}
         d["method"] = im.method
         d["message"] = im.message
         if im.registered:
@@ -166,7 +165,7 @@ def run_batch(
     out_dir: Path,
     focal_px: float | None = None,
     cfg: SfmConfig | None = None,
-    max_features: int = 8000,
+    max_features: int = 4000,
     max_side_px: int | None = 1600,
     bim_paths: tuple[Path, ...] = (),
     show_progress: bool = True,
@@ -237,13 +236,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--bim", action="append", default=[], type=Path, help="BIM model file(s) (recorded in report)")
     ap.add_argument("--focal-px", type=float, default=None, help="focal prior in pixels for every image")
     ap.add_argument("--max-side", type=int, default=1600, help="longest side for feature detection (px)")
-    ap.add_argument("--max-features", type=int, default=8000)
-    ap.add_argument("--refine-principal-point", action="store_true")
+    ap.add_argument("--max-features", type=int, default=4000, help="SIFT features kept per image (strongest)")
+    ap.add_argument("--refine-principal-point", action="store_true", help="optimise each image's principal point")
+    ap.add_argument(
+        "--free-anchors", action="store_true", help="let anchor poses move in bundle adjustment (paper: fixed)"
+    )
     ap.add_argument("--quiet", action="store_true", help="no progress bars")
     args = ap.parse_args(argv)
     if args.focal_px is not None and not (args.focal_px > 0):
         raise UserError("--focal-px must be positive")
-    cfg = SfmConfig(refine_principal_point=args.refine_principal_point)
+    cfg = SfmConfig(refine_principal_point=args.refine_principal_point, fix_anchor_poses=not args.free_anchors)
     _, report = run_batch(
         args.images,
         args.anchors,

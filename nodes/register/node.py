@@ -48,6 +48,8 @@ class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=Tr
     publish_viewpoints: bool = True
     sparse_every: int = 1
     """Publish the SparseCloud after this many map changes (0: never)."""
+    keep_recent_photos: int = 32
+    """Registered photos kept (bytes) so late anchor clicks can correct their registration."""
     stream: StreamConfig = StreamConfig()
 
 
@@ -74,6 +76,7 @@ class RegisterNode:
         self.registrar = StreamingRegistrar(config.stream, site=ctx.site)
         self.pending: OrderedDict[str, Photo] = OrderedDict()
         self.pending_anchors: OrderedDict[str, AnchorClicks] = OrderedDict()
+        self.recent: OrderedDict[str, Photo] = OrderedDict()
         self.asked_anchor: set[str] = set()
         self.meshes: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         self.ref_of: dict[str, str] = {}
@@ -101,16 +104,19 @@ class RegisterNode:
         self._publish(out)
         if out.registration.status == "failed":
             self._enqueue(msg)
+        else:
+            self._remember(msg)
 
     def on_anchors(self, msg: AnchorClicks, key: str) -> None:
         if len(msg.points) < 4:
             raise ValueError(f"anchor clicks for {msg.photo_id}: need at least 4 points, got {len(msg.points)}")
-        if msg.photo_id in self.registrar.poses and self.registrar.poses[msg.photo_id].method == "anchor":
-            raise ValueError(f"photo {msg.photo_id} is already an anchor")
-        photo = self.pending.pop(msg.photo_id, None)
+        photo = self.pending.pop(msg.photo_id, None) or self.recent.get(msg.photo_id)
         if photo is None:
             if msg.photo_id in self.registrar.poses:
-                raise ValueError(f"photo {msg.photo_id} is already registered and its pixels are no longer kept")
+                raise ValueError(
+                    f"photo {msg.photo_id} is already registered and its pixels are no longer kept "
+                    f"(only the last {self.config.keep_recent_photos} photos are)"
+                )
             self.pending_anchors[msg.photo_id] = msg
             while len(self.pending_anchors) > self.config.max_pending_anchors:
                 self.pending_anchors.popitem(last=False)
@@ -119,7 +125,8 @@ class RegisterNode:
         try:
             self._register_anchor(photo, msg)
         except ValueError:
-            self.pending[msg.photo_id] = photo  # keep the photo for corrected clicks
+            if msg.photo_id not in self.registrar.poses:
+                self.pending[msg.photo_id] = photo  # keep the photo for corrected clicks
             raise
         self._retry_pending()
 
@@ -169,6 +176,15 @@ class RegisterNode:
         pts = np.array([p.point_in_world_m for p in clicks.points], np.float64)
         out = self.registrar.register_anchor(_photo_input(photo), px, pts, focal_px=clicks.focal_px)
         self._publish(out)
+        self._remember(photo)
+
+    def _remember(self, msg: Photo) -> None:
+        if self.config.keep_recent_photos <= 0:
+            return
+        self.recent[msg.photo_id] = msg
+        self.recent.move_to_end(msg.photo_id)
+        while len(self.recent) > self.config.keep_recent_photos:
+            self.recent.popitem(last=False)
 
     def _retry_pending(self) -> None:
         waiting = sorted(self.pending.values(), key=lambda p: p.capture_time_ns)
@@ -178,6 +194,8 @@ class RegisterNode:
             self._publish(out, ask=False)
             if out.registration.status == "failed":
                 self.pending[msg.photo_id] = msg
+            else:
+                self._remember(msg)
 
     def _enqueue(self, msg: Photo) -> None:
         self.pending[msg.photo_id] = msg

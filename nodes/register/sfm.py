@@ -70,6 +70,7 @@ class SfmConfig:
     ba_max_nfev: int = 40
     local_ba_window: int = 6
     local_ba_max_nfev: int = 15
+    ba_points_per_image: int = 400
     full_ba_every: int = 4
     focal_px: float | None = None
     # Standard deviation of a known focal prior as a fraction of it, applied in bundle adjustment (focal and depth
@@ -619,13 +620,18 @@ def _rays(recon: Reconstruction, img_idx: np.ndarray, px: np.ndarray) -> tuple[n
     return centers, dirs
 
 
-def triangulate_tracks(recon: Reconstruction, cfg: SfmConfig, retriangulate: bool = False) -> int:
+def triangulate_tracks(
+    recon: Reconstruction, cfg: SfmConfig, retriangulate: bool = False, only: list[int] | None = None
+) -> int:
     """Triangulate untriangulated tracks seen by >= 2 registered images (midpoint of rays, all at once), keeping
     those whose rays span >= ``min_triangulation_angle_deg`` and that reproject within threshold in front of
-    every camera. Returns the number of new points."""
+    every camera. ``retriangulate`` redoes triangulated ones too; ``only`` restricts to these tracks. Returns the
+    number of points (re)made."""
     reg = np.array([im.registered for im in recon.images])
     tids, iids, fids = [], [], []
-    for t, d in enumerate(recon.track_obs):
+    candidates = range(len(recon.track_obs)) if only is None else only
+    for t in candidates:
+        d = recon.track_obs[t]
         if not retriangulate and np.all(np.isfinite(recon.points[t])):
             continue
         obs = [(i, f) for i, f in d.items() if reg[i]]
@@ -668,10 +674,12 @@ def triangulate_tracks(recon: Reconstruction, cfg: SfmConfig, retriangulate: boo
         fail = ~(np.isfinite(e) & (e < _obs_thr(im, cfg)) & (z > 0))
         np.logical_or.at(bad, inv[sel], fail)
     accept = good & wide & ~bad
+    if retriangulate:
+        recon.points[uniq[~accept]] = np.nan
     new = 0
     for k in np.nonzero(accept)[0]:
         t = int(uniq[k])
-        if not np.all(np.isfinite(recon.points[t])):
+        if retriangulate or not np.all(np.isfinite(recon.points[t])):
             new += 1
         recon.points[t] = X[k]
         i0, f0 = next(iter(recon.track_obs[t].items()))
@@ -692,15 +700,33 @@ def bundle(recon: Reconstruction, cfg: SfmConfig, window: list[int] | None = Non
     movable = set(reg if window is None else [i for i in window if i in cam_of])
     anchors = {i for i in reg if recon.images[i].status == "anchor"} if cfg.fix_anchor_poses else set()
     tri = np.nonzero(np.all(np.isfinite(recon.points), axis=1))[0]
+    # Points in the adjustment: per image, its longest tracks (up to ba_points_per_image); the others are
+    # re-triangulated from the adjusted cameras afterwards.
+    usable = []
+    for t in tri:
+        views = [i for i in recon.track_obs[t] if i in cam_of]
+        if len(views) >= 2 and (window is None or any(i in movable for i in views)):
+            usable.append((t, views))
+    chosen: set[int] = set()
+    if cfg.ba_points_per_image and len(usable) > cfg.ba_points_per_image * max(1, len(movable)):
+        per_img: dict[int, list[tuple[int, int]]] = {}
+        for t, views in usable:
+            for i in views:
+                per_img.setdefault(i, []).append((len(views), t))
+        for lst in per_img.values():
+            lst.sort(key=lambda x: (-x[0], x[1]))
+            chosen.update(t for _, t in lst[: cfg.ba_points_per_image])
+        left_out = [t for t, _ in usable if t not in chosen]
+    else:
+        chosen = {t for t, _ in usable}
+        left_out = []
     pt_list, obs_c, obs_p, obs_x, obs_track, obs_img = [], [], [], [], [], []
     ref_cam, ref_px = [], []
-    for t in tri:
+    for t, _ in usable:
+        if t not in chosen:
+            continue
         d = recon.track_obs[t]
         views = [(i, f) for i, f in d.items() if i in cam_of]
-        if len(views) < 2:
-            continue
-        if window is not None and not any(i in movable for i, _ in views):
-            continue
         p = len(pt_list)
         pt_list.append(t)
         rc, rp = -1, (0.0, 0.0)
@@ -791,6 +817,8 @@ def bundle(recon: Reconstruction, cfg: SfmConfig, window: list[int] | None = Non
     for t in pt_list:
         if sum(1 for i in recon.track_obs[t] if i in cam_of) < 2:
             recon.points[t] = np.nan
+    if left_out:
+        triangulate_tracks(recon, cfg, retriangulate=True, only=left_out)
     for i in reg:
         if i in movable and per_img_err[i]:
             im = recon.images[i]

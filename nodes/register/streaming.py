@@ -13,18 +13,24 @@ Paths, tried in this order for a photo:
   (tracked at ``track_scale`` of full resolution) are followed by pyramidal KLT with a forward-backward check;
   a homography RANSAC rejects outliers; rotation and focal are refined by Levenberg-Marquardt with the camera
   centre held at the camera's centre (a mounted camera pans, tilts and zooms about its centre, so only each
-  corner's viewing ray matters, not its depth). Optionally (``fast_model="auto"``) corners with known 3D
-  points then refine the full 6-DOF pose + focal. Too few tracked inliers, a high residual or a large rotation
-  relative to the previous frame is reported as a bumped / re-aimed camera and the full path is taken.
+  corner's viewing ray matters, not its depth). With ``fast_model="auto"`` (default), a residual above half the
+  limit fetches BIM depth for the corners and refines the full 6-DOF pose + focal (a swayed mast). Too few
+  tracked inliers, a high residual or a large rotation relative to the previous frame is reported as a bumped /
+  re-aimed camera and the full path is taken.
 * **full path**: SIFT matched against the best-matching registered key images (same camera first, then a bag of
   visual words shortlist), PnP with RANSAC (inliers within 1 % of the width) on matched 3D points, LM
   refinement of pose and focal, new tracks triangulated (rays >= 2 degrees apart) so the map grows, then a
   local bundle adjustment of the new image, its matched neighbours (anchor poses held) and their points.
+  BIM-depth points serve other viewpoints only once a two-view triangulation confirms them (a fence or crane
+  in front of the model gives features the wrong depth), unless ``trust_bim_depth``; solutions that explain
+  too few tracks, change a known focal by > 30 % or are tilted > 60 degrees from upright are refused.
 * **homography transfer** when there are not enough 3D points: against a key image whose matches are >= 80 %
   inliers of one homography, rotation and focal are fitted about that image's centre (many rays instead of a
   few clicks); if that does not fit, the key image's anchor clicks are warped by the homography and the pose
   re-solved from them (paper Sec. 6).
 * otherwise the photo is ``failed`` and an anchor is requested (``Outcome.needs_anchor``).
+
+Anchor clicks for an already registered photo correct it in place (re-anchoring).
 """
 
 from __future__ import annotations
@@ -59,6 +65,7 @@ class StreamConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     klt_window_small_px: int = 21
     klt_levels: int = 3
     klt_fb_max_px: float = 1.0
+    track_normalize: bool = True
     fast_ransac_px: float = 3.0
     fast_min_inliers: int = 40
     fast_min_tracked_fraction: float = 0.35
@@ -195,7 +202,8 @@ class TrackState:
     """Fast-path state of one fixed camera: the latest registered frame and its tracked corners.
 
     ``pixels_px`` (K, 2) full-resolution pixels in that frame; ``rays_in_world`` (K, 3) unit rays from
-    ``center_in_world``; ``points_in_world`` (K, 3) 3D points where known (NaN rows otherwise).
+    ``center_in_world``; ``points_in_world`` (K, 3) BIM-depth points, looked up lazily for the 6-DOF refinement
+    (NaN rows where unknown).
     """
 
     photo_id: str
@@ -665,14 +673,18 @@ class StreamingRegistrar:
         msg = f"{len(sol.residuals_px)} clicks, RMS {sol.rms_px:.2f} px" + (
             f"; {flagged} click(s) look mis-placed (residual > {sol.outlier_threshold_px:.1f} px)" if flagged else ""
         )
-        key = self._add_key_image(
-            photo,
-            photo.image,
-            sol.intrinsics,
-            sol.world_from_camera,
-            is_anchor=True,
-            clicks=(np.asarray(pixels_px, float), np.asarray(points_in_world, float)),
-        )
+        clicks = (np.asarray(pixels_px, float), np.asarray(points_in_world, float))
+        if photo.photo_id in self.key_index:  # re-anchoring a key image: correct it in place
+            key = self.keys[self.key_index[photo.photo_id]]
+            key.intrinsics, key.world_from_camera = sol.intrinsics, sol.world_from_camera.copy()
+            key.is_anchor, (key.clicks_px, key.clicks_world) = True, clicks
+            msg += "; replaces the earlier registration"
+        else:
+            if photo.photo_id in self.poses:
+                msg += "; replaces the earlier registration"
+            key = self._add_key_image(
+                photo, photo.image, sol.intrinsics, sol.world_from_camera, is_anchor=True, clicks=clicks
+            )
         changed = self._link_key_image(key, photo.image)
         if photo.camera_id is not None:
             self._init_track(photo, sol.intrinsics, sol.world_from_camera)
@@ -715,17 +727,14 @@ class StreamingRegistrar:
 
     def _init_track(self, photo: PhotoInput, intr: Intrinsics, world_from_camera: np.ndarray) -> None:
         c = self.config
-        small = photo.image.gray_small(c.track_scale)
+        small = self._track_image(photo)
         w, h = intr.width_px, intr.height_px
         scale_xy = (small.shape[1] / w, small.shape[0] / h)
         corners = cv2.goodFeaturesToTrack(small, c.track_max_corners, 0.01, c.track_min_distance_small_px, blockSize=7)
         px_small = corners.reshape(-1, 2).astype(np.float64) if corners is not None else np.zeros((0, 2))
         px = (px_small + 0.5) / np.array(scale_xy) - 0.5
         rays = rays_from_pixels(intr, world_from_camera, px)
-        if self.config.fast_model == "auto":
-            pts = self._lookup_points(world_from_camera, intr, px, photo.capture_time_ns)
-        else:
-            pts = np.full((len(px), 3), np.nan)
+        pts = np.full((len(px), 3), np.nan)  # looked up lazily, only when the 6-DOF refinement needs them
         self.tracks[photo.camera_id] = TrackState(  # type: ignore[index]
             photo_id=photo.photo_id,
             gray_small=small,
@@ -741,6 +750,13 @@ class StreamingRegistrar:
             num_initial=max(len(px), 1),
             capture_time_ns=photo.capture_time_ns,
         )
+
+    def _track_image(self, photo: PhotoInput) -> np.ndarray:
+        """Grey image at tracking scale, contrast-normalised (CLAHE) when ``track_normalize`` (day-to-day light)."""
+        small = photo.image.gray_small(self.config.track_scale)
+        if self.config.track_normalize:
+            small = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)).apply(small)
+        return small
 
     def _lookup_points(
         self, world_from_camera: np.ndarray, intr: Intrinsics, px: np.ndarray, capture_time_ns: int
@@ -759,7 +775,7 @@ class StreamingRegistrar:
         """Track the camera's previous frame into this one. Returns (outcome or None, why it was not used)."""
         c = self.config
         st = self.tracks[photo.camera_id]  # type: ignore[index]
-        small = photo.image.gray_small(c.track_scale)
+        small = self._track_image(photo)
         if small.shape != st.gray_small.shape:
             return None, f"frame size changed ({small.shape[::-1]} at tracking scale vs {st.gray_small.shape[::-1]})"
         sx, sy = st.scale_xy
@@ -809,7 +825,13 @@ class StreamingRegistrar:
         world_from_camera = cam.rigid(R.T, st.center_in_world)
         rms = float(np.sqrt(np.mean(res**2))) if len(res) else float("inf")
         method = "fastpath"
-        if c.fast_model == "auto" and rms > 0.5 * c.fast_max_rms_px:
+        if c.fast_model == "auto" and rms > 0.5 * c.fast_max_rms_px and self.depth_lookup is not None:
+            # 3D points of the previous frame's corners (BIM depth seen from that frame), fetched only now.
+            missing = inl2[~np.all(np.isfinite(st.points_in_world[inl2]), axis=1)]
+            if len(missing):
+                st.points_in_world[missing] = self._lookup_points(
+                    st.world_from_camera, st.intrinsics, st.pixels_px[missing], st.capture_time_ns
+                )
             has3d = inl2[np.all(np.isfinite(st.points_in_world[inl2]), axis=1)]
             if len(has3d) >= c.fast_min_inliers:
                 T6, intr6, res6 = refine_pose_focal(
@@ -879,11 +901,7 @@ class StreamingRegistrar:
         px = (corners.reshape(-1, 2).astype(np.float64) + 0.5) / np.array([sx, sy]) - 0.5
         st.pixels_px = np.vstack([st.pixels_px, px])
         st.rays_in_world = np.vstack([st.rays_in_world, rays_from_pixels(st.intrinsics, st.world_from_camera, px)])
-        if self.config.fast_model == "auto":  # 3D points only serve the 6-DOF refinement; skip the render otherwise
-            new_pts = self._lookup_points(st.world_from_camera, st.intrinsics, px, st.capture_time_ns)
-        else:
-            new_pts = np.full((len(px), 3), np.nan)
-        st.points_in_world = np.vstack([st.points_in_world, new_pts])
+        st.points_in_world = np.vstack([st.points_in_world, np.full((len(px), 3), np.nan)])
         st.num_initial = max(st.num_initial, len(st.pixels_px))
 
     # -- full path ---------------------------------------------------------
@@ -1406,7 +1424,8 @@ class StreamingRegistrar:
                 H = rotation_homography(intr, world_from_camera, rec.intrinsics, rec.world_from_camera)
                 if self.viewpoints.add_pair(photo.photo_id, other, H, ratio, n, check=False):
                     changed.append(other)
-        frames.append(photo.photo_id)
+        if photo.photo_id not in frames:
+            frames.append(photo.photo_id)
         if photo.photo_id not in changed:
             changed.insert(0, photo.photo_id)
         return changed
