@@ -34,7 +34,12 @@ def main(argv: list[str]) -> int:
     with open_bus(BusConfig.from_args(args)) as bus:
         try:
             bus.wait_for_tokens(
-                [keys.pattern(keys.LIVELINESS, site=args.site, node=args.wait_for)], timeout=args.timeout
+                [
+                    keys.pattern(
+                        keys.LIVELINESS, site=args.site, **({} if args.wait_for == "*" else {"node": args.wait_for})
+                    )
+                ],
+                timeout=args.timeout,
             )
         except TimeoutError:
             raise UserError(
@@ -45,7 +50,7 @@ def main(argv: list[str]) -> int:
             try:
                 photo = photo_from_file(f, camera_id=args.camera, site=args.site, tz=args.tz, use_mtime=args.use_mtime)
             except PhotoError as e:
-                raise UserError(f"{f}: {e} ({sent} photo(s) pushed before it)") from None
+                raise UserError(f"{e} ({sent} photo(s) pushed before it)") from None
             bus.publish(keys.key(keys.PHOTO, site=args.site, camera=args.camera), photo)
             sent += 1
     print(f"pushed {sent} photo(s) to site {args.site}")
