@@ -293,6 +293,12 @@ one run. Time includes JPEG decoding.
 Speed-up of the fast path over the full path: **{full_med / fast_med:.0f}x** (target: <= 250 ms per frame).
 The fast path's absolute error is the anchor's error carried along (the centre is held at the anchor's centre and the
 anchor solve ignores lens distortion, k1 = -0.08 here); tracking adds little (see the tests' relative-rotation bands).
+Differences between the two rows come mostly from the knocked camera: without a camera id its first moved frame
+finds no confirmed 3D points, so an anchor is requested and supplied (anchors.json), and later frames transfer
+from that fresh anchor; with the camera id the moved frame is registered by PnP on the camera's own BIM-depth
+points (no user input), carrying that solution's error. Phone photos other than the clicked one are refused with
+an anchor request: their matches are dominated by the hoarding's repeated lettering and the BIM-depth points of
+the anchor are not yet confirmed by a second view (before that safeguard they registered 90-150 degrees off).
 """
         write_section("register-stream", body)
     return 0

@@ -11,7 +11,8 @@ Steps, all at working resolution except the last:
    occluded where it exceeds ``threshold`` (paper: 0.05);
 5. temporal guard (beyond the paper): the photo must also differ from its nearest earlier and
    nearest later neighbour, inside the projected model when it is known, so construction progress
-   between days is not taken for an occluder; changes between sky-like pixels (clouds) are ignored;
+   between days is not taken for an occluder; changes between sky-like pixels (clouds) are ignored
+   and pixels of the photo's open sky (sky-like, connected to the top border) are never occluders;
 6. the mask grows by hysteresis through pixels above a weaker threshold, enclosed holes are filled
    (an occluder's colour may match the background in places), and blobs whose outline is a
    contrast edge of the background rather than of the photo are ghosts of a neighbour's occluder
@@ -143,6 +144,19 @@ def sky_like(bgr: F32) -> NDArray[np.bool_]:
     std = np.sqrt(np.maximum(cv2.blur(g * g, (5, 5)) - mean * mean, 0.0))
     blue = (hsv[..., 0] > 180.0) & (hsv[..., 0] < 250.0)
     return (hsv[..., 2] > 0.55) & ((hsv[..., 1] < 0.25) | blue) & (std < 0.04)
+
+
+def open_sky(photo_bgr: F32) -> NDArray[np.bool_]:
+    """Sky-like pixels (h, w) of the photo connected to the top image border: open sky. A pixel of the
+    photo that shows open sky cannot show an occluder (a white vehicle on the ground is sky-like in
+    colour but not connected to the top through sky)."""
+    sky = sky_like(photo_bgr).astype(np.uint8)
+    n, labels = cv2.connectedComponents(sky, connectivity=4)
+    top = np.unique(labels[0][sky[0] > 0])
+    keep = np.zeros(n, bool)
+    keep[top] = True
+    keep[0] = False
+    return keep[labels]
 
 
 def raw_score(photo: F32, other: F32, params: DynamicParams) -> F32:
@@ -362,6 +376,8 @@ def dynamic_mask(
         return DynamicResult("not_enough_views", np.zeros((h, w), np.uint8), None, stack.num_views)
     background, score, count = background_and_difference(photo_small, stack, params, progress_region)
     small = hysteresis_mask(score, params.threshold, params.threshold * params.weak_ratio)
+    if params.ignore_sky:
+        small[open_sky(photo_small.astype(np.float32) * np.float32(1.0 / 255.0))] = 0
     small = remove_small_components(small, int(params.min_component_frac * small.size))
     if params.ghost_ratio > 0:
         small = remove_ghosts(small, photo_small, (background * 255.0).astype(np.uint8), params.ghost_ratio)

@@ -51,6 +51,7 @@ class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=Tr
     working_width_px: int = 480  # dynamic masks are computed at this width, then upsampled
     static_working_width_px: int = 640  # static masks (model render, SLIC) at this width
     max_views: int = 6  # stack size: neighbours nearest in capture time
+    refine_previous_frame: bool = True  # recompute a camera's previous newest frame once a later one arrives
     max_stored_photos: int = 2000  # photos kept for stacks and republishing; the oldest arrivals are dropped
     max_time_gap_days: float = 0.0  # 0: no limit on the time between a photo and its neighbours
     dynamic_threshold: float = 0.05  # squared HSV difference, any channel (paper)
@@ -161,6 +162,7 @@ class OccludeNode:
         self._dirty: set[str] = set()
         self.model_region: dict[str, NDArray[np.bool_]] = {}  # projected model at dynamic working size
         self.dynamic_used_region: dict[str, bool] = {}
+        self.dynamic_had_later: dict[str, bool] = {}  # the stack held a later frame when last computed
 
     # ----------------------------------------------------------------- handlers
 
@@ -175,9 +177,24 @@ class OccludeNode:
         self.store.add_photo(msg.photo_id, msg.camera_id, msg.capture_time_ns, img)
         self._dynamic(msg.photo_id, img)
         if msg.camera_id is not None:
+            refine: list[str] = []
             for other in self.store.by_camera.get(msg.camera_id, ()):
-                if other != msg.photo_id and self.masks.get((other, "dynamic"), ("ok",))[0] == "not_enough_views":
+                if other == msg.photo_id:
+                    continue
+                status = self.masks.get((other, "dynamic"), ("ok",))[0]
+                if status == "not_enough_views":
                     self._dynamic(other)
+                elif (
+                    self.config.refine_previous_frame
+                    and status == "ok"
+                    and not self.dynamic_had_later.get(other, True)
+                    and self.photos[other].capture_time_ns < msg.capture_time_ns
+                ):
+                    refine.append(other)
+            if refine:
+                # the newest earlier frame was judged without a later neighbour (construction progress and
+                # a new occluder look alike then); its stack now has one
+                self._dynamic(max(refine, key=lambda p: self.photos[p].capture_time_ns))
         self._static(msg.photo_id, img)
         self._user(msg.photo_id)
 
@@ -271,7 +288,13 @@ class OccludeNode:
         self.registrations.pop(photo_id, None)
         for kind in ("dynamic", "static", "user", "combined"):
             self.masks.pop((photo_id, kind), None)
-        for d in (self.dynamic_stack_ids, self.static_obs_count, self.model_region, self.dynamic_used_region):
+        for d in (
+            self.dynamic_stack_ids,
+            self.static_obs_count,
+            self.model_region,
+            self.dynamic_used_region,
+            self.dynamic_had_later,
+        ):
             d.pop(photo_id, None)
         self._dirty.discard(photo_id)
 
@@ -317,6 +340,7 @@ class OccludeNode:
         self.dynamic_stack_ids[photo_id] = self._stack_ids(photo_id)
         region = self.model_region.get(photo_id)
         self.dynamic_used_region[photo_id] = region is not None
+        self.dynamic_had_later[photo_id] = any(t > stack.photo_time_ns for t in stack.times_ns)
         res = dynamic_mask(img, self.store.frames[photo_id].image_small, stack, self.dyn_params, region)
         bg = b""
         if res.background is not None:

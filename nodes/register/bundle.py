@@ -11,11 +11,53 @@ Jacobian pattern (``jac_sparsity``).
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
+import glob
+import os
+import threading
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import least_squares
+
+_BLAS_LOCK = threading.Lock()
+
+
+def _openblas() -> ctypes.CDLL | None:
+    libs = glob.glob(os.path.join(os.path.dirname(np.__file__), os.pardir, "numpy.libs", "*openblas*"))
+    for lib in libs:
+        try:
+            dll = ctypes.CDLL(lib)
+        except OSError:
+            continue
+        if hasattr(dll, "scipy_openblas_set_num_threads64_") and hasattr(dll, "scipy_openblas_get_num_threads64_"):
+            return dll
+    return None
+
+
+_OPENBLAS = _openblas()
+
+
+@contextlib.contextmanager
+def single_thread_blas() -> Iterator[None]:
+    """Run numpy's OpenBLAS on one thread inside the block (best effort; no-op when not found).
+
+    The sparse solver (LSMR) calls BLAS on vectors of ~1e4-1e5 entries thousands of times; OpenBLAS threads them
+    and on a busy 2-core machine each call then costs milliseconds instead of microseconds.
+    """
+    if _OPENBLAS is None:
+        yield
+        return
+    with _BLAS_LOCK:
+        before = int(_OPENBLAS.scipy_openblas_get_num_threads64_())
+        _OPENBLAS.scipy_openblas_set_num_threads64_(1)
+        try:
+            yield
+        finally:
+            _OPENBLAS.scipy_openblas_set_num_threads64_(before)
 
 
 def rodrigues_batch(rvecs: np.ndarray) -> np.ndarray:
@@ -340,19 +382,20 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
     nfev = 0
     x = x0
     if lay.n > 0 and n_res >= lay.n:
-        sol = least_squares(
-            residuals,
-            x0,
-            jac=jacobian,
-            method="trf",
-            tr_solver="lsmr",
-            loss=opts.loss,
-            f_scale=opts.loss_scale_px,
-            x_scale="jac",
-            max_nfev=opts.max_nfev,
-            ftol=opts.ftol,
-            xtol=1e-8,
-        )
+        with single_thread_blas():
+            sol = least_squares(
+                residuals,
+                x0,
+                jac=jacobian,
+                method="trf",
+                tr_solver="lsmr",
+                loss=opts.loss,
+                f_scale=opts.loss_scale_px,
+                x_scale="jac",
+                max_nfev=opts.max_nfev,
+                ftol=opts.ftol,
+                xtol=1e-8,
+            )
         x, nfev = sol.x, int(sol.nfev)
     T, f, k1, k2, cx, cy, pts = unpack(x)
     proj, p_all, *_ = project_full(T, f, k1, k2, cx, cy, prob.obs_cam, pts[prob.obs_point])

@@ -221,6 +221,9 @@ class RegisterNode:
 
     def _publish(self, out: Outcome, ask: bool = True) -> None:
         reg = out.registration
+        if self.registrar.depth_error:
+            self.ctx.error("bim", self.registrar.depth_error)
+            self.registrar.depth_error = ""
         self.ctx.publish(keys.key(keys.REGISTRATION, site=self.ctx.site, camera=reg.camera_id, photo=reg.photo_id), reg)
         if out.needs_anchor is not None and ask:
             self._publish_needs_anchor(reg.photo_id, out.needs_anchor, out.num_matched_tracks)

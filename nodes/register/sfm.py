@@ -257,7 +257,7 @@ def select_pairs(features: list[Features], cfg: SfmConfig, seed: int = 0) -> lis
         if len(f):
             sample.append(f.descriptors[rng.choice(len(f), min(len(f), 300), replace=False)])
     data = np.vstack(sample).astype(np.float32)
-    k = int(min(512, max(16, len(data) // 20)))
+    k = int(min(1024, max(16, len(data) // 4)))
     criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 20, 1e-3)
     cv2.setRNGSeed(seed)
     _, _, centers = cv2.kmeans(data, k, None, criteria, 2, cv2.KMEANS_PP_CENTERS)

@@ -626,6 +626,8 @@ class StreamingRegistrar:
             min_matches=self.config.min_matches,
             max_neighbours=self.config.viewpoint_max_neighbours,
         )
+        self.depth_error = ""
+        """Why the depth lookup was switched off (empty while it works)."""
         self._vocab: np.ndarray | None = None
         self._vocab_built_at = 0
 
@@ -764,7 +766,12 @@ class StreamingRegistrar:
         pts = np.full((len(px), 3), np.nan)
         if self.depth_lookup is None or len(px) == 0:
             return pts
-        depth = np.asarray(self.depth_lookup(world_from_camera, intr, px, capture_time_ns), np.float64).reshape(-1)
+        try:
+            depth = np.asarray(self.depth_lookup(world_from_camera, intr, px, capture_time_ns), np.float64).reshape(-1)
+        except Exception as e:  # e.g. no EGL/OpenGL on this machine: register without BIM depth
+            self.depth_error = f"BIM depth lookup disabled: {type(e).__name__}: {e}"
+            self.depth_lookup = None
+            return pts
         ok = np.isfinite(depth) & (depth > 0)
         xy = cam.pixels_to_normalized(intr, px[ok])
         p_cam = np.c_[xy, np.ones(len(xy))] * depth[ok, None]
