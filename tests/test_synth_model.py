@@ -133,3 +133,14 @@ def test_ensure_site_builds_once_and_reuses(tmp_path: Path) -> None:
     assert again == first and (again / "site.toml").stat().st_mtime_ns == stamp
     assert "tiny" in first.name and "seed1" in first.name
     assert [p.name for p in tmp_path.iterdir() if not p.name.endswith(".lock")] == [first.name]  # no temp dirs left
+
+
+def test_contact_sheet(small_site: Path, tmp_path: Path) -> None:
+    from PIL import Image
+
+    from constructaide.synth.contact_sheet import make_contact_sheet
+
+    out = make_contact_sheet(small_site, tmp_path / "sheet.png", columns=4, thumb_w=160)
+    with Image.open(out) as im:
+        assert im.size == (4 * 164 + 4, 4 * (90 + 4) + 4)  # 3 fixed cameras + 1 phone row
+    assert out.stat().st_size < 1_500_000
