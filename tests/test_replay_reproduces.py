@@ -12,7 +12,6 @@ import tomllib
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from constructaide.runtime import start_node
 from constructaide.runtime.local import LocalBus
