@@ -33,7 +33,7 @@ from scipy.optimize import least_squares
 
 from constructaide import camera as cam
 from nodes.register.anchors import AnchorSolution, DegenerateAnchors, solve_anchor
-from nodes.register.bundle import BundleOptions, BundleProblem, bundle_adjust
+from nodes.register.bundle import BundleOptions, BundleProblem, bundle_adjust, single_thread_blas
 from nodes.register.features import Features, filter_matches_fundamental, homography_inlier_ratio, match_features
 from schemas.messages import Intrinsics
 
@@ -885,7 +885,8 @@ def reconstruct(
         def job(ij: tuple[int, int]) -> tuple[tuple[int, int], PairGeometry | None]:
             return ij, verify_pair(recon.images[ij[0]].features, recon.images[ij[1]].features, cfg)
 
-        with ThreadPoolExecutor(max(1, cfg.workers)) as pool:
+        # Pairs run in parallel threads, each product on one BLAS thread (no oversubscription).
+        with single_thread_blas(), ThreadPoolExecutor(max(1, cfg.workers)) as pool:
             for ij, g in pool.map(job, pairs):
                 if g is not None:
                     recon.pairs[ij] = g
