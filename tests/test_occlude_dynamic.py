@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from occlude_scenes import dynamic_sequence, iou, textured_background
 
-from nodes.occlude.dynamic import dynamic_mask, fit_exposure, hsv_squared_difference, masked_median
+from nodes.occlude.dynamic import dynamic_mask, fit_exposure, hsv_squared_difference, masked_median, upsample_mask
 from nodes.occlude.stacks import TimelapseStore, scale_matrix
 
 
@@ -172,3 +172,48 @@ def test_moved_fixed_camera_frames_are_dropped() -> None:
     assert "moved" not in store.aligned_stack("p0").photo_ids
     assert store.aligned_stack("p0").num_views == 2
     assert store.aligned_stack("moved").num_views == 0
+
+
+def test_upsample_mask_matches_full_resize_at_odd_scale() -> None:
+    rng = np.random.default_rng(12)
+    photo = textured_background(rng, 563, 1000)
+    soft = np.zeros((135, 240), np.float32)
+    cv2.circle(soft, (120, 60), 30, 1.0, -1)
+    up = upsample_mask(soft, photo, radius_px=0, eps=1e-3)
+    ref = cv2.resize(soft, (1000, 563), interpolation=cv2.INTER_LINEAR) > 0.5
+    assert up.shape == (563, 1000)
+    assert iou(up, ref) > 0.98
+    assert not upsample_mask(np.zeros_like(soft), photo, 8, 1e-3).any()
+
+
+def test_dynamic_mask_at_odd_resolution() -> None:
+    frames = dynamic_sequence(13, 4, h=563, w=1000, gains=(1.0, 0.9, 1.1, 1.0), jitter_px=0.0)
+    store = _store(frames, working_width_px=480)
+    res = dynamic_mask(frames[1].image, store.frames["p1"].image_small, store.aligned_stack("p1"))
+    assert res.mask.shape == (563, 1000) and res.background is not None and res.background.shape == (563, 1000, 3)
+    assert iou(res.mask, frames[1].truth) > 0.85
+
+
+def test_clouds_ignored_white_vehicle_kept() -> None:
+    rng = np.random.default_rng(21)
+    h, w = 270, 480
+    ground = textured_background(rng, h, w)
+    frames, truths = [], []
+    for i in range(4):
+        img = ground.copy()
+        img[: h // 3] = (235, 200, 170)  # blue sky (BGR)
+        cloud_x = 60 + 110 * i
+        cv2.ellipse(img, (cloud_x, 40), (50, 18), 0, 0, 360, (240, 240, 240), -1)  # a cloud that drifts
+        truth = np.zeros((h, w), np.uint8)
+        x0 = 40 + 100 * i
+        cv2.rectangle(truth, (x0, 170), (x0 + 60, 220), 255, -1)
+        img[truth > 0] = (245, 245, 245)  # a white cabin on the ground
+        frames.append(cv2.GaussianBlur(img, (3, 3), 0))
+        truths.append(truth)
+    store = TimelapseStore(working_width_px=480, refine_fixed_shift=False)
+    for i, img in enumerate(frames):
+        store.add_photo(f"p{i}", "cam", i, img)
+    for i in range(4):
+        res = dynamic_mask(frames[i], store.frames[f"p{i}"].image_small, store.aligned_stack(f"p{i}"))
+        assert not res.mask[: h // 3].any()  # the sky never holds an occluder
+        assert iou(res.mask, truths[i]) > 0.8

@@ -129,6 +129,7 @@ def write_ifc(building: Building, schedule: Schedule, path: Path, seed: int) -> 
     ws.CreationDate = _local_iso(first)
     ws.StartTime = _local_iso(first)
     task_ents = {}
+    task_times = {}
     for t in schedule.tasks:
         te = ifcopenshell.api.sequence.add_task(
             f, work_schedule=ws, name=t.name, identification=t.identification, predefined_type="CONSTRUCTION"
@@ -139,12 +140,18 @@ def write_ifc(building: Building, schedule: Schedule, path: Path, seed: int) -> 
             task_time=tt,
             attributes={"ScheduleStart": _local_iso(t.start_h), "ScheduleFinish": _local_iso(t.finish_h)},
         )
+        task_times[t.key] = tt
         task_ents[t.key] = te
     for t in schedule.tasks:
         if t.predecessor is not None:
             ifcopenshell.api.sequence.assign_sequence(
                 f, relating_process=task_ents[t.predecessor], related_process=task_ents[t.key]
             )
+    # edit_task_time and assign_sequence snap and cascade dates onto 09:00-17:00 working days; the
+    # synthetic schedule is exact to the minute, so its times are written last, directly.
+    for t in schedule.tasks:
+        task_times[t.key].ScheduleStart = _local_iso(t.start_h)
+        task_times[t.key].ScheduleFinish = _local_iso(t.finish_h)
     for e in building.elements:
         ifcopenshell.api.sequence.assign_product(f, relating_product=products[e.key], related_object=task_ents[e.task])
 

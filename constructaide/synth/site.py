@@ -29,7 +29,7 @@ from .schedule import hours_to_datetime, make_schedule
 from .sun import sun_azimuth_elevation_deg, sun_direction_world
 from .textures import make_textures, site_ground
 
-GENERATOR_VERSION = 7
+GENERATOR_VERSION = 8
 """Bump whenever outputs change; part of the ``ensure_site`` cache key."""
 
 _MATERIAL_RGBA = {

@@ -136,27 +136,30 @@ def hsv_squared_difference(a_bgr: F32, b_bgr: F32, saturation_weighted: bool = T
     return np.stack([dh * dh, ds * ds, dv * dv], axis=-1).astype(np.float32)
 
 
-def sky_like(bgr: F32) -> NDArray[np.bool_]:
-    """Bright, smooth, grey or blue pixels (h, w) of a float BGR image in [0, 1]: sky and clouds."""
+def sky_like(bgr: F32, max_std: float = 0.08) -> NDArray[np.bool_]:
+    """Bright, smooth (5x5 grey std < ``max_std``), grey or blue pixels (h, w) of a float BGR image in
+    [0, 1]: sky and clouds (cloud outlines included at the default ``max_std``)."""
     hsv = cv2.cvtColor(np.clip(bgr, 0.0, 1.0), cv2.COLOR_BGR2HSV)
     g = cv2.cvtColor(np.clip(bgr, 0.0, 1.0), cv2.COLOR_BGR2GRAY)
     mean = cv2.blur(g, (5, 5))
     std = np.sqrt(np.maximum(cv2.blur(g * g, (5, 5)) - mean * mean, 0.0))
     blue = (hsv[..., 0] > 180.0) & (hsv[..., 0] < 250.0)
-    return (hsv[..., 2] > 0.55) & ((hsv[..., 1] < 0.25) | blue) & (std < 0.04)
+    return (hsv[..., 2] > 0.55) & ((hsv[..., 1] < 0.25) | blue) & (std < max_std)
 
 
 def open_sky(photo_bgr: F32) -> NDArray[np.bool_]:
     """Sky-like pixels (h, w) of the photo connected to the top image border: open sky. A pixel of the
     photo that shows open sky cannot show an occluder (a white vehicle on the ground is sky-like in
     colour but not connected to the top through sky)."""
-    sky = sky_like(photo_bgr).astype(np.uint8)
-    n, labels = cv2.connectedComponents(sky, connectivity=4)
-    top = np.unique(labels[0][sky[0] > 0])
+    core = sky_like(photo_bgr, max_std=0.03).astype(np.uint8)  # strict: does not leak over bright ground
+    n, labels = cv2.connectedComponents(core, connectivity=4)
+    top = np.unique(labels[0][core[0] > 0])
     keep = np.zeros(n, bool)
     keep[top] = True
     keep[0] = False
-    return keep[labels]
+    sky = keep[labels].astype(np.uint8)
+    # cloud outlines are not smooth: take relaxed sky-like pixels within a few pixels of the open sky
+    return (cv2.dilate(sky, np.ones((9, 9), np.uint8)) > 0) & sky_like(photo_bgr)
 
 
 def raw_score(photo: F32, other: F32, params: DynamicParams) -> F32:

@@ -968,7 +968,7 @@ def reconstruct(
         for u in sorted(unreg, key=lambda i: counts[i]):
             name = recon.images[u].name
             reason = f"only {counts[u]} matches to triangulated tracks (< {cfg.min_track_matches})"
-            recon.needs_anchor.append((name, reason, counts[u]))
+            recon.needs_anchor = [r for r in recon.needs_anchor if r[0] != name] + [(name, reason, counts[u])]
             clicks = pending.pop(name, None)
             if clicks is None and request_anchor is not None:
                 clicks = request_anchor(name, reason, counts[u])
