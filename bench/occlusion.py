@@ -37,7 +37,7 @@ from constructaide.bimgeom import glb_to_meshes  # noqa: E402
 from constructaide.camera import pixels_to_normalized  # noqa: E402
 from nodes.occlude.dynamic import DynamicParams, dynamic_mask  # noqa: E402
 from nodes.occlude.modeldepth import ModelRenderer  # noqa: E402
-from nodes.occlude.stacks import AlignedStack, TimelapseStore, working_size  # noqa: E402
+from nodes.occlude.stacks import AlignedStack, TimelapseStore, scale_matrix, working_size  # noqa: E402
 from nodes.occlude.static import (  # noqa: E402
     StaticParams,
     estimate_point_normals,
@@ -222,8 +222,11 @@ def time_full_hd(
     cam = sorted({p.group for p in photos if p.camera_id is not None})[0]
     frames = [p for p in photos if p.group == cam]
     jpegs = {}
+    up = {}  # full-res pixels of the original photo -> pixels of the 1920x1080 frame
     for p in frames:
-        img = cv2.resize(cv2.imread(str(p.path)), (1920, 1080), interpolation=cv2.INTER_CUBIC)
+        orig = cv2.imread(str(p.path))
+        up[p.photo_id] = scale_matrix(1920.0 / orig.shape[1])
+        img = cv2.resize(orig, (1920, 1080), interpolation=cv2.INTER_CUBIC)
         jpegs[p.photo_id] = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 90])[1].tobytes()
     times = []
     for _ in range(runs):
@@ -234,7 +237,7 @@ def time_full_hd(
             store.add_photo(p.photo_id, p.camera_id, p.capture_time_ns, img)
             for (a, b), H in groups.items():
                 if a == p.photo_id and b in store.frames or b == p.photo_id and a in store.frames:
-                    store.set_neighbours(a, {b: H * 1.0})  # homographies are in 960 px; fine for timing
+                    store.set_neighbours(a, {b: up[a] @ H @ np.linalg.inv(up[b])})
             stack = store.aligned_stack(p.photo_id)
             res = dynamic_mask(img, store.frames[p.photo_id].image_small, stack)
             cv2.imencode(".png", res.mask)
@@ -246,9 +249,9 @@ def time_full_hd(
                 small = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
                 maps = renderer.render(reg.intrinsics, reg.world_from_camera, w, h)
                 n, f = cloud_normals[p.rel]
-                st = static_mask(
-                    img, small, maps, reg.world_from_camera[:3, 3], reg.points_m, reg.pixels_px * 2.0, n, f, terrain
-                )
+                px = reg.pixels_px @ up[p.photo_id][:2, :2].T + up[p.photo_id][:2, 2]
+                c = reg.world_from_camera[:3, 3]
+                st = static_mask(img, small, maps, c, reg.points_m, px, n, f, terrain)
                 cv2.imencode(".png", st.mask)
             if stack.num_views:
                 times.append(time.perf_counter() - t0)

@@ -51,6 +51,8 @@ class ModelMaps:
 
 def scaled_intrinsics(intr: Intrinsics, width_px: int, height_px: int) -> Intrinsics:
     """Intrinsics of the same camera for an image resized to (width_px, height_px)."""
+    if intr.width_px <= 0 or intr.height_px <= 0 or intr.f_px <= 0:
+        raise ValueError(f"intrinsics need a positive image size and focal length, got {intr}")
     sx = width_px / intr.width_px
     sy = height_px / intr.height_px
     s = 0.5 * (sx + sy)

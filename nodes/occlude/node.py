@@ -220,6 +220,14 @@ class OccludeNode:
     def on_registration(self, msg: Registration, key: str) -> None:
         if msg.status == "failed" or msg.intrinsics is None or len(msg.world_from_camera) != 16:
             return
+        if msg.intrinsics.f_px <= 0:
+            raise ValueError(f"registration of {msg.photo_id}: focal length {msg.intrinsics.f_px} px is not positive")
+        if msg.intrinsics.width_px <= 0 or msg.intrinsics.height_px <= 0:
+            info = self.photos.get(msg.photo_id)
+            if info is None:
+                raise ValueError(f"registration of {msg.photo_id}: intrinsics without an image size")
+            intr = msgspec.structs.replace(msg.intrinsics, width_px=info.width_px, height_px=info.height_px)
+            msg = msgspec.structs.replace(msg, intrinsics=intr)
         self.registrations[msg.photo_id] = msg
         self.static_obs_count.pop(msg.photo_id, None)
         self._static(msg.photo_id)
