@@ -429,10 +429,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--site-dir", type=Path, default=None, help="an existing site folder instead of ensure_site")
     ap.add_argument(
         "--also-dynamic",
-        type=Path,
         action="append",
         default=[],
-        help="another site folder (e.g. the default size, longer time-lapses) scored for dynamic masks only",
+        help="another site, scored for dynamic masks only: a size name (ensure_site, e.g. default: longer "
+        "time-lapses) or a site folder",
     )
     ap.add_argument("--cache", type=Path, default=ROOT / ".cache" / "synth")
     ap.add_argument("--no-write", action="store_true", help="do not touch BENCHMARKS.md")
@@ -551,7 +551,10 @@ def main(argv: list[str] | None = None) -> int:
         f"**{med:.3f} s** "
         "(machine shared with other jobs while measured).",
     ]
-    for extra in args.also_dynamic:
+    for extra_arg in args.also_dynamic:
+        extra = Path(extra_arg)
+        if not extra.is_dir():
+            extra = ensure_site(extra_arg, args.seed, args.cache)
         ex_photos = load_photos(extra)
         ex_groups = sift_homographies(ex_photos)
         ex = evaluate_dynamic(extra, ex_photos, ex_groups, {}, None)

@@ -118,6 +118,13 @@ def test_node_fixed_camera_static_user_combined(scene) -> None:
                 where=lambda k, m, pid=p.photo_id: m.kind == "static" and m.photo_id == pid and m.num_views > 0
             )
             assert iou(_mask(st[-1][1]), scene.truth) > 0.7
+        # with its camera known, each frame's dynamic mask was redone once with the projected model
+        assert node.wait_idle(30.0)
+        dyn_msgs = [m for _, m in got.items if m.kind == "dynamic"]
+        assert [sum(m.photo_id == p.photo_id for m in dyn_msgs) for p in photos] == [3, 3, 2]
+        for i, p in enumerate(photos):
+            last = [m for m in dyn_msgs if m.photo_id == p.photo_id][-1]
+            assert iou(_mask(last), truths[i]) > 0.8
 
         poly = ((10.0, 10.0), (200.0, 10.0), (200.0, 120.0), (10.0, 120.0))
         ann = Annotation(site=SITE, annotation_id="a1", kind="occluder", photo_id=photos[1].photo_id, polygon_px=poly)

@@ -75,7 +75,10 @@ def test_misclick_is_flagged_and_excluded():
     [
         (lambda px, pts: (px[:3], pts[:3]), "at least 4"),
         (lambda px, pts: (np.c_[np.linspace(100, 900, 6), np.linspace(50, 500, 6)], pts[:6]), "pixels are collinear"),
-        (lambda px, pts: (px[:6], np.c_[np.linspace(0, 5, 6), np.linspace(0, 2, 6), np.ones(6)]), "points are collinear"),
+        (
+            lambda px, pts: (px[:6], np.c_[np.linspace(0, 5, 6), np.linspace(0, 2, 6), np.ones(6)]),
+            "points are collinear",
+        ),
         (lambda px, pts: (px[:5], np.vstack([pts[:2], pts[:2], pts[:1]])), "distinct"),
         (lambda px, pts: (px[:5], np.repeat(pts[:1], 5, axis=0)), "coincide"),
         (lambda px, pts: (np.where(np.arange(12)[:, None] == 2, np.nan, px[:12]), pts[:12]), "NaN"),

@@ -95,11 +95,9 @@ def test_bad_anchor_files_are_user_errors(tmp_path):
     import cv2
 
     cv2.imwrite(str(img_dir / "b.png"), np.zeros((32, 32), np.uint8))
+    anchors = _write(tmp_path, {"anchors": [{"image": "a.jpg", "points": four}]})
     with pytest.raises(UserError, match="not under"):
-        batch.main(
-            ["--images", str(img_dir), "--anchors", str(_write(tmp_path, {"anchors": [{"image": "a.jpg", "points": four}]})),
-             "--out", str(tmp_path / "out"), "--quiet"]
-        )  # fmt: skip
+        batch.main(["--images", str(img_dir), "--anchors", str(anchors), "--out", str(tmp_path / "out"), "--quiet"])
 
 
 @needs_temple

@@ -196,6 +196,7 @@ class OccludeNode:
                 # a new occluder look alike then); its stack now has one
                 self._dynamic(max(refine, key=lambda p: self.photos[p].capture_time_ns))
         self._static(msg.photo_id, img)
+        self._refresh_dynamic_with_region(msg.photo_id, img)
         self._user(msg.photo_id)
 
     @_flushing
@@ -231,14 +232,7 @@ class OccludeNode:
         self.registrations[msg.photo_id] = msg
         self.static_obs_count.pop(msg.photo_id, None)
         self._static(msg.photo_id)
-        # the projected model now tells where construction progress may change the scene
-        status = self.masks.get((msg.photo_id, "dynamic"), ("", b""))[0]
-        if (
-            status == "ok"
-            and not self.dynamic_used_region.get(msg.photo_id, False)
-            and msg.photo_id in self.model_region
-        ):
-            self._dynamic(msg.photo_id)
+        self._refresh_dynamic_with_region(msg.photo_id)
 
     @_flushing
     def on_sparse(self, msg: SparseCloud, key: str) -> None:
@@ -355,6 +349,13 @@ class OccludeNode:
             ok, buf = cv2.imencode(".jpg", res.background, [cv2.IMWRITE_JPEG_QUALITY, self.config.jpeg_quality])
             bg = buf.tobytes() if ok else b""
         self._publish(photo_id, "dynamic", res.status, res.mask, started, background_jpeg=bg, num_views=res.num_views)
+
+    def _refresh_dynamic_with_region(self, photo_id: str, img: U8 | None = None) -> None:
+        """Recompute a dynamic mask made before the projected model (where construction progress may
+        change the scene) was known for its photo."""
+        status = self.masks.get((photo_id, "dynamic"), ("", b""))[0]
+        if status == "ok" and not self.dynamic_used_region.get(photo_id, False) and photo_id in self.model_region:
+            self._dynamic(photo_id, img)
 
     def _terrain_height_m(self) -> float | None:
         """Configured ground level, else the model's, else the cloud's dominant horizontal surface."""

@@ -158,10 +158,12 @@ class TimelapseStore:
         b = cv2.cvtColor(self.frames[nid].image_small, cv2.COLOR_BGR2GRAY).astype(np.float32)
         win = cv2.createHanningWindow(a.shape[::-1], cv2.CV_32F)
         (dx, dy), response = cv2.phaseCorrelate(b, a, win)
-        H = np.eye(3)
+        H_small = np.eye(3)
         max_shift = 0.1 * a.shape[1]
         if response > 0.05 and abs(dx) < max_shift and abs(dy) < max_shift:
-            H[0, 2], H[1, 2] = dx / self.frames[photo_id].scale, dy / self.frames[photo_id].scale
+            H_small[0, 2], H_small[1, 2] = dx, dy
+        S = scale_matrix(self.frames[photo_id].scale)
+        H = np.linalg.inv(S) @ H_small @ scale_matrix(self.frames[nid].scale)
         self._shift_cache[key] = H
         self._shift_cache[(nid, photo_id)] = np.linalg.inv(H)
         return H

@@ -229,7 +229,10 @@ def run_batch(
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="constructaide register", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(
+        prog="constructaide register",
+        description="Register a folder of photos in the BIM frame from anchor clicks (model-assisted SfM, batch).",
+    )
     ap.add_argument("--images", required=True, type=Path, help="folder of photos (searched recursively)")
     ap.add_argument("--anchors", required=True, type=Path, help="anchor clicks JSON file")
     ap.add_argument("--out", required=True, type=Path, help="output folder for the COLMAP text model + report.json")

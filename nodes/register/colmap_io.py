@@ -89,9 +89,8 @@ def write_text_model(model: ColmapModel, out_dir: Path) -> None:
     for k, im in enumerate(model.images):
         cid = iid = k + 1
         x = im.intrinsics
-        cams.append(
-            f"{cid} RADIAL {x.width_px} {x.height_px} {_f(x.f_px)} {_f(x.cx_px + 0.5)} {_f(x.cy_px + 0.5)} {_f(x.k1)} {_f(x.k2)}"
-        )
+        params = " ".join(_f(v) for v in (x.f_px, x.cx_px + 0.5, x.cy_px + 0.5, x.k1, x.k2))
+        cams.append(f"{cid} RADIAL {x.width_px} {x.height_px} {params}")
         T = cam.invert_rigid(np.asarray(im.world_from_camera, dtype=np.float64))
         q = rotation_to_quaternion(T[:3, :3])
         t = T[:3, 3]
