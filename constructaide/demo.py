@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
+import os
 import sys
 import time
 import tomllib
@@ -25,7 +26,7 @@ from constructaide.runtime import BusConfig, free_port, open_bus
 from schemas import keys
 from schemas.messages import AnchorClicks, AnchorPoint, Photo
 
-PROCESSING_NODES = ("register", "occlude", "render")
+PROCESSING_NODES = tuple(os.environ.get("CONSTRUCTAIDE_DEMO_NODES", "register,occlude,render").split(","))
 
 
 def _anchor_messages(site: str, site_dir: Path, photos: dict[str, Photo]) -> list[AnchorClicks]:
@@ -38,7 +39,9 @@ def _anchor_messages(site: str, site_dir: Path, photos: dict[str, Photo]) -> lis
             continue
         pts = tuple(AnchorPoint(pixel_px=tuple(p["pixel"]), point_in_world_m=tuple(p["world"])) for p in a["points"])
         out.append(
-            AnchorClicks(site=site, photo_id=photo.photo_id, image_name=a["image"], points=pts, focal_px=doc.get("focal_px"))
+            AnchorClicks(
+                site=site, photo_id=photo.photo_id, image_name=a["image"], points=pts, focal_px=doc.get("focal_px")
+            )
         )
     return out
 
@@ -130,14 +133,17 @@ def main(argv: list[str]) -> int:
         print("[5/5] stopping nodes", file=sys.stderr)
         exit_codes = launcher.stop_all()
 
-    for _, m in regs.items:
+    final = {m.photo_id: m for _, m in regs.items}  # the latest registration of each photo counts
+    for m in final.values():
         counts[f"registration {m.status}"] += 1
+    unanswered = len({photos[r].photo_id for r in order} - final.keys())
     summary = [
         ("photos pushed", len(order)),
         ("anchor click sets", len(anchors)),
         ("registered (anchor)", counts["registration anchor"]),
         ("registered (auto)", counts["registration auto"]),
         ("registration failed", counts["registration failed"]),
+        ("no registration yet", unanswered),
         ("needs anchor requests", len(needs.items)),
         ("occlusion masks", len(masks.items)),
         ("overlays", len(overlays.items)),
