@@ -194,14 +194,15 @@ def load_synth(site_dir: Path) -> list[GtCamera]:
 
 
 def synth_checkpoints(site_dir: Path, cams: list[GtCamera], per_photo: int = 60, seed: int = 0) -> np.ndarray:
-    """Checkpoints (N, 3) on visible surfaces: ground-truth depth maps back-projected at random pixels."""
-    from constructaide.synth.truth import load_depth
+    """Checkpoints (N, 3) on the building: ground-truth depth maps back-projected at random pixels that show a BIM
+    element (ground-truth ID image > 0), as overlays care about the model."""
+    from constructaide.synth.truth import load_depth, load_ids
 
     rng = np.random.default_rng(seed)
     pts = []
     for c in cams:
         depth = load_depth(site_dir, c.name)
-        vv, uu = np.nonzero(depth > 0)
+        vv, uu = np.nonzero((depth > 0) & (load_ids(site_dir, c.name) > 0))
         pick = rng.choice(len(uu), min(per_photo, len(uu)), replace=False)
         px = np.c_[uu[pick], vv[pick]].astype(np.float64)
         xy_d = (px - c.K[:2, 2]) / [c.K[0, 0], c.K[1, 1]]

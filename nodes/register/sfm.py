@@ -630,9 +630,10 @@ def triangulate_tracks(
     reg = np.array([im.registered for im in recon.images])
     tids, iids, fids = [], [], []
     candidates = range(len(recon.track_obs)) if only is None else only
+    has_point = np.all(np.isfinite(recon.points), axis=1)
     for t in candidates:
         d = recon.track_obs[t]
-        if not retriangulate and np.all(np.isfinite(recon.points[t])):
+        if not retriangulate and has_point[t]:
             continue
         obs = [(i, f) for i, f in d.items() if reg[i]]
         if len(obs) < 2:

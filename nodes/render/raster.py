@@ -82,11 +82,14 @@ class RenderGeometry:
 
     ``render_intrinsics`` has no distortion; ``lookup_flat`` (H*W,) int64 indexes the render's
     flattened pixels (nearest neighbour) for every photo pixel, or is ``None`` when the photo has
-    no distortion and the render is the photo grid itself.
+    no distortion and the render is the photo grid itself. ``map_x``/``map_y`` (H, W) float32 are
+    the exact render coordinates for ``cv2.remap`` (bilinear resampling of colour renders).
     """
 
     render_intrinsics: Intrinsics
     lookup_flat: NDArray[np.int64] | None
+    map_x: NDArray[np.float32] | None = None
+    map_y: NDArray[np.float32] | None = None
 
 
 def projection_from_intrinsics(intr: Intrinsics, near_m: float, far_m: float) -> NDArray[np.float64]:
@@ -114,31 +117,55 @@ def render_geometry(intr: Intrinsics, margin_px: int = 4) -> RenderGeometry:
     if intr.k1 == 0.0 and intr.k2 == 0.0:
         return RenderGeometry(render_intrinsics=intr, lookup_flat=None)
     w, h = intr.width_px, intr.height_px
-    uu, vv = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    xy = pixels_to_normalized(intr, np.stack([uu.ravel(), vv.ravel()], axis=1))
+    xy = _undistorted_grid(intr).reshape(-1, 2)
     if not np.all(np.isfinite(xy)):
         raise ValueError(f"distortion k1={intr.k1}, k2={intr.k2} is not invertible over the image")
     f = intr.f_px
     xmin, ymin = xy.min(0)
     xmax, ymax = xy.max(0)
-    cx = -xmin * f + margin_px
-    cy = -ymin * f + margin_px
-    rw = int(np.ceil((xmax - xmin) * f)) + 2 * margin_px + 1
-    rh = int(np.ceil((ymax - ymin) * f)) + 2 * margin_px + 1
+    # Principal point on an integer pixel of the render grid.
+    cx = float(np.floor(-xmin * f) + margin_px)
+    cy = float(np.floor(-ymin * f) + margin_px)
+    rw = int(np.ceil((xmax - xmin) * f)) + 2 * margin_px + 2
+    rh = int(np.ceil((ymax - ymin) * f)) + 2 * margin_px + 2
     if rw * rh > 16 * w * h:
         raise ValueError(f"distortion k1={intr.k1}, k2={intr.k2} needs an unreasonably wide undistorted render")
     ru = np.clip(np.rint(xy[:, 0] * f + cx).astype(np.int64), 0, rw - 1)
     rv = np.clip(np.rint(xy[:, 1] * f + cy).astype(np.int64), 0, rh - 1)
     r_intr = Intrinsics(width_px=rw, height_px=rh, f_px=f, cx_px=cx, cy_px=cy)
-    return RenderGeometry(render_intrinsics=r_intr, lookup_flat=rv * rw + ru)
+    map_x = (xy[:, 0] * f + cx).astype(np.float32).reshape(h, w)
+    map_y = (xy[:, 1] * f + cy).astype(np.float32).reshape(h, w)
+    return RenderGeometry(render_intrinsics=r_intr, lookup_flat=rv * rw + ru, map_x=map_x, map_y=map_y)
+
+
+def _undistorted_grid(intr: Intrinsics, step_px: int = 8) -> NDArray[np.float64]:
+    """(H, W, 2) undistorted normalised coordinates of every photo pixel.
+
+    Exact inversion on a grid every ``step_px`` pixels, bilinear in between (the map is smooth:
+    error ~0.01 px), which is ~50x faster than inverting every pixel.
+    """
+    import cv2
+
+    w, h = intr.width_px, intr.height_px
+    gu = np.arange(0, w - 1 + step_px, step_px, dtype=np.float64)
+    gv = np.arange(0, h - 1 + step_px, step_px, dtype=np.float64)
+    uu, vv = np.meshgrid(gu, gv)
+    grid = pixels_to_normalized(intr, np.stack([uu.ravel(), vv.ravel()], axis=1)).reshape(len(gv), len(gu), 2)
+    mu, mv = np.meshgrid(np.arange(w, dtype=np.float32) / step_px, np.arange(h, dtype=np.float32) / step_px)
+    out = [cv2.remap(np.ascontiguousarray(grid[..., c], np.float32), mu, mv, cv2.INTER_LINEAR) for c in range(2)]
+    return np.stack(out, axis=-1).astype(np.float64)
 
 
 def scene_far_m(scene: BimScene, world_from_camera: NDArray[np.float64], extra_m: float = 0.0) -> float:
     """Far plane: distance from the camera to the farthest scene bbox corner, padded."""
     c = world_from_camera[:3, 3]
     corners = np.array(
-        [[x, y, z] for x in (scene.bbox_min_m[0], scene.bbox_max_m[0]) for y in (scene.bbox_min_m[1], scene.bbox_max_m[1])
-         for z in (scene.bbox_min_m[2], scene.bbox_max_m[2])]
+        [
+            [x, y, z]
+            for x in (scene.bbox_min_m[0], scene.bbox_max_m[0])
+            for y in (scene.bbox_min_m[1], scene.bbox_max_m[1])
+            for z in (scene.bbox_min_m[2], scene.bbox_max_m[2])
+        ]
     )
     return float(np.linalg.norm(corners - c, axis=1).max() * 1.5 + extra_m + 1.0)
 
@@ -166,6 +193,7 @@ class GLRasterizer:
         self._fbo = 0
         self._fbo_size = (0, 0)
         self._rbos: list[int] = []
+        self._last_depth_shade = np.zeros((0, 0, 2), np.float32)
         self._build_program()
 
     # -- GL plumbing --------------------------------------------------------------------------------
@@ -223,7 +251,14 @@ class GLRasterizer:
         GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MAG_FILTER, GL.GL_NEAREST)
         GL.glPixelStorei(GL.GL_UNPACK_ALIGNMENT, 1)
         GL.glTexImage2D(
-            GL.GL_TEXTURE_2D, 0, GL.GL_R8UI, _LUT_WIDTH, rows, 0, GL.GL_RED_INTEGER, GL.GL_UNSIGNED_BYTE,
+            GL.GL_TEXTURE_2D,
+            0,
+            GL.GL_R8UI,
+            _LUT_WIDTH,
+            rows,
+            0,
+            GL.GL_RED_INTEGER,
+            GL.GL_UNSIGNED_BYTE,
             np.zeros(_LUT_WIDTH * rows, np.uint8),
         )
         self._lut_shape = (rows, _LUT_WIDTH)
@@ -237,9 +272,7 @@ class GLRasterizer:
             GL.glDeleteBuffers(len(self._ground_buffers), self._ground_buffers)
         c = 0.5 * (scene.bbox_min_m + scene.bbox_max_m)
         x0, x1, y0, y1 = c[0] - extent_m, c[0] + extent_m, c[1] - extent_m, c[1] + extent_m
-        quad = np.array(
-            [[x0, y0], [x1, y0], [x1, y1], [x0, y0], [x1, y1], [x0, y1]], np.float64
-        )
+        quad = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y0], [x1, y1], [x0, y1]], np.float64)
         pos = np.column_stack([quad, np.full(6, ground_z_m)]).astype(np.float32)
         self._ground_vao, self._ground_buffers = self._make_vao(
             pos, np.full(6, GROUND_INDEX, np.uint32), np.full(6, 0.5, np.float32)
@@ -305,7 +338,15 @@ class GLRasterizer:
         GL.glBindTexture(GL.GL_TEXTURE_2D, self._lut_tex)
         GL.glPixelStorei(GL.GL_UNPACK_ALIGNMENT, 1)
         GL.glTexSubImage2D(
-            GL.GL_TEXTURE_2D, 0, 0, 0, self._lut_shape[1], self._lut_shape[0], GL.GL_RED_INTEGER, GL.GL_UNSIGNED_BYTE, lut
+            GL.GL_TEXTURE_2D,
+            0,
+            0,
+            0,
+            self._lut_shape[1],
+            self._lut_shape[0],
+            GL.GL_RED_INTEGER,
+            GL.GL_UNSIGNED_BYTE,
+            lut,
         )
 
         self._ensure_fbo(w, h)
@@ -341,6 +382,7 @@ class GLRasterizer:
         zs = np.empty((h, w, 2), np.float32)
         GL.glReadPixels(0, 0, w, h, GL.GL_RG, GL.GL_FLOAT, zs)
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, 0)
+        self._last_depth_shade = zs
         return RasterResult(ids=ids, depth_m=zs[..., 0], shade=zs[..., 1])
 
     def render(
@@ -364,15 +406,29 @@ class GLRasterizer:
             return raw
         shape = (intr.height_px, intr.width_px)
         idx = geo.lookup_flat
-        return RasterResult(
-            ids=raw.ids.ravel()[idx].reshape(shape),
-            depth_m=raw.depth_m.ravel()[idx].reshape(shape),
-            shade=raw.shade.ravel()[idx].reshape(shape),
-        )
+        zs = self._last_depth_shade.reshape(-1, 2)[idx].reshape(*shape, 2)
+        return RasterResult(ids=raw.ids.ravel()[idx].reshape(shape), depth_m=zs[..., 0], shade=zs[..., 1])
 
     def close(self) -> None:
-        """Free GL objects and the EGL context."""
+        """Free this rasterizer's GL objects (call on the owning thread).
+
+        The EGL context itself is left to process exit: pyrender's ``delete`` terminates the
+        process-wide EGL display, which would break every other live renderer in the process.
+        """
+        from OpenGL import GL
+
         try:
-            self.offscreen.delete()
-        except Exception:  # context may already be gone at interpreter exit
+            self.make_current()
+            if self._vao:
+                GL.glDeleteVertexArrays(1, [self._vao])
+                GL.glDeleteBuffers(len(self._buffers), self._buffers)
+            if self._fbo:
+                GL.glDeleteFramebuffers(1, [self._fbo])
+                GL.glDeleteRenderbuffers(len(self._rbos), self._rbos)
+            if self._lut_tex:
+                GL.glDeleteTextures([self._lut_tex])
+        except Exception:  # context already gone (interpreter exit)
             pass
+        self._vao = self._fbo = self._lut_tex = 0
+        self._scene = None
+        self._fbo_size = (0, 0)

@@ -1,0 +1,136 @@
+"""Render node: draws the BIM into every registered photo and publishes ``Overlay`` messages.
+
+Inputs: the BIM model (latched) and updates, photos (cached by photo_id, bounded), registrations
+(each newly registered photo gets one overlay per configured mode), occlusion masks (the
+``combined`` kind preferred; a newer mask re-renders the photo) and annotations (status
+annotations colour the progress mode). Output: ``constructaide/{site}/overlay/{mode}/{photo}``.
+The EGL context lives on the node's worker thread (created on first render).
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+
+import msgspec
+
+from constructaide.runtime import Input, NodeContext, NodeSpec, Output, run_node_cli
+from nodes.render.engine import ALL_MODES, RenderEngine, presets_path_ok
+from schemas import keys
+from schemas.messages import Annotation, BimModel, BimUpdate, OcclusionMask, Overlay, Photo, Registration
+
+
+class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    site: str = "demo"
+    modes: tuple[str, ...] = ("state4d", "progress", "xray", "future", "edges")
+    """Modes rendered for each registered photo (add "photoreal" for the slower composite)."""
+    max_width_px: int = 1920
+    """Photos wider than this are rendered downscaled."""
+    presets_file: str = ""
+    """TOML file with material / lighting presets for photoreal (see nodes/render/photoreal.py)."""
+    true_north_deg: float = 0.0
+    """True north, degrees counter-clockwise from the site's +y axis (sun direction in photoreal)."""
+    photo_cache: int = 64
+    composite: bool = True
+    """Publish the photo with the overlay blended in (RGB) instead of the RGBA layer alone."""
+
+
+class RenderNode:
+    def __init__(self, config: Config, ctx: NodeContext) -> None:
+        bad = [m for m in config.modes if m not in ALL_MODES]
+        if bad:
+            raise ValueError(f"unknown render modes {bad}; choose from {', '.join(ALL_MODES)}")
+        self.config = config
+        self.ctx = ctx
+        self.engine = RenderEngine(
+            max_width_px=config.max_width_px,
+            presets_file=presets_path_ok(config.presets_file),
+            true_north_deg=config.true_north_deg,
+        )
+        self.photos: OrderedDict[str, Photo] = OrderedDict()
+        self.registrations: dict[str, Registration] = {}
+        self.masks: dict[str, OcclusionMask] = {}
+
+    # -- inputs ---------------------------------------------------------------------------------------
+
+    def on_model(self, msg: BimModel, key: str) -> None:
+        self.engine.set_model(msg)
+        self.ctx.log.info("model %s: %d elements, %d tasks", msg.revision, len(msg.elements), len(msg.tasks))
+        self._render_all()
+
+    def on_update(self, msg: BimUpdate, key: str) -> None:
+        self.engine.apply_update(msg)
+        self._render_all()
+
+    def on_photo(self, msg: Photo, key: str) -> None:
+        self.photos[msg.photo_id] = msg
+        self.photos.move_to_end(msg.photo_id)
+        while len(self.photos) > self.config.photo_cache:
+            self.photos.popitem(last=False)
+        if msg.photo_id in self.registrations:
+            self._render(msg.photo_id)
+
+    def on_registration(self, msg: Registration, key: str) -> None:
+        if msg.status == "failed":
+            return
+        self.registrations[msg.photo_id] = msg
+        self._render(msg.photo_id)
+
+    def on_occlusion(self, msg: OcclusionMask, key: str) -> None:
+        old = self.masks.get(msg.photo_id)
+        if msg.status != "ok":
+            return
+        if old is not None and old.kind == "combined" and msg.kind != "combined":
+            return
+        self.masks[msg.photo_id] = msg
+        self._render(msg.photo_id)
+
+    def on_annotation(self, msg: Annotation, key: str) -> None:
+        self.engine.add_annotation(msg)
+        if msg.kind == "status" and "progress" in self.config.modes:
+            for pid in list(self.registrations):
+                self._render(pid, modes=("progress",))
+
+    # -- work -----------------------------------------------------------------------------------------
+
+    def _render_all(self) -> None:
+        for pid in list(self.registrations):
+            self._render(pid)
+
+    def _render(self, photo_id: str, modes: tuple[str, ...] | None = None) -> None:
+        photo = self.photos.get(photo_id)
+        reg = self.registrations.get(photo_id)
+        if photo is None or reg is None or self.engine.model is None:
+            return
+        for mode in modes or self.config.modes:
+            ov = self.engine.render(
+                photo, reg, mode, occlusion=self.masks.get(photo_id), composite_photo=self.config.composite
+            )
+            self.ctx.publish(keys.key(keys.OVERLAY, site=self.ctx.site, mode=mode, photo=photo_id), ov)
+
+    def close(self) -> None:
+        self.engine.close()
+
+
+SPEC = NodeSpec(
+    name="render",
+    description="BIM overlays (4D state, progress, x-ray, future, edges, photoreal) for every registered photo",
+    config_type=Config,
+    factory=RenderNode,
+    inputs=(
+        Input(keys.BIM_MODEL, BimModel, "on_model", latched=True),
+        Input(keys.BIM_UPDATE, BimUpdate, "on_update"),
+        Input(keys.PHOTO, Photo, "on_photo"),
+        Input(keys.REGISTRATION, Registration, "on_registration"),
+        Input(keys.OCCLUSION, OcclusionMask, "on_occlusion"),
+        Input(keys.ANNOTATION, Annotation, "on_annotation"),
+    ),
+    outputs=(Output(keys.OVERLAY, Overlay),),
+)
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_node_cli(SPEC, argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,131 @@
+"""Render node on the in-process bus, and the `constructaide render` CLI on an MCAP recording."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+import constructaide  # noqa: F401
+from constructaide.camera import pose_to_tuple
+from constructaide.errors import UserError
+from constructaide.runtime import start_node
+from constructaide.runtime.local import LocalBus
+from nodes.render.node import SPEC, Config
+from schemas import codec, keys
+from schemas.messages import Annotation, OcclusionMask, Overlay, Photo, Registration
+from tests.render_scenes import AT, camera, four_box_model
+
+
+def _photo_and_reg(site="t"):
+    intr, wfc = camera()
+    img = np.full((intr.height_px, intr.width_px, 3), 110, np.uint8)
+    ok, buf = cv2.imencode(".png", img)
+    assert ok
+    photo = Photo(
+        site=site,
+        photo_id="p0000000000000001",
+        camera_id="cam-a",
+        capture_time_ns=AT,
+        media_type="image/png",
+        data=buf.tobytes(),
+        width_px=intr.width_px,
+        height_px=intr.height_px,
+    )
+    reg = Registration(
+        site=site,
+        photo_id=photo.photo_id,
+        camera_id="cam-a",
+        capture_time_ns=AT,
+        intrinsics=intr,
+        world_from_camera=pose_to_tuple(wfc),
+        status="anchor",
+    )
+    return photo, reg
+
+
+def _png(data: bytes) -> np.ndarray:
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    assert img is not None
+    return img
+
+
+def test_render_node_publishes_overlays_for_registered_photos():
+    model = four_box_model()
+    photo, reg = _photo_and_reg()
+    cfg = Config(site="t", modes=("state4d", "progress", "edges"))
+    with LocalBus() as bus, start_node(SPEC, cfg, bus):
+        got = bus.collect(keys.pattern(keys.OVERLAY, site="t"))
+        bus.publish(keys.key(keys.BIM_MODEL, site="t"), model)
+        bus.publish(keys.key(keys.PHOTO, site="t", camera="cam-a"), photo)
+        bus.publish(keys.key(keys.REGISTRATION, site="t", camera="cam-a", photo=photo.photo_id), reg)
+        items = got.wait(count=3, timeout=60.0)
+        modes = {}
+        for key, msg in items:
+            assert isinstance(msg, Overlay) and msg.photo_id == photo.photo_id and msg.at_ns == AT
+            assert keys.parse(keys.OVERLAY, key)["mode"] == msg.mode
+            modes[msg.mode] = msg
+        assert set(modes) == {"state4d", "progress", "edges"}
+        img = _png(modes["progress"].image_png)
+        assert img.shape[:2] == (reg.intrinsics.height_px, reg.intrinsics.width_px)
+        assert (img != 110).any()
+        # A status annotation re-renders the progress overlay with the dark-blue "needs review" colour.
+        got2 = bus.collect(keys.pattern(keys.OVERLAY, site="t", mode="progress"))
+        ann = Annotation(
+            site="t",
+            annotation_id="a1",
+            kind="status",
+            element_ids=("A", "B", "C", "D"),
+            status="needs_review",
+            created_ns=AT - 1,
+        )
+        bus.publish(keys.key(keys.ANNOTATION, site="t", annotation="a1"), ann)
+        ((_, again),) = got2.wait(count=1, timeout=60.0)
+        blue = _png(again.image_png)  # BGR
+        assert ((blue[..., 0].astype(int) - blue[..., 2]) > 40).mean() > 0.05
+
+
+def test_render_cli_from_recording(tmp_path, capsys):
+    from nodes.recorder.mcapio import RecordingWriter
+    from nodes.render.cli import main
+
+    model = four_box_model()
+    photo, reg = _photo_and_reg()
+    mask = np.zeros((reg.intrinsics.height_px, reg.intrinsics.width_px), np.uint8)
+    mask[:, :100] = 255
+    ok, mpng = cv2.imencode(".png", mask)
+    occ = OcclusionMask(site="t", photo_id=photo.photo_id, kind="combined", mask_png=mpng.tobytes())
+    rec = tmp_path / "r.mcap"
+    with RecordingWriter(rec) as w:
+        w.write(keys.key(keys.BIM_MODEL, site="t"), codec.encode(model))
+        w.write(keys.key(keys.PHOTO, site="t", camera="cam-a"), codec.encode(photo))
+        w.write(keys.key(keys.REGISTRATION, site="t", camera="cam-a", photo=photo.photo_id), codec.encode(reg))
+        w.write(keys.key(keys.OCCLUSION, site="t", kind="combined", photo=photo.photo_id), codec.encode(occ))
+    out = tmp_path / "o.png"
+    assert main(["--photo", "p00000", "--mode", "state4d", "--out", str(out), "--recording", str(rec)]) == 0
+    img = _png(out.read_bytes())
+    assert (img[:, :100] == 110).all() and (img[:, 100:] != 110).any()  # occluded strip untouched
+    out2 = tmp_path / "f.png"
+    # Ten days earlier nothing was built yet, later everything incl. the slab E: state differs by date.
+    main(
+        [
+            "--photo",
+            "p00000",
+            "--mode",
+            "state4d",
+            "--at",
+            "2026-02-01T00:00",
+            "--out",
+            str(out2),
+            "--recording",
+            str(rec),
+        ]
+    )
+    assert (_png(out2.read_bytes()) == 110).mean() > (img == 110).mean()
+    out3 = tmp_path / "pr.png"
+    assert main(["--photo", "p00000", "--mode", "photoreal", "--out", str(out3), "--recording", str(rec)]) == 0
+    assert "sun az" in capsys.readouterr().out
+    with pytest.raises(UserError, match="no photo"):
+        main(["--photo", "zzz", "--mode", "edges", "--out", str(out), "--recording", str(rec)])
+    with pytest.raises(UserError, match="ISO 8601"):
+        main(["--photo", "p0", "--mode", "edges", "--at", "yesterday", "--out", str(out), "--recording", str(rec)])
