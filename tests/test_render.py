@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from render_scenes import AT, camera, four_box_model
 
 import constructaide  # noqa: F401  (EGL platform)
 from constructaide.camera import invert_rigid, project_points
@@ -21,7 +22,6 @@ from nodes.render.raster import GLRasterizer
 from nodes.render.scene import GROUND_INDEX, filter_mask, scene_from_model
 from nodes.render.sun import sun_direction_in_site, sun_position
 from schemas.messages import Annotation, BimElement, ElementFilter
-from tests.render_scenes import AT, camera, four_box_model
 
 
 @pytest.fixture(scope="module")

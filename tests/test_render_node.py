@@ -5,6 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from render_scenes import AT, camera, four_box_model
 
 import constructaide  # noqa: F401
 from constructaide.camera import pose_to_tuple
@@ -14,7 +15,6 @@ from constructaide.runtime.local import LocalBus
 from nodes.render.node import SPEC, Config
 from schemas import codec, keys
 from schemas.messages import Annotation, OcclusionMask, Overlay, Photo, Registration
-from tests.render_scenes import AT, camera, four_box_model
 
 
 def _photo_and_reg(site="t"):
@@ -129,3 +129,37 @@ def test_render_cli_from_recording(tmp_path, capsys):
         main(["--photo", "zzz", "--mode", "edges", "--out", str(out), "--recording", str(rec)])
     with pytest.raises(UserError, match="ISO 8601"):
         main(["--photo", "p0", "--mode", "edges", "--at", "yesterday", "--out", str(out), "--recording", str(rec)])
+
+
+def test_render_engine_applies_model_updates():
+    import msgspec
+    from render_scenes import box
+
+    from constructaide.bimgeom import meshes_to_glb
+    from nodes.render.engine import RenderEngine
+    from schemas.messages import BimElement, BimUpdate
+
+    model = four_box_model()
+    photo, reg = _photo_and_reg()
+    eng = RenderEngine()
+    try:
+        eng.set_model(model)
+        before = _png(eng.render(photo, reg, "state4d").image_png)
+        upd = BimUpdate(
+            site="t",
+            base_revision="r1",
+            revision="r2",
+            removed=("A",),
+            added=(BimElement(global_id="G", ifc_class="IfcWall", geometry_ref="G"),),
+            geometry_glb=meshes_to_glb({"G": box((-3.0, 0.0, 1.5), (2, 2, 3))}),
+        )
+        eng.apply_update(upd)
+        assert eng.model.revision == "r2" and "A" not in eng.scene.index_of and "G" in eng.scene.index_of
+        after = _png(eng.render(photo, reg, "state4d").image_png)
+        assert (before != after).any()
+        with pytest.raises(ValueError, match="base"):
+            eng.apply_update(msgspec.structs.replace(upd, base_revision="zz"))
+        with pytest.raises(ValueError, match="registration"):
+            eng.render(photo, msgspec.structs.replace(reg, status="failed"), "edges")
+    finally:
+        eng.close()

@@ -188,12 +188,12 @@ def composite(photo_rgb: NDArray[np.uint8], layer_rgba: NDArray[np.uint8]) -> ND
     """Alpha-blend an RGBA layer over an RGB photo of the same size."""
     if photo_rgb.shape[:2] != layer_rgba.shape[:2]:
         raise ValueError(f"photo {photo_rgb.shape[:2]} and overlay {layer_rgba.shape[:2]} differ in size")
-    a = cv2.cvtColor(layer_rgba[..., 3], cv2.COLOR_GRAY2RGB).astype(np.float32) * (1.0 / 255.0)
-    photo = photo_rgb.astype(np.float32)
-    out = cv2.add(
-        photo, cv2.multiply(cv2.subtract(np.ascontiguousarray(layer_rgba[..., :3]).astype(np.float32), photo), a)
-    )
-    return np.clip(out + 0.5, 0, 255).astype(np.uint8)
+    a = layer_rgba[..., 3]
+    a3 = cv2.merge([a, a, a])
+    # Integer blend: (photo * (255 - a) + rgb * a) / 255, rounded.
+    x = cv2.multiply(np.ascontiguousarray(photo_rgb), cv2.bitwise_not(a3), dtype=cv2.CV_16U)
+    y = cv2.multiply(np.ascontiguousarray(layer_rgba[..., :3]), a3, dtype=cv2.CV_16U)
+    return cv2.convertScaleAbs(cv2.add(x, y), alpha=1.0 / 255.0)
 
 
 @dataclass(frozen=True)

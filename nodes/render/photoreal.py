@@ -253,17 +253,26 @@ class PhotorealRenderer:
         sun_pose[:3, :3] = np.stack([x, np.cross(z, x), z], 1)
         intensity = self.library.lighting.sun_intensity * float(np.clip(s[2] * 4.0, 0.0, 1.0))
         off = self.rasterizer.offscreen
-        off.viewport_width, off.viewport_height = ri.width_px, ri.height_px
         flags = pyrender.RenderFlags.SHADOWS_DIRECTIONAL if self.library.lighting.shadows else pyrender.RenderFlags.NONE
+        # The background-only render (ground proxy + its own shadows: smooth) is made at half resolution.
+        half = pyrender.IntrinsicsCamera(
+            ri.f_px / 2, ri.f_px / 2, (ri.cx_px + 0.5) / 2, (ri.cy_px + 0.5) / 2, znear=cam.znear, zfar=cam.zfar
+        )
+        full_size = (ri.width_px, ri.height_px)
+        half_size = ((ri.width_px + 1) // 2, (ri.height_px + 1) // 2)
         outs = []
-        for sc in (with_bim, without):
-            cn = sc.add(cam, pose=pose)
+        for sc, cm, size in ((with_bim, cam, full_size), (without, half, half_size)):
+            off.viewport_width, off.viewport_height = size
+            cn = sc.add(cm, pose=pose)
             ln = sc.add(pyrender.DirectionalLight(color=np.ones(3), intensity=intensity), pose=sun_pose)
             try:
                 color, depth = off.render(sc, flags=flags)
             finally:
                 sc.remove_node(cn)
                 sc.remove_node(ln)
+            if size != full_size:
+                color = cv2.resize(color, full_size, interpolation=cv2.INTER_LINEAR)
+                depth = cv2.resize(depth, full_size, interpolation=cv2.INTER_NEAREST)
             outs.append((color, depth))
         (c_with, _), (c_without, d_without) = outs
 
