@@ -212,3 +212,36 @@ def synth_checkpoints(site_dir: Path, cams: list[GtCamera], per_photo: int = 60,
         T = c.world_from_camera
         pts.append(p_cam @ T[:3, :3].T + T[:3, 3])
     return np.vstack(pts)
+
+
+def simulate_synth_clicks(
+    site_dir: Path, c: GtCamera, n_clicks: int = 12, noise_px: float = 1.0, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Simulated user clicks (pixels (N, 2), world (N, 3)) for one synthetic-site photo (evaluation code: reads
+    truth/). Candidate pixels show a BIM element (ground-truth ID image > 0) away from ID edges (the 5x5
+    neighbourhood shows the same element, so a click is not on a silhouette); N of them are spread over the
+    image by farthest-point sampling; world = ground-truth depth back-projected through the true camera (lens
+    distortion included); pixel = the true pixel + N(0, noise_px) noise."""
+    from constructaide.synth.truth import load_depth, load_ids
+
+    rng = np.random.default_rng(seed + sum(map(ord, c.name)))
+    depth = load_depth(site_dir, c.name).astype(np.float64)
+    ids = load_ids(site_dir, c.name)
+    same = (ids > 0) & (depth > 0)
+    for dv in (-2, 2):
+        same &= np.roll(ids, dv, axis=0) == ids
+    for du in (-2, 2):
+        same &= np.roll(ids, du, axis=1) == ids
+    same[:3], same[-3:], same[:, :3], same[:, -3:] = False, False, False, False
+    vv, uu = np.nonzero(same)
+    if len(uu) < n_clicks:
+        raise ValueError(f"{c.name}: only {len(uu)} clickable BIM pixels")
+    sub = rng.choice(len(uu), min(len(uu), 20000), replace=False)
+    px_all = np.c_[uu[sub], vv[sub]].astype(np.float64)
+    pick = farthest_point_sample(px_all, n_clicks, rng)
+    px = px_all[pick]
+    xy = cam.undistort_normalized((px - c.K[:2, 2]) / [c.K[0, 0], c.K[1, 1]], c.k1, c.k2)
+    z = depth[px[:, 1].astype(int), px[:, 0].astype(int)]
+    T = c.world_from_camera
+    world = np.c_[xy * z[:, None], z] @ T[:3, :3].T + T[:3, 3]
+    return px + rng.normal(0.0, noise_px, px.shape), world

@@ -335,9 +335,12 @@ def evaluate_dynamic(
     groups: dict[tuple[str, str], np.ndarray],
     dyn_regs: dict[str, Registered],
     renderer: ModelRenderer | None,
+    store_kw: dict | None = None,
+    params: DynamicParams | None = None,
 ) -> DynamicEval:
     """Dynamic IoU per group (system and MOG2 baseline, all truth and transient truth)."""
-    store = TimelapseStore(working_width_px=480, max_views=6)
+    store = TimelapseStore(working_width_px=480, **(store_kw or {"max_views": 6}))
+    params = params or DynamicParams()
     images = {}
     for p in photos:
         images[p.rel] = cv2.imread(str(p.path))
@@ -368,7 +371,7 @@ def evaluate_dynamic(
             region = cv2.resize(maps.has_model.astype(np.uint8), (dw, dh), interpolation=cv2.INTER_NEAREST)
             region = cv2.dilate(region, np.ones((9, 9), np.uint8)) > 0
         stack = store.aligned_stack(p.photo_id)
-        res = dynamic_mask(img, frame.image_small, stack, DynamicParams(), region)
+        res = dynamic_mask(img, frame.image_small, stack, params, region)
         n_not_enough += res.status != "ok"
         dyn_masks[p.rel] = res.mask
         truth = truth_dyn[p.rel]

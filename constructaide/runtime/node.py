@@ -4,7 +4,9 @@ A node declares its inputs (key template, message type, handler method), outputs
 (a msgspec Struct with ``forbid_unknown_fields``). The runner subscribes, decodes payloads into
 Structs, and calls handlers sequentially on one worker thread fed by a bounded queue (a full
 queue blocks zenoh's delivery, which with congestion control BLOCK slows the publishers: no
-data is dropped). A payload that fails to decode, or a handler that raises, becomes a
+data is dropped). A node object may define ``on_idle()``: it runs after a message when the queue is empty (and at
+least every ``IDLE_EVERY`` messages), so handlers can mark work dirty and coalesce it. A
+payload that fails to decode, or a handler that raises, becomes a
 :class:`~schemas.messages.NodeError` on ``constructaide/{site}/errors``; the node keeps running.
 Readiness: after subscribing, the node declares the liveliness token
 ``constructaide/{site}/@live/{node}/{instance}``.
@@ -100,6 +102,7 @@ class NodeContext:
 
 
 _STOP = object()
+IDLE_EVERY = 16
 
 
 class RunningNode:
@@ -147,6 +150,8 @@ class RunningNode:
         self._queue.put((inp, key, payload))  # blocks when full: back-pressure
 
     def _run(self) -> None:
+        on_idle = getattr(self.obj, "on_idle", None)
+        since_idle = 0
         while True:
             item = self._queue.get()
             if item is _STOP:
@@ -154,9 +159,23 @@ class RunningNode:
             inp, key, payload = item
             try:
                 self._handle(inp, key, payload)
+                since_idle += 1
+                # Coalescing hook: work deferred by handlers runs when the queue is drained (or every
+                # IDLE_EVERY messages under a continuous stream, so it never starves).
+                if callable(on_idle) and (self._queue.empty() or since_idle >= IDLE_EVERY):
+                    since_idle = 0
+                    self._call_idle(on_idle)
             finally:
                 if self._queue.empty():
                     self.idle.set()
+
+    def _call_idle(self, on_idle: Callable[[], None]) -> None:
+        try:
+            on_idle()
+        except Exception as e:
+            self.errors += 1
+            self.ctx.log.debug("on_idle failed", exc_info=True)
+            self.ctx.error("on_idle", f"{type(e).__name__}: {e}")
 
     def _handle(self, inp: Input, key: str, payload: bytes) -> None:
         try:

@@ -47,6 +47,10 @@ class DynamicParams:
     fill_holes: bool = True
     ghost_ratio: float = 1.0  # 0 disables ghost removal (see remove_ghosts)
     temporal_guard: bool = True  # the photo must also differ from its nearest earlier and later neighbours
+    # "nearest": guard against the nearest earlier and later neighbour; "sides": against the median of all
+    # earlier and the median of all later neighbours (with a time-spread stack a week-long occluder is gone
+    # in most of them, while built progress still matches the later side)
+    guard_mode: str = "nearest"
     ignore_sky: bool = True  # changes between sky-like pixels (clouds) are not occluders
     hue_saturation_weighted: bool = True
     bilateral_diameter_px: int = 9
@@ -203,19 +207,27 @@ def background_and_difference(
     background, count = masked_median(norm, stack.valid)
     raw = [raw_score(photo, background, params)]
     nearest: list[int] = []
+    guard_valid: list[NDArray[np.bool_]] = []
     if params.temporal_guard and stack.num_views >= 2 and len(stack.times_ns) == stack.num_views:
         dt = np.asarray(stack.times_ns, dtype=np.float64) - float(stack.photo_time_ns)
         sides = [np.flatnonzero(dt < 0), np.flatnonzero(dt >= 0)]
         nearest = [int(idx[np.argmin(np.abs(dt[idx]))]) for idx in sides if len(idx)]
         if len(nearest) == 1:  # all neighbours on one side: the two nearest
             nearest = [int(i) for i in np.argsort(np.abs(dt))[:2]]
-        raw += [raw_score(photo, norm[i], params) for i in nearest]
+        if params.guard_mode == "sides" and all(len(idx) for idx in sides):
+            for idx in sides:
+                side_bg, side_count = masked_median(norm[idx], stack.valid[idx])
+                raw.append(raw_score(photo, side_bg, params))
+                guard_valid.append(side_count > 0)
+        else:
+            raw += [raw_score(photo, norm[i], params) for i in nearest]
+            guard_valid += [stack.valid[i] for i in nearest]
     smoothed = smooth_scores(photo, raw, params)
     score = smoothed[0]
-    if nearest:
+    if guard_valid:
         guard = np.full(score.shape, np.inf, np.float32)
-        for i, s_i in zip(nearest, smoothed[1:], strict=True):
-            guard = np.minimum(guard, np.where(stack.valid[i], s_i, np.inf))
+        for v_i, s_i in zip(guard_valid, smoothed[1:], strict=True):
+            guard = np.minimum(guard, np.where(v_i, s_i, np.inf))
         capped = np.minimum(score, guard)
         score = capped if progress_region is None else np.where(progress_region, capped, score)
     if params.ignore_sky:

@@ -55,6 +55,27 @@ def alignment_ncc(a_bgr: U8, b_bgr: U8, valid: NDArray[np.bool_]) -> float:
     return float((x * y).sum() / den) if den > 0 else 0.0
 
 
+def spread_order(ids: list[str], times_ns: list[int], photo_time_ns: int) -> list[str]:
+    """Reorder neighbours (any order) for temporal diversity: the nearest earlier and the nearest later
+    one first, then a farthest-point sequence in capture time (each next pick maximises its time gap
+    to the photo and to the already picked ones), so any prefix spreads over the whole time span."""
+    if not ids:
+        return []
+    t = np.asarray(times_ns, dtype=np.float64) - float(photo_time_ns)
+    picked: list[int] = []
+    for side in (np.flatnonzero(t < 0), np.flatnonzero(t >= 0)):
+        if len(side):
+            picked.append(int(side[np.argmin(np.abs(t[side]))]))
+    rest = [i for i in range(len(ids)) if i not in picked]
+    chosen_t = [0.0] + [t[i] for i in picked]
+    while rest:
+        gaps = [min(abs(t[i] - c) for c in chosen_t) for i in rest]
+        j = rest.pop(int(np.argmax(gaps)))
+        picked.append(j)
+        chosen_t.append(t[j])
+    return [ids[i] for i in picked]
+
+
 @dataclass
 class StackFrame:
     """One stored photo at working resolution. ``image_small``: uint8 BGR (h, w, 3)."""
@@ -103,6 +124,9 @@ class TimelapseStore:
     min_overlap: float = 0.3
     refine_fixed_shift: bool = True
     min_fixed_ncc: float = 0.5  # a fixed camera's frame is dropped when it aligns worse than this (camera moved)
+    # "nearest": the max_views nearest in time; "spread": the nearest earlier and later neighbours first,
+    # then neighbours spread evenly over the whole time span (an occluder that stays a week is gone weeks later)
+    selection: str = "nearest"
     frames: dict[str, StackFrame] = field(default_factory=dict)
     # (this, neighbour) -> this_from_neighbour in full-resolution pixels
     homographies: dict[tuple[str, str], F64] = field(default_factory=dict)
@@ -181,6 +205,10 @@ class TimelapseStore:
             order = [
                 n for n in order if abs(self.frames[n].capture_time_ns - frame.capture_time_ns) <= self.max_time_gap_ns
             ]
+        if self.selection == "spread":
+            order = spread_order(order, [self.frames[n].capture_time_ns for n in order], frame.capture_time_ns)
+        elif self.selection != "nearest":
+            raise ValueError(f"unknown stack selection {self.selection!r} (nearest or spread)")
         S_this = scale_matrix(frame.scale)
         images: list[U8] = []
         valids: list[NDArray[np.bool_]] = []

@@ -30,8 +30,9 @@ class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=Tr
     true_north_deg: float = 0.0
     """True north, degrees counter-clockwise from the site's +y axis (sun direction in photoreal)."""
     photo_cache: int = 64
-    composite: bool = True
-    """Publish the photo with the overlay blended in (RGB) instead of the RGBA layer alone."""
+    composite: bool = False
+    """Publish the photo with the overlay blended in (RGB) instead of the RGBA layer alone (the layer is
+    several times smaller on the bus and in recordings; dashboards draw it over the photo)."""
 
 
 class RenderNode:
@@ -49,6 +50,7 @@ class RenderNode:
         self.photos: OrderedDict[str, Photo] = OrderedDict()
         self.registrations: dict[str, Registration] = {}
         self.masks: dict[str, OcclusionMask] = {}
+        self.dirty: OrderedDict[str, tuple[str, ...]] = OrderedDict()  # photo_id -> modes to (re-)render
 
     # -- inputs ---------------------------------------------------------------------------------------
 
@@ -67,13 +69,13 @@ class RenderNode:
         while len(self.photos) > self.config.photo_cache:
             self.photos.popitem(last=False)
         if msg.photo_id in self.registrations:
-            self._render(msg.photo_id)
+            self._mark(msg.photo_id)
 
     def on_registration(self, msg: Registration, key: str) -> None:
         if msg.status == "failed":
             return
         self.registrations[msg.photo_id] = msg
-        self._render(msg.photo_id)
+        self._mark(msg.photo_id)
 
     def on_occlusion(self, msg: OcclusionMask, key: str) -> None:
         old = self.masks.get(msg.photo_id)
@@ -82,19 +84,29 @@ class RenderNode:
         if old is not None and old.kind == "combined" and msg.kind != "combined":
             return
         self.masks[msg.photo_id] = msg
-        self._render(msg.photo_id)
+        self._mark(msg.photo_id)
 
     def on_annotation(self, msg: Annotation, key: str) -> None:
         self.engine.add_annotation(msg)
         if msg.kind == "status" and "progress" in self.config.modes:
             for pid in list(self.registrations):
-                self._render(pid, modes=("progress",))
+                self._mark(pid, ("progress",))
 
     # -- work -----------------------------------------------------------------------------------------
 
+    def _mark(self, photo_id: str, modes: tuple[str, ...] | None = None) -> None:
+        """Queue a (re-)render; several triggers for one photo before the queue drains render once."""
+        wanted = self.dirty.get(photo_id, ())
+        self.dirty[photo_id] = tuple(self.config.modes) if modes is None else tuple(dict.fromkeys(wanted + modes))
+
+    def on_idle(self) -> None:
+        while self.dirty:
+            photo_id, modes = self.dirty.popitem(last=False)
+            self._render(photo_id, modes)
+
     def _render_all(self) -> None:
         for pid in list(self.registrations):
-            self._render(pid)
+            self._mark(pid)
 
     def _render(self, photo_id: str, modes: tuple[str, ...] | None = None) -> None:
         photo = self.photos.get(photo_id)
