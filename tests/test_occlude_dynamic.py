@@ -220,3 +220,67 @@ def test_clouds_ignored_white_vehicle_kept() -> None:
         ious.append(iou(res.mask, truths[i]))
     # the white cabin is kept although its colour is sky-like (one frame loses a part that matches pale ground)
     assert min(ious) > 0.6 and np.mean(ious) > 0.85
+
+
+def test_spread_order_covers_the_time_span() -> None:
+    from nodes.occlude.stacks import spread_order
+
+    days = [d for d in range(21) if d != 10]
+    ids = [f"d{d}" for d in days]
+    order = spread_order(ids, [d * 86_400 * 10**9 for d in days], 10 * 86_400 * 10**9)
+    assert order[:2] == ["d9", "d11"]  # the nearest earlier and later neighbours first (the photo is d10)
+    assert set(order[2:4]) == {"d0", "d20"}  # then the ends of the span
+    assert sorted(order) == sorted(ids)
+    # a spread stack of 6 reaches both ends of the time span; a nearest one stays within 3 days
+    frames = dynamic_sequence(8, 21, h=135, w=240)
+    spread = _store(frames, working_width_px=240, max_views=6, selection="spread")
+    nearest = _store(frames, working_width_px=240, max_views=6)
+    assert {"p0", "p20"} <= set(spread.aligned_stack("p10").photo_ids)
+    assert max(abs(int(n[1:]) - 10) for n in nearest.aligned_stack("p10").photo_ids) == 3
+    with pytest.raises(ValueError, match="selection"):
+        _store(frames[:2], selection="newest").aligned_stack("p0")
+
+
+def test_group_neighbour_with_parallax_is_dropped() -> None:
+    from nodes.occlude.stacks import alignment_tile_ncc
+
+    rng = np.random.default_rng(11)
+    base = textured_background(rng, 270, 480)
+    # the right half moved against the left half (near and far scene parts): one homography cannot align both
+    parallax = base.copy()
+    parallax[:, 240:] = np.roll(base, 9, axis=1)[:, 240:]
+    valid = np.ones((270, 480), bool)
+    assert alignment_tile_ncc(base, base, valid) > 0.9
+    assert alignment_tile_ncc(base, parallax, valid) < 0.25
+    store = TimelapseStore(working_width_px=480)
+    for pid, img in (("a", base), ("b", parallax), ("c", base)):
+        store.add_photo(pid, None, 0, img)
+    store.set_neighbours("a", {"b": np.eye(3), "c": np.eye(3)})
+    assert store.aligned_stack("a").photo_ids == ("c",)
+    loose = TimelapseStore(working_width_px=480, check_group_alignment=False)
+    for pid, img in (("a", base), ("b", parallax)):
+        loose.add_photo(pid, None, 0, img)
+    loose.set_neighbours("a", {"b": np.eye(3)})
+    assert loose.aligned_stack("a").photo_ids == ("b",)
+
+
+def test_two_pass_leaves_neighbour_occluders_out_of_the_background() -> None:
+    from nodes.occlude.dynamic import DynamicParams, background_and_difference
+
+    frames = dynamic_sequence(9, 3, gains=(1.0,) * 3, jitter_px=0.0)
+    store = _store(frames, working_width_px=480, refine_fixed_shift=False)
+    params = DynamicParams(temporal_guard=False)
+    region = (frames[1].truth > 0) & (frames[0].truth == 0)  # p1's vehicle over p0's background
+    assert region.sum() > 1000
+    bg1, _, _ = background_and_difference(store.frames["p0"].image_small, store.aligned_stack("p0"), params)
+    store.set_occluder_mask("p1", frames[1].truth)
+    store.set_occluder_mask("p2", frames[2].truth)
+    stack = store.aligned_stack("p0")
+    assert stack.occluded is not None and stack.occluded.shape == stack.valid.shape
+    bg2, _, _ = background_and_difference(store.frames["p0"].image_small, stack, params)
+    photo = frames[0].image.astype(np.float32) / 255.0
+    err1 = np.abs(bg1 - photo)[region].mean()
+    err2 = np.abs(bg2 - photo)[region].mean()
+    assert err2 < 0.03 < err1
+    with pytest.raises(ValueError, match="occluder mask"):
+        store.set_occluder_mask("p0", np.zeros((2, 2, 3)))

@@ -101,6 +101,12 @@ def test_node_fixed_camera_static_user_combined(scene) -> None:
         assert node.wait_idle(30.0)
         dyn_msgs = [m for _, m in got.items if m.kind == "dynamic"]
         assert [sum(m.photo_id == p.photo_id for m in dyn_msgs) for p in photos] == [2, 2, 1]
+        # two-pass: each frame's own mask is remembered, so the other frames' stacks leave it out
+        for i, p in enumerate(photos):
+            occ = node.obj.store.frames[p.photo_id].occluder_small
+            assert occ is not None
+            small_truth = cv2.resize(truths[i], occ.shape[::-1], interpolation=cv2.INTER_NEAREST) > 0
+            assert np.count_nonzero(occ & small_truth) > 0.8 * np.count_nonzero(small_truth)
 
         for p in photos:
             reg = Registration(

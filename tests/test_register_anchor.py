@@ -113,3 +113,42 @@ def test_bad_focal_prior_rejected():
     _, pts, px = setup(seed=8, n=6)
     with pytest.raises(DegenerateAnchors, match="focal"):
         solve_anchor(px, pts, W, H, focal_px=-3.0)
+
+
+def distorted_clicks(seed: int, n: int, k1: float, noise_px: float = 0.5, f_px: float = 1500.0):
+    """Clicks spread over the whole frame of a camera with radial distortion k1 (model points 8-14 m deep)."""
+    rng = np.random.default_rng(seed)
+    T = cam.look_at([0.0, -20.0, 3.0], [0.0, 0.0, 3.0])
+    intr = cam.centered_intrinsics(W, H, f_px, k1=k1)
+    # Pixels on a 4 x 3 grid reaching the corners, each at its own depth: non-coplanar and well spread.
+    uu, vv = np.meshgrid(np.linspace(60, W - 60, 4), np.linspace(60, H - 60, 3))
+    px_true = np.c_[uu.ravel(), vv.ravel()][:n]
+    depth = rng.uniform(8.0, 14.0, len(px_true))
+    xy = cam.pixels_to_normalized(intr, px_true)
+    pts = (np.c_[xy * depth[:, None], depth]) @ T[:3, :3].T + T[:3, 3]
+    return T, pts, px_true + rng.normal(0, noise_px, px_true.shape)
+
+
+def test_radial_distortion_estimated_from_spread_clicks():
+    T, pts, px = distorted_clicks(seed=5, n=12, k1=-0.08)
+    sol = solve_anchor(px, pts, W, H, focal_px=1500.0)
+    assert sol.distortion_solved
+    assert sol.intrinsics.k1 == pytest.approx(-0.08, abs=0.02)
+    assert sol.rms_px < 1.0
+    paper = solve_anchor(px, pts, W, H, focal_px=1500.0, solve_distortion=False)
+    assert not paper.distortion_solved and paper.intrinsics.k1 == 0.0
+    assert paper.rms_px > 2 * sol.rms_px  # the pinhole model cannot fit the distorted corners
+    assert cam.viewing_angle_deg(sol.world_from_camera, T) < cam.viewing_angle_deg(paper.world_from_camera, T)
+    assert cam.viewing_angle_deg(sol.world_from_camera, T) < 0.2
+
+
+def test_distortion_not_estimated_from_few_or_clustered_clicks():
+    _, pts, px = distorted_clicks(seed=6, n=7, k1=-0.08)
+    assert not solve_anchor(px, pts, W, H, focal_px=1500.0).distortion_solved  # < 8 clicks
+    T, pts, px = setup(seed=7, n=12)
+    centre = np.abs(px - [W / 2, H / 2]).max(1) < 300
+    if centre.sum() >= 4:
+        sol = solve_anchor(px[centre], pts[centre], W, H, focal_px=1500.0)
+        assert not sol.distortion_solved and sol.intrinsics.k1 == 0.0
+    with pytest.raises(DegenerateAnchors):
+        solve_anchor(px[:3], pts[:3], W, H, solve_distortion=True)

@@ -236,3 +236,18 @@ def test_retrieval_shortlist_keeps_neighbours():
     for k in range(n - 1):
         assert (k, k + 1) in pairs
     assert sfm.select_pairs(feats, sfm.SfmConfig()) == [(i, j) for i in range(n) for j in range(i + 1, n)]
+
+
+def test_pose_pair_agreement_rejects_a_wrong_pose(synthetic_run):
+    recon, poses, _, _ = synthetic_run
+    k = recon.index("view4")
+    im = recon.images[k]
+    thr = 2 * 0.01 * W
+    good = sfm._pose_pair_agreement(recon, k, im.intrinsics, im.world_from_camera, thr)
+    assert good > 0.9
+    # The same camera turned 150 degrees about the vertical (a view from the other side of the site).
+    wrong = im.world_from_camera.copy()
+    wrong[:3, :3] = cam.rodrigues_to_matrix([0.0, 0.0, np.radians(150.0)]) @ wrong[:3, :3]
+    wrong[:3, 3] = -wrong[:3, 3]
+    bad = sfm._pose_pair_agreement(recon, k, im.intrinsics, wrong, thr)
+    assert bad < sfm.SfmConfig().min_pose_pair_agreement

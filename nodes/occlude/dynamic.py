@@ -47,10 +47,7 @@ class DynamicParams:
     fill_holes: bool = True
     ghost_ratio: float = 1.0  # 0 disables ghost removal (see remove_ghosts)
     temporal_guard: bool = True  # the photo must also differ from its nearest earlier and later neighbours
-    # "nearest": guard against the nearest earlier and later neighbour; "sides": against the median of all
-    # earlier and the median of all later neighbours (with a time-spread stack a week-long occluder is gone
-    # in most of them, while built progress still matches the later side)
-    guard_mode: str = "nearest"
+    exclude_neighbour_occluders: bool = True  # two-pass: neighbours' known masks are left out of the median
     ignore_sky: bool = True  # changes between sky-like pixels (clouds) are not occluders
     hue_saturation_weighted: bool = True
     bilateral_diameter_px: int = 9
@@ -204,7 +201,12 @@ def background_and_difference(
         coef = fit_exposure(img, photo, stack.valid[i], params.exposure_iterations)
         np.multiply(img, coef[0], out=norm[i])
         norm[i] += coef[1]
-    background, count = masked_median(norm, stack.valid)
+    valid_bg: NDArray[np.bool_] = stack.valid
+    if params.exclude_neighbour_occluders and stack.occluded is not None:
+        # leave the neighbours' own occluders out of the median where another view still covers the pixel
+        clean: NDArray[np.bool_] = np.logical_and(stack.valid, np.logical_not(stack.occluded))
+        valid_bg = np.where(np.any(clean, axis=0, keepdims=True), clean, stack.valid).astype(np.bool_)
+    background, count = masked_median(norm, valid_bg)
     raw = [raw_score(photo, background, params)]
     nearest: list[int] = []
     guard_valid: list[NDArray[np.bool_]] = []
@@ -214,14 +216,8 @@ def background_and_difference(
         nearest = [int(idx[np.argmin(np.abs(dt[idx]))]) for idx in sides if len(idx)]
         if len(nearest) == 1:  # all neighbours on one side: the two nearest
             nearest = [int(i) for i in np.argsort(np.abs(dt))[:2]]
-        if params.guard_mode == "sides" and all(len(idx) for idx in sides):
-            for idx in sides:
-                side_bg, side_count = masked_median(norm[idx], stack.valid[idx])
-                raw.append(raw_score(photo, side_bg, params))
-                guard_valid.append(side_count > 0)
-        else:
-            raw += [raw_score(photo, norm[i], params) for i in nearest]
-            guard_valid += [stack.valid[i] for i in nearest]
+        raw += [raw_score(photo, norm[i], params) for i in nearest]
+        guard_valid += [stack.valid[i] for i in nearest]
     smoothed = smooth_scores(photo, raw, params)
     score = smoothed[0]
     if guard_valid:

@@ -50,7 +50,9 @@ class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=Tr
     site: str = "demo"
     working_width_px: int = 480  # dynamic masks are computed at this width, then upsampled
     static_working_width_px: int = 640  # static masks (model render, SLIC) at this width
-    max_views: int = 6  # stack size: neighbours nearest in capture time
+    max_views: int = 10  # stack size
+    stack_selection: str = "spread"  # "spread": nearest earlier + later, then spread over the time span; "nearest"
+    two_pass: bool = True  # stacks leave out the pixels of their neighbours' own dynamic masks (when known)
     refine_previous_frame: bool = True  # recompute a camera's previous newest frame once a later one arrives
     max_stored_photos: int = 2000  # photos kept for stacks and republishing; the oldest arrivals are dropped
     max_time_gap_days: float = 0.0  # 0: no limit on the time between a photo and its neighbours
@@ -142,8 +144,13 @@ class OccludeNode:
         self.ctx = ctx
         gap = int(config.max_time_gap_days * NS_PER_DAY) if config.max_time_gap_days > 0 else None
         self.store = TimelapseStore(
-            working_width_px=config.working_width_px, max_views=config.max_views, max_time_gap_ns=gap
+            working_width_px=config.working_width_px,
+            max_views=config.max_views,
+            max_time_gap_ns=gap,
+            selection=config.stack_selection,
         )
+        if config.stack_selection not in ("spread", "nearest"):
+            raise ValueError(f"stack_selection must be spread or nearest, got {config.stack_selection!r}")
         self.dyn_params = DynamicParams(threshold=config.dynamic_threshold)
         self.static_params = StaticParams(
             depth_margin_m=config.depth_margin_m, normal_angle_deg=config.normal_angle_deg
@@ -344,6 +351,8 @@ class OccludeNode:
         self.dynamic_used_region[photo_id] = region is not None
         self.dynamic_had_later[photo_id] = any(t > stack.photo_time_ns for t in stack.times_ns)
         res = dynamic_mask(img, self.store.frames[photo_id].image_small, stack, self.dyn_params, region)
+        if self.config.two_pass and res.status == "ok":
+            self.store.set_occluder_mask(photo_id, res.mask)
         bg = b""
         if res.background is not None:
             ok, buf = cv2.imencode(".jpg", res.background, [cv2.IMWRITE_JPEG_QUALITY, self.config.jpeg_quality])

@@ -76,6 +76,23 @@ def spread_order(ids: list[str], times_ns: list[int], photo_time_ns: int) -> lis
     return [ids[i] for i in picked]
 
 
+def alignment_tile_ncc(a_bgr: U8, b_bgr: U8, valid: NDArray[np.bool_], grid: int = 4, quantile: float = 25.0) -> float:
+    """``quantile`` percentile of :func:`alignment_ncc` over a ``grid`` x ``grid`` tiling (tiles less
+    than half covered by ``valid`` are skipped). A homography that leaves parallax lines up part of
+    the view only, so a quarter of its tiles correlate near 0 while the global NCC can still pass."""
+    h, w = valid.shape
+    values = []
+    for i in range(grid):
+        for j in range(grid):
+            rows, cols = slice(i * h // grid, (i + 1) * h // grid), slice(j * w // grid, (j + 1) * w // grid)
+            v = valid[rows, cols]
+            if v.size and v.mean() >= 0.5:
+                values.append(
+                    alignment_ncc(np.ascontiguousarray(a_bgr[rows, cols]), np.ascontiguousarray(b_bgr[rows, cols]), v)
+                )
+    return float(np.percentile(values, quantile)) if values else 0.0
+
+
 @dataclass
 class StackFrame:
     """One stored photo at working resolution. ``image_small``: uint8 BGR (h, w, 3)."""
@@ -86,6 +103,7 @@ class StackFrame:
     image_small: U8
     scale: float
     full_size_px: tuple[int, int]  # (width, height) of the original photo
+    occluder_small: NDArray[np.bool_] | None = None  # (h, w) its own dynamic mask, once known (two-pass)
 
 
 @dataclass
@@ -102,6 +120,7 @@ class AlignedStack:
     photo_ids: tuple[str, ...] = ()
     times_ns: tuple[int, ...] = ()  # capture time of each neighbour
     photo_time_ns: int = 0
+    occluded: NDArray[np.bool_] | None = None  # (N, h, w) neighbour's own dynamic mask warped here, if known
 
     @property
     def num_views(self) -> int:
@@ -127,6 +146,11 @@ class TimelapseStore:
     # "nearest": the max_views nearest in time; "spread": the nearest earlier and later neighbours first,
     # then neighbours spread evenly over the whole time span (an occluder that stays a week is gone weeks later)
     selection: str = "nearest"
+    # check viewpoint-group neighbours that are not frames of the same fixed camera too: dropped when
+    # their NCC is below min_fixed_ncc or a quarter of their 4x4 tiles align worse than min_tile_ncc (a
+    # homography between photos taken from different spots leaves parallax that lights up the difference)
+    check_group_alignment: bool = True
+    min_tile_ncc: float = 0.25
     frames: dict[str, StackFrame] = field(default_factory=dict)
     # (this, neighbour) -> this_from_neighbour in full-resolution pixels
     homographies: dict[tuple[str, str], F64] = field(default_factory=dict)
@@ -145,6 +169,21 @@ class TimelapseStore:
             self.by_camera.setdefault(camera_id, []).append(photo_id)
         self.frames[photo_id] = frame
         return frame
+
+    def set_occluder_mask(self, photo_id: str, mask: NDArray[np.generic]) -> None:
+        """Remember a stored photo's dynamic mask (any size, non-zero = occluder); stacks of other
+        photos then leave those pixels out of their background where another view covers them."""
+        frame = self.frames[photo_id]
+        h, w = frame.image_small.shape[:2]
+        m = np.asarray(mask)
+        if m.ndim != 2:
+            raise ValueError(f"photo {photo_id}: occluder mask must be (H, W), got shape {m.shape}")
+        small = np.asarray(
+            cv2.resize((m > 0).astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST)
+            if m.shape != (h, w)
+            else (m > 0).astype(np.uint8)
+        )
+        frame.occluder_small = np.asarray(small > 0, dtype=bool)
 
     def set_neighbours(self, photo_id: str, this_from_neighbour: dict[str, F64]) -> None:
         """Record a viewpoint group: 3x3 homographies mapping neighbour pixels to ``photo_id``'s."""
@@ -213,6 +252,7 @@ class TimelapseStore:
         images: list[U8] = []
         valids: list[NDArray[np.bool_]] = []
         ids: list[str] = []
+        occluded: dict[int, NDArray[np.bool_]] = {}
         for nid in order:
             if len(ids) >= self.max_views:
                 break
@@ -229,15 +269,36 @@ class TimelapseStore:
                 continue
             if nid in fixed and alignment_ncc(frame.image_small, warped, valid) < self.min_fixed_ncc:
                 continue  # the camera was moved between the two frames
+            if (
+                self.check_group_alignment
+                and (frame.camera_id is None or nf.camera_id != frame.camera_id)
+                and (
+                    alignment_ncc(frame.image_small, warped, valid) < self.min_fixed_ncc
+                    or alignment_tile_ncc(frame.image_small, warped, valid) < self.min_tile_ncc
+                )
+            ):
+                continue  # photos taken from different spots: the homography leaves parallax
             images.append(warped)
             valids.append(valid)
             ids.append(nid)
+            if nf.occluder_small is not None:
+                occ = cv2.warpPerspective(
+                    nf.occluder_small.astype(np.uint8), H_small, (w, h), flags=cv2.INTER_NEAREST, borderValue=0
+                )
+                occluded[len(ids) - 1] = occ > 0
         if not images:
             empty = AlignedStack(photo_id, np.zeros((0, h, w, 3), np.uint8), np.zeros((0, h, w), bool))
             empty.photo_time_ns = frame.capture_time_ns
             return empty
         times = tuple(self.frames[n].capture_time_ns for n in ids)
-        return AlignedStack(photo_id, np.stack(images), np.stack(valids), tuple(ids), times, frame.capture_time_ns)
+        occ_all = None
+        if occluded:
+            occ_all = np.zeros((len(ids), h, w), bool)
+            for i, m in occluded.items():
+                occ_all[i] = m
+        return AlignedStack(
+            photo_id, np.stack(images), np.stack(valids), tuple(ids), times, frame.capture_time_ns, occ_all
+        )
 
     def warp_full_image(self, photo_id: str, neighbour_id: str, image: NDArray[np.generic]) -> NDArray[np.generic]:
         """Warp a full-resolution image of ``neighbour_id`` (e.g. a mask) into ``photo_id``'s working view

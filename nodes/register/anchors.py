@@ -24,6 +24,8 @@ from schemas.messages import Intrinsics
 DEFAULT_FOV_DEG = 50.0
 MIN_CLICKS = 4
 MIN_CLICKS_FOR_FOCAL = 6
+MIN_CLICKS_FOR_DISTORTION = 8
+DISTORTION_PRIOR_SIGMA = 0.1  # weak zero-mean prior on k1 (and k2), as their standard deviation
 
 
 class DegenerateAnchors(ValueError):
@@ -47,6 +49,7 @@ class AnchorSolution:
     outlier_mask: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     loo_errors_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
     outlier_threshold_px: float = float("nan")
+    distortion_solved: bool = False
 
 
 def _residuals(params: np.ndarray, pts: np.ndarray, px: np.ndarray, c: np.ndarray, f_fixed: float | None) -> np.ndarray:
@@ -57,6 +60,48 @@ def _residuals(params: np.ndarray, pts: np.ndarray, px: np.ndarray, c: np.ndarra
     z_safe = np.where(np.abs(z) < 1e-9, 1e-9, z)
     proj = f * p_cam[:, :2] / z_safe[:, None] + c
     return (proj - px).ravel()
+
+
+def _distortion_constrained(px: np.ndarray, pts: np.ndarray, width_px: int, height_px: int) -> bool:
+    """Whether clicks (N, 2) <-> (N, 3) constrain radial distortion: >= 8 non-coplanar clicks spread over the
+    image (bounding box >= 40 % of width and height, the farthest click >= 60 % of the half-diagonal out)."""
+    if len(px) < MIN_CLICKS_FOR_DISTORTION or _is_planar(pts):
+        return False
+    span = np.ptp(px, axis=0)
+    c = np.array([(width_px - 1) / 2.0, (height_px - 1) / 2.0])
+    r_max = float(np.max(np.linalg.norm(px - c, axis=1)))
+    return bool(span[0] >= 0.4 * width_px and span[1] >= 0.4 * height_px and r_max >= 0.6 * np.hypot(*c))
+
+
+def _refine_distortion(
+    params: np.ndarray, f: float, pts: np.ndarray, px: np.ndarray, c: np.ndarray, solve_focal: bool, with_k2: bool
+) -> tuple[np.ndarray, float, float, float]:
+    """LM over pose (, log f), k1 (, k2) from a pinhole solution, with a weak zero-mean prior on k1, k2.
+    Returns (rvec|tvec, f_px, k1, k2)."""
+    nk = 2 if with_k2 else 1
+
+    def res(x: np.ndarray) -> np.ndarray:
+        R = cam.rodrigues_to_matrix(x[:3])
+        p = pts @ R.T + x[3:6]
+        z = np.where(np.abs(p[:, 2]) < 1e-9, 1e-9, p[:, 2])
+        ff = float(np.exp(np.clip(x[6], -20.0, 20.0))) if solve_focal else f
+        k = x[-nk:]
+        xy = cam.distort_normalized(p[:, :2] / z[:, None], float(k[0]), float(k[1]) if with_k2 else 0.0)
+        prior = k / DISTORTION_PRIOR_SIGMA
+        return np.concatenate([(ff * xy + c - px).ravel(), prior])
+
+    x0 = np.concatenate([params[:6], [np.log(f)] if solve_focal else [], np.zeros(nk)])
+    sol = least_squares(res, x0, method="lm", x_scale="jac", max_nfev=400)
+    ff = float(np.exp(np.clip(sol.x[6], -20.0, 20.0))) if solve_focal else f
+    k = sol.x[-nk:]
+    return sol.x[:6].copy(), ff, float(k[0]), float(k[1]) if with_k2 else 0.0
+
+
+def _distorted_residuals(params, pts, px, c, f, k1, k2) -> np.ndarray:
+    R = cam.rodrigues_to_matrix(params[:3])
+    p = pts @ R.T + params[3:6]
+    z = np.where(np.abs(p[:, 2]) < 1e-9, 1e-9, p[:, 2])
+    return (f * cam.distort_normalized(p[:, :2] / z[:, None], k1, k2) + c - px).ravel()
 
 
 def _rms(res: np.ndarray) -> float:
@@ -201,6 +246,8 @@ def solve_anchor(
     focal_px: float | None = None,
     solve_focal: bool | None = None,
     min_outlier_px: float | None = None,
+    solve_distortion: bool | None = None,
+    solve_k2: bool = False,
 ) -> AnchorSolution:
     """Solve a camera from clicks: pixels (N, 2) OpenCV convention, world points (N, 3) in model units.
 
@@ -208,6 +255,10 @@ def solve_anchor(
     non-coplanar clicks solve it when there is no prior, or when solving halves the squared error of the prior;
     True forces it (needs >= 6 non-coplanar clicks); False keeps the prior.
     ``min_outlier_px`` (default 0.5% of the width, at least 3 px) is the smallest leave-one-out error flagged.
+    ``solve_distortion``: None = estimate radial k1 (and k2 with ``solve_k2``) after the pinhole solve when the
+    inlier clicks constrain it (>= 8 non-coplanar clicks spread over the image; weak zero prior, sigma 0.1)
+    and it lowers the squared error significantly (> 9 noise variances per parameter);
+    False = the paper's k1 = k2 = 0; True forces it. Mis-click detection runs on the pinhole model.
     Raises :class:`DegenerateAnchors` with a reason for unusable input.
     """
     px, pts = _validate(pixels_px, points_in_world)
@@ -278,9 +329,32 @@ def solve_anchor(
         residuals = np.linalg.norm(_residuals(params, pts, px, c, f).reshape(-1, 2), axis=1)
         rms = float(np.sqrt(np.mean(residuals[~outliers] ** 2)))
 
+    k1 = k2 = 0.0
+    keep = ~outliers
+    do_dist = (
+        bool(solve_distortion)
+        if solve_distortion is not None
+        else _distortion_constrained(px[keep], pts[keep], width_px, height_px)
+    )
+    if do_dist:
+        p_d, f_d, k1_d, k2_d = _refine_distortion(params, f, pts[keep], px[keep], c, do_focal, solve_k2)
+        res_d = np.linalg.norm(_distorted_residuals(p_d, pts, px, c, f_d, k1_d, k2_d).reshape(-1, 2), axis=1)
+        # Keep the distortion only when it explains significantly more than noise (in auto mode): the drop in
+        # squared error must exceed 9 noise variances per added parameter (variance from the distorted fit,
+        # at least (0.5 px)^2), so clicks on an undistorted lens keep k1 = 0 instead of fitting their noise.
+        n_par = 6 + int(do_focal) + (2 if solve_k2 else 1)
+        sse0, sse1 = float(np.sum(residuals[keep] ** 2)), float(np.sum(res_d[keep] ** 2))
+        var = max(sse1 / max(2 * int(keep.sum()) - n_par, 1), 0.25)
+        if solve_distortion or sse0 - sse1 > 9.0 * var * (n_par - 6 - int(do_focal)):
+            params, f, k1, k2, residuals = p_d, f_d, k1_d, k2_d, res_d
+            R = cam.rodrigues_to_matrix(params[:3])
+            rms = float(np.sqrt(np.mean(residuals[keep] ** 2)))
+        else:
+            do_dist = False
+
     camera_from_world = cam.rigid(R, params[3:6])
     return AnchorSolution(
-        intrinsics=cam.centered_intrinsics(width_px, height_px, f),
+        intrinsics=cam.centered_intrinsics(width_px, height_px, f, k1, k2),
         world_from_camera=cam.invert_rigid(camera_from_world),
         residuals_px=residuals,
         rms_px=rms,
@@ -288,4 +362,5 @@ def solve_anchor(
         outlier_mask=outliers,
         loo_errors_px=loo,
         outlier_threshold_px=threshold,
+        distortion_solved=do_dist,
     )

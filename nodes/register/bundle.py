@@ -126,6 +126,9 @@ class BundleOptions:
     click_weight: float = 1.0
     max_nfev: int = 50
     ftol: float = 1e-4
+    # Iteration cap of the inner LSMR solve of each trust-region step (None: SciPy's default, min(m, n)); an
+    # inexact step is fine for a trust-region method and most of the time is spent there.
+    lsmr_maxiter: int | None = 30
     # Optional focal prior per camera (C,) px and its standard deviation (C,) px (inf = no prior).
     focal_prior_px: np.ndarray | None = None
     focal_prior_sigma_px: np.ndarray | None = None
@@ -389,6 +392,7 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
                 jac=jacobian,
                 method="trf",
                 tr_solver="lsmr",
+                tr_options={} if opts.lsmr_maxiter is None else {"maxiter": opts.lsmr_maxiter},
                 loss=opts.loss,
                 f_scale=opts.loss_scale_px,
                 x_scale="jac",

@@ -57,11 +57,16 @@ class SfmConfig:
     fallback_min_track_matches: int = 25
     pnp_inlier_frac: float = 0.01
     min_pnp_inliers: int = 20
+    # A PnP pose must explain this fraction of the verified matches to registered images (epipolar check).
+    min_pose_pair_agreement: float = 0.7
     epipolar_weight: float = 1.0
     min_triangulation_angle_deg: float = 2.0
     max_obs_error_frac: float = 0.005
     min_obs_error_px: float = 3.0
     refine_distortion: bool = True
+    # Radial k1 in the anchor (click) solve: None = when the clicks constrain it (>= 8 spread, non-coplanar),
+    # False = the paper's k1 = k2 = 0, True = always.
+    anchor_distortion: bool | None = None
     refine_principal_point: bool = False
     # The paper holds anchor poses fixed (and carries points on anchor rays); False lets them move, constrained by
     # their clicks and feature tracks like any camera (a benchmark variant).
@@ -388,7 +393,9 @@ def register_anchor(recon: Reconstruction, idx: int, clicks: Clicks, cfg: SfmCon
     """Solve image ``idx`` from user clicks; marks it an anchor. Raises DegenerateAnchors."""
     im = recon.images[idx]
     px, world = np.asarray(clicks[0], float), np.asarray(clicks[1], float)
-    sol = solve_anchor(px, world, im.width_px, im.height_px, focal_px=focal_prior(im, cfg))
+    sol = solve_anchor(
+        px, world, im.width_px, im.height_px, focal_px=focal_prior(im, cfg), solve_distortion=cfg.anchor_distortion
+    )
     im.intrinsics, im.world_from_camera = sol.intrinsics, sol.world_from_camera
     im.status, im.method, im.anchor = "anchor", "anchor", sol
     im.solved_focal_px = sol.intrinsics.f_px if sol.focal_solved else None
@@ -451,7 +458,14 @@ def try_homography_transfer(recon: Reconstruction, anchor_idx: int, idx: int, cf
     if inside.sum() < 4:
         return False
     try:
-        sol = solve_anchor(warped[inside], world[inside], im.width_px, im.height_px, focal_px=focal_prior(im, cfg))
+        sol = solve_anchor(
+            warped[inside],
+            world[inside],
+            im.width_px,
+            im.height_px,
+            focal_px=focal_prior(im, cfg),
+            solve_distortion=cfg.anchor_distortion,
+        )
     except DegenerateAnchors:
         return False
     im.intrinsics, im.world_from_camera = sol.intrinsics, sol.world_from_camera
@@ -524,6 +538,33 @@ def solve_pose_epipolar(
     return sol.x[:3], sol.x[3:6], f
 
 
+def _pose_pair_agreement(
+    recon: Reconstruction, idx: int, intr: Intrinsics, world_from_camera: np.ndarray, thr_px: float
+) -> float:
+    """Fraction of the verified matches between image ``idx`` and registered images whose epipolar distance (px,
+    in image ``idx``) under the candidate pose is below ``thr_px`` (1.0 without such pairs). A pose fitted to
+    matches on repeated texture (the same lettering on two sides of a site) disagrees with the other matches."""
+    n_ok, n_all = 0, 0
+    for j in recon.registered_indices():
+        if j == idx:
+            continue
+        p = recon.pair(j, idx)
+        if p is None:
+            continue
+        m, _ = p
+        o = recon.images[j]
+        xj = cam.pixels_to_normalized(o.intrinsics, o.features.keypoints_px[m[:, 0]])
+        xi = cam.pixels_to_normalized(intr, recon.images[idx].features.keypoints_px[m[:, 1]])
+        T = cam.invert_rigid(world_from_camera) @ o.world_from_camera  # camera idx from camera j
+        tx = np.array([[0, -T[2, 3], T[1, 3]], [T[2, 3], 0, -T[0, 3]], [-T[1, 3], T[0, 3], 0]])
+        E = tx @ T[:3, :3]
+        ln = np.c_[xj, np.ones(len(xj))] @ E.T
+        d = np.abs(np.sum(ln[:, :2] * xi, axis=1) + ln[:, 2]) / np.maximum(np.linalg.norm(ln[:, :2], axis=1), 1e-12)
+        n_ok += int(np.sum(d * intr.f_px < thr_px))
+        n_all += len(m)
+    return n_ok / n_all if n_all else 1.0
+
+
 def register_image_pnp(recon: Reconstruction, idx: int, cfg: SfmConfig) -> bool:
     """Register image ``idx`` from its matches to triangulated tracks: PnP-RANSAC (inliers within
     ``pnp_inlier_frac`` of the width) then the epipolar-constrained refinement. Returns True on success."""
@@ -583,6 +624,13 @@ def register_image_pnp(recon: Reconstruction, idx: int, cfg: SfmConfig) -> bool:
     inliers = (err < thr) & (z > 0)
     if inliers.sum() < cfg.min_pnp_inliers:
         im.message = f"refined pose keeps {int(inliers.sum())} inliers (< {cfg.min_pnp_inliers})"
+        return False
+    agree = _pose_pair_agreement(recon, idx, intr, cam.invert_rigid(cam.rigid(R, tv)), 2 * thr)
+    if agree < cfg.min_pose_pair_agreement:
+        im.message = (
+            f"PnP pose explains only {agree:.0%} of the verified matches to registered images "
+            f"(< {cfg.min_pose_pair_agreement:.0%}; repeated texture?)"
+        )
         return False
     im.intrinsics = intr
     im.world_from_camera = cam.invert_rigid(cam.rigid(R, tv))

@@ -389,7 +389,7 @@ def refine_pose_focal(
 ) -> tuple[np.ndarray, Intrinsics, np.ndarray]:
     """LM refinement of a 6-DOF pose (and focal) on 2D-3D correspondences (N, 3) <-> (N, 2).
 
-    ``robust_px`` sets a Huber loss scale (None: plain least squares). Returns ``world_from_camera`` (4, 4),
+    ``robust_px`` sets a soft-L1 loss scale (None: plain least squares). Returns ``world_from_camera`` (4, 4),
     intrinsics and per-point residuals (N,) in pixels.
     """
     T = cam.invert_rigid(np.asarray(world_from_camera, np.float64))
@@ -399,7 +399,7 @@ def refine_pose_focal(
         sol = least_squares(_pose_residuals, x0, method="lm", args=args, x_scale="jac")
     else:
         sol = least_squares(
-            _pose_residuals, x0, method="trf", loss="huber", f_scale=robust_px, args=args, x_scale="jac", max_nfev=50
+            _pose_residuals, x0, method="trf", loss="soft_l1", f_scale=robust_px, args=args, x_scale="jac", max_nfev=50
         )
     R = cam.rodrigues_to_matrix(sol.x[:3])
     f = float(np.exp(sol.x[6])) if solve_focal else intr.f_px
@@ -972,6 +972,9 @@ class StreamingRegistrar:
             or float(cam.focal_from_fov(w, anchors.DEFAULT_FOV_DEG))
         )
         intr0 = cam.centered_intrinsics(w, h, f0)
+        known = self.tracks[photo.camera_id].intrinsics if photo.camera_id in self.tracks else None
+        if known is not None and (known.width_px, known.height_px) == (w, h) and not photo.focal_px:
+            intr0 = known  # a fixed camera's lens (focal, k1, k2) as last solved
         matches: dict[int, np.ndarray] = {}
         homographies: dict[int, tuple[np.ndarray | None, float, int]] = {}
         for ki in self._candidates(photo.camera_id, feats):
@@ -1065,7 +1068,7 @@ class StreamingRegistrar:
                 pts,
                 px,
                 cam.K_matrix(intr),
-                None,
+                np.array([intr.k1, intr.k2, 0.0, 0.0]),  # OpenCV's k1, k2 = the project's radial model
                 iterationsCount=1000,
                 reprojectionError=thr,
                 confidence=0.999,
