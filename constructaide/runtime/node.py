@@ -123,6 +123,8 @@ class RunningNode:
         self._topics: dict[str, str] = {}
         self._token: Any = None
         self.processed = 0
+        self.dropped_after_close = 0
+        self._closed = threading.Event()
         self.errors = 0
         self.idle = threading.Event()
         self.idle.set()
@@ -147,7 +149,15 @@ class RunningNode:
 
     def _enqueue(self, inp: Input, key: str, payload: bytes) -> None:
         self.idle.clear()
-        self._queue.put((inp, key, payload))  # blocks when full: back-pressure
+        # Blocks while the queue is full (back-pressure), but never past close(): a zenoh callback
+        # thread stuck here would keep the process from exiting.
+        while not self._closed.is_set():
+            try:
+                self._queue.put((inp, key, payload), timeout=0.2)
+                return
+            except queue.Full:
+                continue
+        self.dropped_after_close += 1
 
     def _run(self) -> None:
         on_idle = getattr(self.obj, "on_idle", None)
@@ -207,8 +217,9 @@ class RunningNode:
             s.close()
         self._subs.clear()
         if self._worker.is_alive():
-            self._queue.put(_STOP)
+            self._queue.put(_STOP)  # after everything already queued: nothing accepted is dropped
             self._worker.join(timeout=60)
+        self._closed.set()
         closer = getattr(self.obj, "close", None)
         if callable(closer):
             closer()
