@@ -14,7 +14,8 @@ ROOT = "constructaide"
 PHONE = "phone"
 
 PHOTO = "constructaide/{site}/photo/{camera}"
-UPLOAD = "constructaide/{site}/upload/{camera}"  # raw JPEG/PNG bytes from camera software (ingest turns them into Photo)
+# Raw JPEG/PNG bytes from camera software; the ingest node turns them into Photo messages.
+UPLOAD = "constructaide/{site}/upload/{camera}"
 BIM_MODEL = "constructaide/{site}/bim/model"
 BIM_UPDATE = "constructaide/{site}/bim/update"
 ANCHORS = "constructaide/{site}/anchors/{photo}"

@@ -107,10 +107,14 @@ SAMPLES = [
     ViewpointGroup(
         site=S,
         photo_id="p",
-        neighbours=(ViewpointNeighbour(photo_id="q", this_from_neighbour=(1.0,) * 9, inlier_ratio=0.9, num_matches=300),),
+        neighbours=(
+            ViewpointNeighbour(photo_id="q", this_from_neighbour=(1.0,) * 9, inlier_ratio=0.9, num_matches=300),
+        ),
     ),
     NeedsAnchor(site=S, photo_id="p", reason="no tracks", num_matched_tracks=3),
-    OcclusionMask(site=S, photo_id="p", kind="dynamic", status="ok", mask_png=b"png", background_jpeg=b"jpg", num_views=4),
+    OcclusionMask(
+        site=S, photo_id="p", kind="dynamic", status="ok", mask_png=b"png", background_jpeg=b"jpg", num_views=4
+    ),
     Overlay(
         site=S,
         photo_id="p",

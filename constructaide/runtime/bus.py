@@ -183,7 +183,9 @@ class BusConfig:
             mode=getattr(args, "mode", None) or "peer",
             listen=list(getattr(args, "listen", None) or []),
             connect=list(getattr(args, "connect", None) or []),
-            hub_port=int(getattr(args, "hub_port", None) or os.environ.get("CONSTRUCTAIDE_HUB_PORT", DEFAULT_HUB_PORT)),
+            hub_port=int(
+                getattr(args, "hub_port", None) or os.environ.get("CONSTRUCTAIDE_HUB_PORT") or DEFAULT_HUB_PORT
+            ),
         )
 
     def zenoh_config(self) -> Any:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable
+from typing import Any
 
 from constructaide.runtime.bus import Bus, Callback, Closeable, _Closer, ke_match, payload_of
 from schemas.messages import Message
@@ -22,6 +23,10 @@ class LocalBus(Bus):
         self._latched: dict[str, bytes] = {}
         self._next = 0
         self.published: list[str] = []
+
+    def _drop(self, table: dict[int, Any], entry_id: int) -> None:
+        with self._lock:
+            table.pop(entry_id, None)
 
     def _id(self) -> int:
         self._next += 1
@@ -44,7 +49,7 @@ class LocalBus(Bus):
             latched = [(k, v) for k, v in self._latched.items() if ke_match(keyexpr, k)] if fetch_latched else []
         for k, v in latched:
             callback(k, v)
-        return _Closer(lambda: self._subs.pop(sid, None))
+        return _Closer(lambda: self._drop(self._subs, sid))
 
     def declare_token(self, key: str) -> Closeable:
         with self._lock:
@@ -74,7 +79,7 @@ class LocalBus(Bus):
             current = [k for k in self._tokens.values() if ke_match(keyexpr, k)]
         for k in current:
             callback(k, True)
-        return _Closer(lambda: self._token_watchers.pop(wid, None))
+        return _Closer(lambda: self._drop(self._token_watchers, wid))
 
     def close(self) -> None:
         with self._lock:

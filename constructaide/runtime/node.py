@@ -138,14 +138,15 @@ class RunningNode:
             if inp.key.endswith("/**"):
                 ke = keys.site_pattern(self.site)
             self._topics[inp.handler] = ke
-            self._subs.append(
-                self.bus.subscribe(ke, lambda k, p, _i=inp: self._enqueue(_i, k, p), fetch_latched=inp.latched)
-            )
+            self._subs.append(self.bus.subscribe(ke, self._callback(inp), fetch_latched=inp.latched))
         instance = uuid.uuid4().hex[:8]
         self._token = self.bus.declare_token(
             keys.key(keys.LIVELINESS, site=self.site, node=self.spec.name, instance=instance)
         )
         return self
+
+    def _callback(self, inp: Input) -> Callable[[str, bytes], None]:
+        return lambda key, payload: self._enqueue(inp, key, payload)
 
     def _enqueue(self, inp: Input, key: str, payload: bytes) -> None:
         self.idle.clear()
