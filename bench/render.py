@@ -23,6 +23,7 @@ sys.path.insert(0, str(ROOT))
 import constructaide  # noqa: E402,F401  (EGL platform)
 from bench._report import median, table, write_section  # noqa: E402
 from constructaide.camera import centered_intrinsics, look_at  # noqa: E402
+from constructaide.gl import offscreen_renderer  # noqa: E402
 from nodes.render.engine import encode_png  # noqa: E402
 from nodes.render.overlays import MODES, ScheduleView, composite, render_overlay  # noqa: E402
 from nodes.render.photoreal import PhotorealRenderer  # noqa: E402
@@ -60,7 +61,7 @@ def _pyrender_baseline(scene, intr, wfc, runs: int) -> float:
     cam = pyrender.IntrinsicsCamera(intr.f_px, intr.f_px, intr.cx_px + 0.5, intr.cy_px + 0.5, znear=0.05, zfar=2000)
     pr.add(cam, pose=wfc @ np.diag([1.0, -1.0, -1.0, 1.0]))
     # Not deleted: pyrender's delete() terminates the process-wide EGL display (and our rasterizer's context).
-    r = pyrender.OffscreenRenderer(intr.width_px, intr.height_px)
+    r = offscreen_renderer(intr.width_px, intr.height_px)
     _KEEP.append(r)
     return _timed(lambda: r.render(pr, flags=pyrender.RenderFlags.SEG, seg_node_map=seg), runs)
 

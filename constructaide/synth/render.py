@@ -15,6 +15,7 @@ import pyrender
 from numpy.typing import NDArray
 
 from constructaide.camera import undistort_normalized
+from constructaide.gl import offscreen_renderer
 from schemas.messages import Intrinsics
 
 from .building import Building, Element
@@ -173,7 +174,7 @@ class SiteRenderer:
         self.sun = pyrender.DirectionalLight(color=np.ones(3), intensity=3.0)
         self.sun_node = self.scene.add(self.sun, pose=np.eye(4))
         self.camera_node: pyrender.Node | None = None
-        self.renderer = pyrender.OffscreenRenderer(64, 64)
+        self.renderer = offscreen_renderer(64, 64)
         # pyrender draws meshes in set order (memory addresses) and ties at shared edges go to the first drawn:
         # fix the order to insertion order so renders are byte-identical across runs.
         order = {n: i for i, n in enumerate(self._insertion_order)}

@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 
 import constructaide  # noqa: F401  (sets PYOPENGL_PLATFORM=egl before pyrender is imported)
 from constructaide.camera import pixels_to_normalized
+from constructaide.gl import offscreen_renderer
 from schemas.messages import Intrinsics
 
 F32 = NDArray[np.float32]
@@ -151,7 +152,7 @@ class ModelRenderer:
         assert self._scene is not None
         w, h = intr.width_px, intr.height_px
         if self._renderer is None:
-            self._renderer = pyrender.OffscreenRenderer(w, h)
+            self._renderer = offscreen_renderer(w, h)
         else:
             self._renderer.viewport_width, self._renderer.viewport_height = w, h
         # pyrender's cx is measured from the left edge of the image; ours from the first pixel centre.

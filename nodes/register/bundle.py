@@ -128,7 +128,7 @@ class BundleOptions:
     ftol: float = 1e-4
     # Iteration cap of the inner LSMR solve of each trust-region step (None: SciPy's default, min(m, n)); an
     # inexact step is fine for a trust-region method and most of the time is spent there.
-    lsmr_maxiter: int | None = 30
+    lsmr_maxiter: int | None = None
     # Optional focal prior per camera (C,) px and its standard deviation (C,) px (inf = no prior).
     focal_prior_px: np.ndarray | None = None
     focal_prior_sigma_px: np.ndarray | None = None

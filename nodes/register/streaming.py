@@ -46,6 +46,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from constructaide import camera as cam
+from constructaide.gl import offscreen_renderer
 from nodes.register import anchors, bundle, features
 from nodes.register.viewpoints import ViewpointGraph, rotation_deviation, rotation_homography
 from schemas.messages import Intrinsics, Registration
@@ -554,7 +555,7 @@ class MeshDepthLookup:
         if self._renderer is None or self._size != size:
             if self._renderer is not None:
                 self._renderer.delete()
-            self._renderer = pyrender.OffscreenRenderer(*size)
+            self._renderer = offscreen_renderer(*size)
             self._size = size
         parts = [self.meshes[n][0] for n in names] + ([self.ground[0]] if self.ground is not None else [])
         far = max(float(np.max(np.linalg.norm(v - world_from_camera[:3, 3], axis=1))) for v in parts) * 1.1 + 1.0

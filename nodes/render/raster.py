@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from constructaide.camera import invert_rigid, pixels_to_normalized
+from constructaide.gl import offscreen_renderer
 from nodes.render.scene import GROUND_INDEX, BimScene
 from schemas.messages import Intrinsics
 
@@ -178,9 +179,8 @@ class GLRasterizer:
     """
 
     def __init__(self) -> None:
-        import pyrender
 
-        self.offscreen = pyrender.OffscreenRenderer(64, 64)
+        self.offscreen = offscreen_renderer(64, 64)
         self._program = 0
         self._vao = 0
         self._buffers: list[int] = []
