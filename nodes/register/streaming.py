@@ -93,6 +93,9 @@ class StreamConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     min_triangulation_angle_deg: float = 2.0
     max_triangulation_error_px: float = 4.0
     confirm_tolerance: float = 0.02
+    min_pose_pair_agreement: float = 0.7
+    """Refuse automatic PnP poses under which fewer than this fraction of the matches to key images lie within
+    2 % of the width of their epipolar lines (repeated texture, e.g. hoarding lettering, gives such poses)."""
     trust_bim_depth: bool = False
     """Use BIM-depth points for other viewpoints before a second view confirms them (only where nothing
     unmodelled stands in front of the model)."""
@@ -1007,12 +1010,28 @@ class StreamingRegistrar:
         num_tracks = len(kp_to_point)
         result = None
         rejected = ""
+        method = "pnp"
         if num_tracks >= c.min_pnp_inliers:
             result = self._pnp(feats, kp_to_point, intr0, photo.focal_px is None)
-            if result is not None and not self._upright(result[1]):
-                rejected = f"; a PnP solution tilted {self._tilt_deg(result[1]):.0f} deg from upright was rejected"
-                result = None
-        method = "pnp"
+            result, why = self._check_pnp(result, feats, matches, kp_to_point, photo.capture_time_ns)
+            rejected += why
+        if result is None and not c.trust_bim_depth:
+            # Unconfirmed BIM-depth points of anchor images (wrong where something unmodelled stands in front):
+            # RANSAC keeps the consistent ones, and the pose must agree with the epipolar geometry of the matches.
+            extra = dict(kp_to_point)
+            for ki, m in matches.items():
+                if not self.keys[ki].is_anchor:
+                    continue
+                pids = self.keys[ki].point_ids[m[:, 1]]
+                for kp, pid in zip(m[:, 0], pids, strict=True):
+                    if pid >= 0 and int(kp) not in extra:
+                        extra[int(kp)] = int(pid)
+            if len(extra) > num_tracks and len(extra) >= c.min_pnp_inliers:
+                result = self._pnp(feats, extra, intr0, photo.focal_px is None)
+                result, why = self._check_pnp(result, feats, matches, extra, photo.capture_time_ns)
+                rejected += why
+                if result is not None:
+                    kp_to_point, num_tracks, method = extra, len(extra), "pnp-bim"
         if result is None:
             result = self._homography_transfer(feats, homographies, intr0)
             method = "homography"
@@ -1030,7 +1049,7 @@ class StreamingRegistrar:
             key.point_ids[kp] = pid
             self.map.obs[pid].append((kidx, int(kp)))
         changed = self._link_key_image(key, image, matches, homographies)
-        if c.local_ba and method == "pnp":
+        if c.local_ba and method in ("pnp", "pnp-bim"):
             self._local_ba(kidx, list(matches))
             intr, world_from_camera = key.intrinsics, key.world_from_camera
             rms = self._key_rms(kidx)
@@ -1040,6 +1059,65 @@ class StreamingRegistrar:
         msg = f"{prefix}full path: {method} with {num_inliers} inliers from {len(matches)} matched image(s)"
         reg = self._registration(photo, "auto", method, intr, world_from_camera, num_inliers, rms, msg, t0)
         return Outcome(reg, num_matched_tracks=num_tracks, viewpoint_changed=sorted(set(changed)), map_changed=True)
+
+    def _check_pnp(
+        self,
+        result,
+        feats: features.Features,
+        matches: dict[int, np.ndarray],
+        kp_to_point: dict[int, int],
+        capture_time_ns: int,
+    ):
+        """Refuse a PnP solution tilted too far from upright or explaining too few of the verified matches
+        (``min_pose_pair_agreement``; a pose fitted to repeated texture disagrees with the other matches).
+        Returns (result or None, why it was refused or "")."""
+        if result is None:
+            return None, ""
+        if not self._upright(result[1]):
+            return None, f"; a PnP solution tilted {self._tilt_deg(result[1]):.0f} deg from upright was rejected"
+        agree = self._pose_pair_agreement(result[0], result[1], feats, matches)
+        if agree < self.config.min_pose_pair_agreement:
+            return None, f"; a PnP solution agreeing with only {agree:.0%} of the verified matches was rejected"
+        pts = self.map.points()[[kp_to_point[int(k)] for k in result[4]]]
+        on_model = self._model_agreement(result[0], result[1], pts, capture_time_ns)
+        import sys; print("DBG agree", agree, "model", on_model, file=sys.stderr)
+        return result, ""
+
+    def _pose_pair_agreement(
+        self, intr: Intrinsics, world_from_camera: np.ndarray, feats: features.Features, matches: dict[int, np.ndarray]
+    ) -> float:
+        """Fraction of the matches (new keypoint, key keypoint) to key images whose epipolar distance (px, in the
+        new image) under the candidate pose is within 2 % of the width (1.0 without matches)."""
+        thr_px = 2 * self.config.pnp_inlier_fraction_of_width * intr.width_px
+        n_ok, n_all = 0, 0
+        for ki, m in matches.items():
+            o = self.keys[ki]
+            xj = cam.pixels_to_normalized(o.intrinsics, o.feats.keypoints_px[m[:, 1]].astype(np.float64))
+            xi = cam.pixels_to_normalized(intr, feats.keypoints_px[m[:, 0]].astype(np.float64))
+            T = cam.invert_rigid(world_from_camera) @ o.world_from_camera  # new camera from key camera
+            t = T[:3, 3]
+            if np.linalg.norm(t) < 1e-9:
+                continue  # same centre: no epipolar geometry
+            tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+            ln = np.c_[xj, np.ones(len(xj))] @ (tx @ T[:3, :3]).T
+            d = np.abs(np.sum(ln[:, :2] * xi, axis=1) + ln[:, 2]) / np.maximum(np.linalg.norm(ln[:, :2], axis=1), 1e-12)
+            n_ok += int(np.sum(d * intr.f_px < thr_px))
+            n_all += len(m)
+        return n_ok / n_all if n_all else 1.0
+
+    def _model_agreement(self, intr: Intrinsics, world_from_camera: np.ndarray, points_in_world: np.ndarray, t_ns: int):
+        """Fraction of points (N, 3) that the BIM surface seen from the candidate pose puts at their depth (within
+        ``confirm_tolerance`` of the range, or 0.2 m); None without a depth lookup."""
+        if self.depth_lookup is None or len(points_in_world) == 0:
+            return None
+        Tcw = cam.invert_rigid(world_from_camera)
+        px, z = _project(intr, Tcw, points_in_world)
+        try:
+            d = np.asarray(self.depth_lookup(world_from_camera, intr, px, t_ns), np.float64).reshape(-1)
+        except Exception:
+            return None
+        ok = np.isfinite(d) & (z > 0) & (np.abs(d - z) < np.maximum(self.config.confirm_tolerance * z, 0.2))
+        return float(ok.mean())
 
     @staticmethod
     def _tilt_deg(world_from_camera: np.ndarray) -> float:
