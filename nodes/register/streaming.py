@@ -1013,25 +1013,8 @@ class StreamingRegistrar:
         method = "pnp"
         if num_tracks >= c.min_pnp_inliers:
             result = self._pnp(feats, kp_to_point, intr0, photo.focal_px is None)
-            result, why = self._check_pnp(result, feats, matches, kp_to_point, photo.capture_time_ns)
+            result, why = self._check_pnp(result, feats, matches)
             rejected += why
-        if result is None and not c.trust_bim_depth:
-            # Unconfirmed BIM-depth points of anchor images (wrong where something unmodelled stands in front):
-            # RANSAC keeps the consistent ones, and the pose must agree with the epipolar geometry of the matches.
-            extra = dict(kp_to_point)
-            for ki, m in matches.items():
-                if not self.keys[ki].is_anchor:
-                    continue
-                pids = self.keys[ki].point_ids[m[:, 1]]
-                for kp, pid in zip(m[:, 0], pids, strict=True):
-                    if pid >= 0 and int(kp) not in extra:
-                        extra[int(kp)] = int(pid)
-            if len(extra) > num_tracks and len(extra) >= c.min_pnp_inliers:
-                result = self._pnp(feats, extra, intr0, photo.focal_px is None)
-                result, why = self._check_pnp(result, feats, matches, extra, photo.capture_time_ns)
-                rejected += why
-                if result is not None:
-                    kp_to_point, num_tracks, method = extra, len(extra), "pnp-bim"
         if result is None:
             result = self._homography_transfer(feats, homographies, intr0)
             method = "homography"
@@ -1049,7 +1032,7 @@ class StreamingRegistrar:
             key.point_ids[kp] = pid
             self.map.obs[pid].append((kidx, int(kp)))
         changed = self._link_key_image(key, image, matches, homographies)
-        if c.local_ba and method in ("pnp", "pnp-bim"):
+        if c.local_ba and method == "pnp":
             self._local_ba(kidx, list(matches))
             intr, world_from_camera = key.intrinsics, key.world_from_camera
             rms = self._key_rms(kidx)
@@ -1060,14 +1043,7 @@ class StreamingRegistrar:
         reg = self._registration(photo, "auto", method, intr, world_from_camera, num_inliers, rms, msg, t0)
         return Outcome(reg, num_matched_tracks=num_tracks, viewpoint_changed=sorted(set(changed)), map_changed=True)
 
-    def _check_pnp(
-        self,
-        result,
-        feats: features.Features,
-        matches: dict[int, np.ndarray],
-        kp_to_point: dict[int, int],
-        capture_time_ns: int,
-    ):
+    def _check_pnp(self, result, feats: features.Features, matches: dict[int, np.ndarray]):
         """Refuse a PnP solution tilted too far from upright or explaining too few of the verified matches
         (``min_pose_pair_agreement``; a pose fitted to repeated texture disagrees with the other matches).
         Returns (result or None, why it was refused or "")."""
@@ -1078,9 +1054,6 @@ class StreamingRegistrar:
         agree = self._pose_pair_agreement(result[0], result[1], feats, matches)
         if agree < self.config.min_pose_pair_agreement:
             return None, f"; a PnP solution agreeing with only {agree:.0%} of the verified matches was rejected"
-        pts = self.map.points()[[kp_to_point[int(k)] for k in result[4]]]
-        on_model = self._model_agreement(result[0], result[1], pts, capture_time_ns)
-        import sys; print("DBG agree", agree, "model", on_model, file=sys.stderr)
         return result, ""
 
     def _pose_pair_agreement(
@@ -1104,20 +1077,6 @@ class StreamingRegistrar:
             n_ok += int(np.sum(d * intr.f_px < thr_px))
             n_all += len(m)
         return n_ok / n_all if n_all else 1.0
-
-    def _model_agreement(self, intr: Intrinsics, world_from_camera: np.ndarray, points_in_world: np.ndarray, t_ns: int):
-        """Fraction of points (N, 3) that the BIM surface seen from the candidate pose puts at their depth (within
-        ``confirm_tolerance`` of the range, or 0.2 m); None without a depth lookup."""
-        if self.depth_lookup is None or len(points_in_world) == 0:
-            return None
-        Tcw = cam.invert_rigid(world_from_camera)
-        px, z = _project(intr, Tcw, points_in_world)
-        try:
-            d = np.asarray(self.depth_lookup(world_from_camera, intr, px, t_ns), np.float64).reshape(-1)
-        except Exception:
-            return None
-        ok = np.isfinite(d) & (z > 0) & (np.abs(d - z) < np.maximum(self.config.confirm_tolerance * z, 0.2))
-        return float(ok.mean())
 
     @staticmethod
     def _tilt_deg(world_from_camera: np.ndarray) -> float:
