@@ -10,6 +10,7 @@ import pytest
 from test_register_stream_scene import PlaneScene, anchor_clicks, encode_jpeg, jitter, mast_camera
 
 from constructaide import camera as cam
+from nodes.register import features
 from nodes.register.anchors import DegenerateAnchors
 from nodes.register.streaming import FrameImage, PhotoInput, StreamConfig, StreamingRegistrar
 from nodes.register.viewpoints import ViewpointGraph, rotation_deviation, rotation_homography
@@ -295,3 +296,31 @@ def test_bag_of_words_shortlist_ranks_the_matching_image_first() -> None:
     # A fixed camera's own key images come first.
     reg.keys[2].camera_id = "cam-x"
     assert reg._candidates("cam-x", feats(5))[:2] == [2, 5]
+
+
+def test_pose_pair_agreement_refuses_poses_that_contradict_the_matches(scene) -> None:
+    """A PnP pose must agree with the epipolar geometry of the verified matches to key images."""
+    intr, T = mast_camera(W, H)
+    ip = cam.centered_intrinsics(W, H, cam.focal_from_fov(W, 55.0))
+    Tp = cam.look_at((-6.0, -2.0, 1.7), (0.0, 16.0, 3.0))
+    px, pts = anchor_clicks(intr, T, noise_px=0.3)
+    outcomes = {}
+    for name, need in (("default", 0.7), ("impossible", 1.01)):
+        reg = StreamingRegistrar(
+            StreamConfig(trust_bim_depth=True, min_pose_pair_agreement=need), depth_lookup=scene.depth_lookup, site="t"
+        )
+        reg.register_anchor(photo(scene, "a0", intr, T), px, pts)
+        outcomes[name] = (reg, reg.register(photo(scene, "p0", ip, Tp, camera_id=None)))
+    reg, out = outcomes["default"]
+    assert out.registration.status == "auto" and out.registration.method == "pnp", out.registration.message
+    _, refused = outcomes["impossible"]
+    assert refused.registration.status == "failed" and refused.needs_anchor
+    assert "agreeing with only" in refused.registration.message
+    # Agreement itself: the true pose explains the matches, a pose turned 10 deg about the vertical does not.
+    p = photo(scene, "p1", ip, Tp, camera_id=None)
+    feats = features.extract_features(p.image.gray(), 4000, None)
+    m = features.match_features(feats, reg.keys[0].feats, 0.8)
+    assert len(m) > 100
+    turn = cam.rigid(cam.rodrigues_to_matrix(np.array([0.0, 0.0, np.radians(10.0)])), np.zeros(3))
+    assert reg._pose_pair_agreement(ip, Tp, feats, {0: m}) > 0.8
+    assert reg._pose_pair_agreement(ip, turn @ Tp, feats, {0: m}) < 0.3
