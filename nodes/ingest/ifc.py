@@ -21,6 +21,7 @@ import ifcopenshell.geom
 import ifcopenshell.ifcopenshell_wrapper
 import ifcopenshell.util.element as ue
 import ifcopenshell.util.unit as uu
+import msgspec
 import numpy as np
 
 from nodes.ingest.model import ElementMesh, MapConversion, SiteModel
@@ -363,14 +364,8 @@ def load_site_model(
         meshes_local[gid] = ElementMesh(vertices_m=v, faces=faces, rgba=colors.get(gid))
         b_lo, b_hi = v.min(axis=0), v.max(axis=0)
         e = elements[gid]
-        elements[gid] = BimElement(
-            global_id=e.global_id,
-            ifc_class=e.ifc_class,
-            name=e.name,
-            storey=e.storey,
-            type_name=e.type_name,
-            material=e.material,
-            geometry_ref=e.geometry_ref,
+        elements[gid] = msgspec.structs.replace(
+            e,
             bbox_min_m=(float(b_lo[0]), float(b_lo[1]), float(b_lo[2])),
             bbox_max_m=(float(b_hi[0]), float(b_hi[1]), float(b_hi[2])),
         )

@@ -1300,16 +1300,7 @@ class StreamingRegistrar:
             if free.sum() == 0:
                 continue
             mf = m[free]
-            pts, valid = triangulate_pairs(
-                key.intrinsics,
-                key.world_from_camera,
-                kp[mf[:, 0]],
-                other.intrinsics,
-                other.world_from_camera,
-                other.feats.keypoints_px[mf[:, 1]].astype(np.float64),
-                c.min_triangulation_angle_deg,
-                c.max_triangulation_error_px,
-            )
+            pts, valid = self._triangulate(key, other, mf)
             if not valid.any():
                 continue
             mv = mf[valid]
@@ -1320,6 +1311,20 @@ class StreamingRegistrar:
         self._confirm_points(key, matches)
         return changed
 
+    def _triangulate(self, key: KeyImage, other: KeyImage, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Two-view triangulation of matches ``m`` (M, 2) between two key images: points (M, 3) m, valid (M,)."""
+        c = self.config
+        return triangulate_pairs(
+            key.intrinsics,
+            key.world_from_camera,
+            key.feats.keypoints_px[m[:, 0]].astype(np.float64),
+            other.intrinsics,
+            other.world_from_camera,
+            other.feats.keypoints_px[m[:, 1]].astype(np.float64),
+            c.min_triangulation_angle_deg,
+            c.max_triangulation_error_px,
+        )
+
     def _confirm_points(self, key: KeyImage, matches: dict[int, np.ndarray]) -> None:
         """Confirm BIM-depth points that a two-view triangulation reproduces (within ``confirm_tolerance``).
 
@@ -1327,7 +1332,6 @@ class StreamingRegistrar:
         stands in front; such points must not register other viewpoints until a second view agrees.
         """
         c = self.config
-        kp = key.feats.keypoints_px.astype(np.float64)
         for ki, m in matches.items():
             other = self.keys[ki]
             ids_a, ids_b = key.point_ids[m[:, 0]], other.point_ids[m[:, 1]]
@@ -1335,16 +1339,7 @@ class StreamingRegistrar:
             if not has.any():
                 continue
             mh = m[has]
-            tri, valid = triangulate_pairs(
-                key.intrinsics,
-                key.world_from_camera,
-                kp[mh[:, 0]],
-                other.intrinsics,
-                other.world_from_camera,
-                other.feats.keypoints_px[mh[:, 1]].astype(np.float64),
-                c.min_triangulation_angle_deg,
-                c.max_triangulation_error_px,
-            )
+            tri, valid = self._triangulate(key, other, mh)
             rng = np.linalg.norm(tri - key.world_from_camera[:3, 3], axis=1)
             for ids in (ids_a[has], ids_b[has]):
                 sel = valid & (ids >= 0)
