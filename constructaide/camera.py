@@ -68,6 +68,15 @@ def focal_from_fov(width_px: int, fov_deg: float = 50.0) -> float:
     return 0.5 * width_px / np.tan(np.radians(fov_deg) / 2.0)
 
 
+def focal_px_from_35mm(f35_mm: float, width_px: int, height_px: int) -> float:
+    """Focal length in pixels from an EXIF 35 mm-equivalent focal length (FocalLengthIn35mmFilm).
+
+    Uses the diagonal crop factor (36 x 24 mm frame diagonal 43.27 mm), as cameras and exiftool do, so it holds
+    for any aspect ratio: ``f_px = f35_mm * hypot(width_px, height_px) / hypot(36, 24)``.
+    """
+    return float(f35_mm) * float(np.hypot(width_px, height_px)) / float(np.hypot(36.0, 24.0))
+
+
 def distort_normalized(xy: F64, k1: float, k2: float) -> F64:
     """Apply radial distortion to (N, 2) normalised coordinates."""
     r2 = np.sum(xy * xy, axis=-1, keepdims=True)

@@ -152,3 +152,39 @@ def test_distortion_not_estimated_from_few_or_clustered_clicks():
         assert not sol.distortion_solved and sol.intrinsics.k1 == 0.0
     with pytest.raises(DegenerateAnchors):
         solve_anchor(px[:3], pts[:3], W, H, solve_distortion=True)
+
+
+def bunched_far_clicks(seed: int, f_px: float = 1600.0, noise_px: float = 1.0):
+    """9 clicks on a low, distant building (44 m) bunched in the middle of a 1920x1080 frame: focal and distance
+    trade off (the fixed time-lapse cameras' first anchors)."""
+    rng = np.random.default_rng(seed)
+    T = cam.look_at([0.0, -44.0, 11.0], [0.0, 0.0, 1.0])
+    pts = rng.uniform([-8, -4, 0], [8, 4, 3.0], (9, 3))
+    intr = cam.centered_intrinsics(W, H, f_px)
+    px, _ = cam.project_points(intr, cam.invert_rigid(T), pts)
+    return T, pts, px + rng.normal(0, noise_px, px.shape)
+
+
+def test_focal_prior_weighed_against_bunched_clicks():
+    errs_map, errs_free = [], []
+    for seed in range(6):
+        T, pts, px = bunched_far_clicks(seed)
+        prior = 1600.0 * (1.0 + (0.01 if seed % 2 else -0.01))  # an EXIF prior 1 % off (whole-mm rounding)
+        sol = solve_anchor(px, pts, W, H, focal_px=prior)
+        free = solve_anchor(px, pts, W, H)
+        assert sol.focal_solved
+        assert sol.intrinsics.f_px == pytest.approx(1600.0, rel=0.025)
+        errs_map.append(np.linalg.norm(sol.world_from_camera[:3, 3] - T[:3, 3]))
+        errs_free.append(np.linalg.norm(free.world_from_camera[:3, 3] - T[:3, 3]))
+    # Free focal wanders with the click noise (metres along the view); the prior holds the distance.
+    assert np.median(errs_map) < 0.6 * np.median(errs_free)
+    assert np.median(errs_map) < 1.0
+
+
+def test_focal_prior_overruled_by_well_spread_clicks():
+    T, pts, px = setup(seed=4, n=14, f_px=1800.0, noise_px=0.5)
+    sol = solve_anchor(px, pts, W, H, focal_px=1800.0 * 1.08)  # a prior 8 % off
+    assert sol.focal_solved
+    assert sol.intrinsics.f_px == pytest.approx(1800.0, rel=0.03)
+    kept = solve_anchor(px, pts, W, H, focal_px=1800.0 * 1.08, solve_focal=False)
+    assert cam.viewing_angle_deg(sol.world_from_camera, T) < cam.viewing_angle_deg(kept.world_from_camera, T)

@@ -23,6 +23,7 @@ from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 
 from PIL import Image, ImageOps, UnidentifiedImageError
 
+from constructaide import camera as cam
 from schemas.messages import GeoPoint, Photo
 
 MAX_PIXELS = 120_000_000
@@ -222,10 +223,10 @@ def exif_focal(exif: Image.Exif, width_px: int, height_px: int) -> tuple[float |
     sub = _exif_sub(exif, _EXIF_IFD)
     f35 = _rational(sub.get(_FOCAL_35MM))
     f_mm = _rational(sub.get(_FOCAL_LENGTH))
-    long_px, diag_px = max(width_px, height_px), math.hypot(width_px, height_px)
+    long_px = max(width_px, height_px)
     f_px: float | None = None
     if f35 is not None and f35 > 0:
-        f_px = f35 * diag_px / math.hypot(36.0, 24.0)
+        f_px = cam.focal_px_from_35mm(f35, width_px, height_px)
     elif f_mm is not None and f_mm > 0:
         res = _rational(sub.get(_FP_XRES))
         unit_mm = _FP_UNIT_MM.get(int(sub.get(_FP_UNIT, 2) or 2))  # type: ignore[call-overload]

@@ -26,6 +26,10 @@ MIN_CLICKS = 4
 MIN_CLICKS_FOR_FOCAL = 6
 MIN_CLICKS_FOR_DISTORTION = 8
 DISTORTION_PRIOR_SIGMA = 0.1  # weak zero-mean prior on k1 (and k2), as their standard deviation
+# Relative standard deviation of a focal prior (EXIF / user) when the focal is solved with it: EXIF 35 mm-equivalent
+# focals are whole millimetres (+-0.5 mm of 20-50 mm: a uniform error of sigma 0.6-1.4 %). Residuals are in pixels,
+# so the prior counts like one click coordinate with 1 px noise per FOCAL_PRIOR_SIGMA of relative focal error.
+FOCAL_PRIOR_SIGMA = 0.015
 
 
 class DegenerateAnchors(ValueError):
@@ -73,11 +77,25 @@ def _distortion_constrained(px: np.ndarray, pts: np.ndarray, width_px: int, heig
     return bool(span[0] >= 0.4 * width_px and span[1] >= 0.4 * height_px and r_max >= 0.6 * np.hypot(*c))
 
 
+def _focal_prior_residual(log_f: float, focal_prior: tuple[float, float] | None) -> np.ndarray:
+    """(1,) residual of a focal prior ``(f_prior_px, relative sigma)`` on log f, or (0,) without a prior."""
+    if focal_prior is None:
+        return np.zeros(0)
+    return np.array([(log_f - np.log(focal_prior[0])) / focal_prior[1]])
+
+
 def _refine_distortion(
-    params: np.ndarray, f: float, pts: np.ndarray, px: np.ndarray, c: np.ndarray, solve_focal: bool, with_k2: bool
+    params: np.ndarray,
+    f: float,
+    pts: np.ndarray,
+    px: np.ndarray,
+    c: np.ndarray,
+    solve_focal: bool,
+    with_k2: bool,
+    focal_prior: tuple[float, float] | None = None,
 ) -> tuple[np.ndarray, float, float, float]:
-    """LM over pose (, log f), k1 (, k2) from a pinhole solution, with a weak zero-mean prior on k1, k2.
-    Returns (rvec|tvec, f_px, k1, k2)."""
+    """LM over pose (, log f), k1 (, k2) from a pinhole solution, with a weak zero-mean prior on k1, k2 (and the
+    focal prior when the focal is solved). Returns (rvec|tvec, f_px, k1, k2)."""
     nk = 2 if with_k2 else 1
 
     def res(x: np.ndarray) -> np.ndarray:
@@ -88,7 +106,8 @@ def _refine_distortion(
         k = x[-nk:]
         xy = cam.distort_normalized(p[:, :2] / z[:, None], float(k[0]), float(k[1]) if with_k2 else 0.0)
         prior = k / DISTORTION_PRIOR_SIGMA
-        return np.concatenate([(ff * xy + c - px).ravel(), prior])
+        f_prior = _focal_prior_residual(float(x[6]), focal_prior) if solve_focal else np.zeros(0)
+        return np.concatenate([(ff * xy + c - px).ravel(), prior, f_prior])
 
     x0 = np.concatenate([params[:6], [np.log(f)] if solve_focal else [], np.zeros(nk)])
     sol = least_squares(res, x0, method="lm", x_scale="jac", max_nfev=400)
@@ -196,9 +215,20 @@ def _is_planar(pts: np.ndarray) -> bool:
 
 
 def _solve(
-    px: np.ndarray, pts: np.ndarray, c: np.ndarray, f0: float, solve_focal: bool, init: np.ndarray | None = None
+    px: np.ndarray,
+    pts: np.ndarray,
+    c: np.ndarray,
+    f0: float,
+    solve_focal: bool,
+    init: np.ndarray | None = None,
+    focal_prior: tuple[float, float] | None = None,
 ) -> tuple[np.ndarray, float, float]:
-    """Best (rvec|tvec, f_px, cost) over several initialisations."""
+    """Best (rvec|tvec, f_px, cost) over several initialisations; with ``solve_focal`` and ``focal_prior``
+    (f_px, relative sigma) the focal is the maximum a posteriori estimate (the cost includes the prior term)."""
+
+    def res_focal(x: np.ndarray) -> np.ndarray:
+        return np.concatenate([_residuals(x, pts, px, c, None), _focal_prior_residual(float(x[6]), focal_prior)])
+
     planar = _is_planar(pts)
     focal_inits = [f0]
     if solve_focal:
@@ -211,7 +241,7 @@ def _solve(
         nonlocal best
         if solve_focal:
             x0 = np.concatenate([p0, [np.log(f_init)]])
-            sol = least_squares(_residuals, x0, method="lm", args=(pts, px, c, None), x_scale="jac", max_nfev=400)
+            sol = least_squares(res_focal, x0, method="lm", x_scale="jac", max_nfev=400)
             f = float(np.exp(np.clip(sol.x[6], -20.0, 20.0)))
         else:
             sol = least_squares(_residuals, p0, method="lm", args=(pts, px, c, f_init), x_scale="jac", max_nfev=400)
@@ -248,12 +278,17 @@ def solve_anchor(
     min_outlier_px: float | None = None,
     solve_distortion: bool | None = None,
     solve_k2: bool = False,
+    focal_prior_sigma: float | None = FOCAL_PRIOR_SIGMA,
 ) -> AnchorSolution:
     """Solve a camera from clicks: pixels (N, 2) OpenCV convention, world points (N, 3) in model units.
 
     ``focal_px`` is the prior (EXIF/user), else a 50 degree horizontal FOV. ``solve_focal``: None = with >= 6
-    non-coplanar clicks solve it when there is no prior, or when solving halves the squared error of the prior;
-    True forces it (needs >= 6 non-coplanar clicks); False keeps the prior.
+    non-coplanar clicks solve it: freely without a prior; with a prior, as the maximum a posteriori estimate
+    under a log-normal prior of relative sigma ``focal_prior_sigma`` (clicks spread in depth and over the image
+    move it; clicks that leave focal and distance ambiguous keep it near the prior; None = the old rule: keep
+    the prior unless solving freely halves the squared error); a prior the clicks contradict (a free solve halves
+    the squared error of the MAP solve) is dropped. True forces a free solve (needs >= 6 non-coplanar clicks);
+    False keeps the prior.
     ``min_outlier_px`` (default 0.5% of the width, at least 3 px) is the smallest leave-one-out error flagged.
     ``solve_distortion``: None = estimate radial k1 (and k2 with ``solve_k2``) after the pinhole solve when the
     inlier clicks constrain it (>= 8 non-coplanar clicks spread over the image; weak zero prior, sigma 0.1)
@@ -276,11 +311,22 @@ def solve_anchor(
         )
     params, f, cost = _solve(px, pts, c, f0, bool(solve_focal))
     do_focal = bool(solve_focal)
+    prior: tuple[float, float] | None = None
     if solve_focal is None and can_solve_focal:
-        # Auto: without a prior always solve the focal; with a prior keep it unless solving it fits much better
-        # (focal and depth trade off for narrow fields of view, so a good prior is worth more than a free f).
+        # Auto: without a prior always solve the focal. With a prior, focal and depth trade off for narrow fields
+        # of view and clicks bunched on a distant building, so the prior is weighed against the clicks (MAP).
+        # A prior the clicks contradict (a free solve halves the clicks' squared error) is dropped.
         p_f, f_f, cost_f = _solve(px, pts, c, f0, True)
-        if focal_px is None or cost_f < 0.5 * cost:
+        if focal_px is not None and focal_prior_sigma is not None:
+            prior = (f0, float(focal_prior_sigma))
+            p_m, f_m, _ = _solve(px, pts, c, f0, True, focal_prior=prior)
+            cost_m = 0.5 * float(np.sum(_residuals(p_m, pts, px, c, f_m) ** 2))
+            if cost_f < 0.5 * cost_m:
+                prior = None
+            else:
+                p_f, f_f = p_m, f_m
+            params, f, do_focal = p_f, f_f, True
+        elif focal_px is None or cost_f < 0.5 * cost:
             params, f, do_focal = p_f, f_f, True
     R = cam.rodrigues_to_matrix(params[:3])
     z = pts @ R.T[:, 2] + params[5]
@@ -310,7 +356,7 @@ def solve_anchor(
         best_i, best_rms, best_err = -1, np.inf, 0.0
         for i in active:
             keep = active[active != i]
-            p_i, f_i, _ = _solve(px[keep], pts[keep], c, cur_f, loo_focal, init=cur_params)
+            p_i, f_i, _ = _solve(px[keep], pts[keep], c, cur_f, loo_focal, init=cur_params, focal_prior=prior)
             err = float(np.linalg.norm(_residuals(p_i, pts[i : i + 1], px[i : i + 1], c, f_i)))
             if not outliers.any():
                 loo[i] = err
@@ -322,7 +368,9 @@ def solve_anchor(
             break
         outliers[best_i] = True
         keep = np.nonzero(~outliers)[0]
-        cur_params, cur_f, _ = _solve(px[keep], pts[keep], c, f0, do_focal and len(keep) >= MIN_CLICKS_FOR_FOCAL)
+        cur_params, cur_f, _ = _solve(
+            px[keep], pts[keep], c, f0, do_focal and len(keep) >= MIN_CLICKS_FOR_FOCAL, focal_prior=prior
+        )
     if outliers.any():
         params, f = cur_params, cur_f
         R = cam.rodrigues_to_matrix(params[:3])
@@ -337,7 +385,9 @@ def solve_anchor(
         else _distortion_constrained(px[keep], pts[keep], width_px, height_px)
     )
     if do_dist:
-        p_d, f_d, k1_d, k2_d = _refine_distortion(params, f, pts[keep], px[keep], c, do_focal, solve_k2)
+        p_d, f_d, k1_d, k2_d = _refine_distortion(
+            params, f, pts[keep], px[keep], c, do_focal, solve_k2, focal_prior=prior
+        )
         res_d = np.linalg.norm(_distorted_residuals(p_d, pts, px, c, f_d, k1_d, k2_d).reshape(-1, 2), axis=1)
         # Keep the distortion only when it explains significantly more than noise (in auto mode): the drop in
         # squared error must exceed 9 noise variances per added parameter (variance from the distorted fit,

@@ -79,18 +79,21 @@ def load_anchor_file(path: Path) -> tuple[dict[str, Clicks], float | None]:
 
 
 def exif_focal_px(path: Path, width_px: int) -> float | None:
-    """Focal in pixels from EXIF FocalLengthIn35mmFilm (36 mm film width), None when absent."""
+    """Focal in pixels of an image ``width_px`` wide from EXIF FocalLengthIn35mmFilm (diagonal crop factor, like
+    the ingest node), None when absent or unreadable."""
     try:
         from PIL import Image
 
         with Image.open(path) as img:
             exif = img.getexif().get_ifd(0x8769)
             f35 = exif.get(0xA405)
+            stored_w, stored_h = img.size
     except Exception:
         return None
-    if not f35:
+    if not f35 or stored_w <= 0:
         return None
-    return float(f35) / 36.0 * width_px
+    # The features may be computed on a resized copy: scale the stored image's focal to ``width_px``.
+    return cam.focal_px_from_35mm(float(f35), stored_w, stored_h) * width_px / stored_w
 
 
 def extract_all(
