@@ -2,8 +2,10 @@
 
 Generates (once, cached) the synthetic construction site, starts every node in its own process on
 a loopback zenoh bus, publishes the site's BIM (through the ingest node), the simulated anchor clicks
-and every photo in capture order as the cameras would, waits until the nodes have processed them,
-stops the nodes cleanly and prints a summary with the paths of the MCAP recording and the rerun file.
+and every photo in capture order as the cameras would, waits until the nodes have processed them and
+settled (every registered photo's latest overlay is newer than its latest combined occlusion mask, and no mask
+or overlay for a few seconds), stops the nodes cleanly and prints a summary with the paths of the MCAP recording
+and the rerun file.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import datetime as dt
 import json
 import os
 import sys
+import threading
 import time
 import tomllib
 from collections import Counter
@@ -23,10 +26,52 @@ from tqdm import tqdm
 from constructaide.errors import UserError
 from constructaide.launch import Launcher
 from constructaide.runtime import BusConfig, free_port, open_bus
-from schemas import keys
-from schemas.messages import AnchorClicks, AnchorPoint, Photo
+from schemas import codec, keys
+from schemas.messages import AnchorClicks, AnchorPoint, OcclusionMask, Overlay, Photo
 
 PROCESSING_NODES = tuple(os.environ.get("CONSTRUCTAIDE_DEMO_NODES", "register,occlude,render").split(","))
+SETTLE_QUIET_SECS = 4.0  # no new mask or overlay for this long (and overlays newer than masks): settled
+
+
+class _Arrivals:
+    """Combined occlusion masks and overlays in one arrival order, to tell when the render node has drawn every
+    photo with its latest mask and the occlude node has gone quiet."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._seq = 0
+        self._last_secs = time.monotonic()
+        self.last_mask: dict[str, int] = {}
+        self.last_overlay: dict[str, int] = {}
+
+    def __call__(self, key: str, payload: bytes) -> None:
+        msg = codec.decode(payload)
+        with self._cond:
+            self._seq += 1
+            self._last_secs = time.monotonic()
+            if isinstance(msg, OcclusionMask) and msg.kind == "combined":
+                self.last_mask[msg.photo_id] = self._seq
+            elif isinstance(msg, Overlay):
+                self.last_overlay[msg.photo_id] = self._seq
+            self._cond.notify_all()
+
+    def stale(self, photo_ids: set[str]) -> set[str]:
+        """Photos without an overlay drawn after their latest combined mask."""
+        with self._cond:
+            return {p for p in photo_ids if self.last_overlay.get(p, 0) <= self.last_mask.get(p, 0)}
+
+    def wait_settled(self, photo_ids: set[str], quiet_secs: float, deadline: float) -> bool:
+        """Block until no photo is stale and nothing arrived for ``quiet_secs``; False at the deadline."""
+        with self._cond:
+            while True:
+                now = time.monotonic()
+                quiet = now - self._last_secs
+                caught_up = all(self.last_overlay.get(p, 0) > self.last_mask.get(p, 0) for p in photo_ids)
+                if caught_up and quiet >= quiet_secs:
+                    return True
+                if now >= deadline:
+                    return False
+                self._cond.wait(min(deadline - now, max(0.05, quiet_secs - quiet)))
 
 
 def _anchor_messages(site: str, site_dir: Path, photos: dict[str, Photo]) -> list[AnchorClicks]:
@@ -94,6 +139,11 @@ def main(argv: list[str]) -> int:
         regs = bus.collect(keys.pattern(keys.REGISTRATION, site=args.site))
         overlays = bus.collect(keys.pattern(keys.OVERLAY, site=args.site))
         masks = bus.collect(keys.pattern(keys.OCCLUSION, site=args.site))
+        arrivals = _Arrivals()
+        arrival_subs = [
+            bus.subscribe(keys.pattern(keys.OCCLUSION, site=args.site), arrivals),
+            bus.subscribe(keys.pattern(keys.OVERLAY, site=args.site), arrivals),
+        ]
         errors = bus.collect(keys.key(keys.ERRORS, site=args.site))
         needs = bus.collect(keys.pattern(keys.NEEDS_ANCHOR, site=args.site))
         bim = bus.collect(keys.key(keys.BIM_MODEL, site=args.site), fetch_latched=True)
@@ -102,7 +152,10 @@ def main(argv: list[str]) -> int:
         for name in PROCESSING_NODES:
             launcher.start(name)
         launcher.wait_live(bus, ["recorder", "dashboard", *PROCESSING_NODES])
-        launcher.start("ingest", sets=[f"ifc=['{ifc_path}']", f"tz='{tz}'"])
+        ingest_sets = [f"ifc=['{ifc_path}']", f"tz='{tz}'"]
+        if site_doc["site"].get("terrain_height_m") is not None:
+            ingest_sets.append(f"terrain_height_m={float(site_doc['site']['terrain_height_m'])}")
+        launcher.start("ingest", sets=ingest_sets)
         launcher.wait_live(bus, ["ingest"])
         bim.wait(1, timeout=300)
 
@@ -130,6 +183,13 @@ def main(argv: list[str]) -> int:
         # Overlays follow registrations; give the render and occlude queues the time to drain.
         registered = {m.photo_id for _, m in regs.items if m.status != "failed"}
         _drain(overlays, lambda: {m.photo_id for _, m in overlays.items} >= registered, deadline)
+        # Masks keep improving after a photo's first overlay (a later frame, more sparse points): wait until the
+        # render node has redrawn every photo with its latest mask and the pipeline has gone quiet.
+        settle_deadline = min(deadline, time.monotonic() + 120.0 + 2.0 * len(registered))
+        settled = arrivals.wait_settled(registered, SETTLE_QUIET_SECS, settle_deadline)
+        stale = arrivals.stale(registered)
+        for sub in arrival_subs:
+            sub.close()
         print("[5/5] stopping nodes", file=sys.stderr)
         exit_codes = launcher.stop_all()
 
@@ -147,6 +207,7 @@ def main(argv: list[str]) -> int:
         ("needs anchor requests", len(needs.items)),
         ("occlusion masks", len(masks.items)),
         ("overlays", len(overlays.items)),
+        ("overlays behind latest mask", f"{len(stale)}" + ("" if settled else " (timed out)")),
         ("node errors", len(errors.items)),
         ("wall time", f"{time.monotonic() - t_start:.0f} s"),
         ("MCAP recording", str(mcap_path)),

@@ -38,7 +38,9 @@ def test_node_publishes_model_updates_and_photos(tmp_path: Path) -> None:
     shutil.copy(BSI, model)
     watch = tmp_path / "inbox"
     (watch / "cam-a").mkdir(parents=True)
-    cfg = Config(site="t", tz="Europe/Amsterdam", ifc=(str(model),), watch_dir=str(watch), poll_secs=0.05)
+    cfg = Config(
+        site="t", tz="Europe/Amsterdam", ifc=(str(model),), watch_dir=str(watch), poll_secs=0.05, terrain_height_m=-0.4
+    )
     with LocalBus() as bus:
         models = bus.collect(keys.pattern(keys.BIM_MODEL, site="t"))
         updates = bus.collect(keys.pattern(keys.BIM_UPDATE, site="t"))
@@ -48,6 +50,7 @@ def test_node_publishes_model_updates_and_photos(tmp_path: Path) -> None:
             ((key, bim),) = models.wait(count=1, timeout=60.0)
             assert key == "constructaide/t/bim/model" and isinstance(bim, BimModel)
             assert len(bim.elements) == 5 and len(bim.tasks) == 8 and bim.tz == "Europe/Amsterdam"
+            assert bim.terrain_height_m == -0.4  # the configured site ground level travels with the model
             meshes = load_bim_model_glb(bim)
             assert set(meshes) == {e.geometry_ref for e in bim.elements}
 

@@ -62,6 +62,9 @@ class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=Tr
     future_tolerance_s: float = 600.0
     threads: int = 0
     """Geometry threads (0 = all cores, at most 8)."""
+    terrain_height_m: float | None = None
+    """Site ground level in model metres (z up, after the origin offset), published with the model so the
+    occlude node hides elements below it; None = unknown (the occlude node then estimates it)."""
 
 
 class IngestNode:
@@ -148,7 +151,8 @@ class IngestNode:
             if old is not None:
                 update = diff_models(old, site_model, site=self.ctx.site, base_revision=old_rev, revision=rev)
                 self.ctx.publish(keys.key(keys.BIM_UPDATE, site=self.ctx.site), update)
-            self.ctx.publish(keys.key(keys.BIM_MODEL, site=self.ctx.site), to_bim_model(site_model, self.ctx.site, rev))
+            model = to_bim_model(site_model, self.ctx.site, rev, self.config.terrain_height_m)
+            self.ctx.publish(keys.key(keys.BIM_MODEL, site=self.ctx.site), model)
             self.ctx.log.info(
                 "published BIM revision %s: %d elements, %d tasks", rev, len(site_model.elements), len(site_model.tasks)
             )

@@ -29,9 +29,10 @@ def _colors(site_model: SiteModel, refs: Iterable[str]) -> dict[str, tuple[int, 
     return {r: m.rgba for r in refs if (m := site_model.meshes.get(r)) is not None and m.rgba is not None}
 
 
-def to_bim_model(site_model: SiteModel, site: str, revision: str) -> BimModel:
+def to_bim_model(site_model: SiteModel, site: str, revision: str, terrain_height_m: float | None = None) -> BimModel:
     """The whole site model as a ``BimModel``: elements, tasks and a GLB with one node per
-    element named by its geometry_ref (site-local metres, z up)."""
+    element named by its geometry_ref (site-local metres, z up); ``terrain_height_m`` is the site's
+    ground level in the same frame when configured."""
     meshes = {
         e.geometry_ref: (m.vertices_m, m.faces)
         for e in site_model.elements.values()
@@ -49,6 +50,7 @@ def to_bim_model(site_model: SiteModel, site: str, revision: str) -> BimModel:
         gps=site_model.gps,
         tz=site_model.tz,
         source_files=tuple(Path(p).name for p in site_model.source_files),
+        terrain_height_m=terrain_height_m,
     )
 
 
