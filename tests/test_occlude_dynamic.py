@@ -284,3 +284,66 @@ def test_two_pass_leaves_neighbour_occluders_out_of_the_background() -> None:
     assert err2 < 0.03 < err1
     with pytest.raises(ValueError, match="occluder mask"):
         store.set_occluder_mask("p0", np.zeros((2, 2, 3)))
+
+
+def test_vote_score_leaves_no_ghost_of_a_neighbours_occluder() -> None:
+    from nodes.occlude.dynamic import DynamicParams
+
+    frames = dynamic_sequence(11, 3, h=270, w=480, gains=(1.0, 0.9, 1.1), jitter_px=0.0)
+    store = _store(frames, working_width_px=480, refine_fixed_shift=False)
+    stack = store.aligned_stack("p0")
+    assert stack.num_views == 2
+    ghost = (frames[1].truth > 0) & (frames[0].truth == 0)  # p1's vehicle over p0's background
+    assert ghost.sum() > 1000
+    common = {"temporal_guard": False, "ghost_ratio": 0.0}
+    median = dynamic_mask(
+        frames[0].image, store.frames["p0"].image_small, stack, DynamicParams(vote_quantile=None, **common)
+    )
+    vote = dynamic_mask(frames[0].image, store.frames["p0"].image_small, stack, DynamicParams(**common))
+    # with two views the median is their mean: the neighbour's vehicle shows through as a ghost
+    assert np.count_nonzero(median.mask[ghost]) > 0.2 * ghost.sum()
+    # the vote needs the photo to differ from both neighbours
+    assert np.count_nonzero(vote.mask[ghost]) < 0.02 * ghost.sum()
+    assert iou(vote.mask, frames[0].truth) > 0.85
+
+
+def test_order_statistic_rank_and_validity() -> None:
+    from nodes.occlude.dynamic import order_statistic
+
+    scores = np.array([0.1, 0.5, 0.3, 0.9], np.float32)[:, None, None] * np.ones((4, 2, 2), np.float32)
+    valid = np.ones((4, 2, 2), bool)
+    valid[:, 1, 1] = [False, True, False, True]  # only 0.5 and 0.9 there
+    valid[:, 0, 1] = False
+    out = order_statistic(scores, valid, 0.5)
+    assert out[0, 0] == pytest.approx(0.3)  # floor(0.5 * 3) = 1: second smallest of 0.1, 0.3, 0.5, 0.9
+    assert out[1, 1] == pytest.approx(0.5)  # two valid: the smaller
+    assert np.isinf(out[0, 1])  # none valid
+
+
+def test_fixed_camera_zoom_jitter_aligned_by_homography() -> None:
+    rng = np.random.default_rng(5)
+    base = textured_background(rng, 540, 960)
+    # the next day the camera zooms 1.5 % and rolls 0.3 deg about the image centre, and shifts a little
+    A = cv2.getRotationMatrix2D((480.0, 270.0), 0.3, 1.015)
+    A[:, 2] += (2.0, -1.5)
+    day2 = cv2.warpAffine(base, A, (960, 540), borderMode=cv2.BORDER_REFLECT)
+    errors = {}
+    for mode in ("shift", "homography"):
+        store = TimelapseStore(working_width_px=480, fixed_alignment=mode)
+        store.add_photo("a", "cam", 0, base)
+        store.add_photo("b", "cam", 1, day2)
+        stack = store.aligned_stack("a")
+        assert stack.photo_ids == ("b",)
+        inner = stack.valid[0].copy()
+        inner[:20], inner[-20:], inner[:, :20], inner[:, -20:] = False, False, False, False
+        diff = np.abs(stack.images[0].astype(np.float32) - store.frames["a"].image_small.astype(np.float32))
+        errors[mode] = float(diff[inner].mean())
+        res = dynamic_mask(base, store.frames["a"].image_small, stack)
+        errors[mode + "_mask"] = np.count_nonzero(res.mask) / res.mask.size
+    assert errors["homography"] < 3.0 < errors["shift"]
+    assert errors["homography_mask"] < 0.01 < 0.05 < errors["shift_mask"]
+    with pytest.raises(ValueError, match="fixed_alignment"):
+        bad = TimelapseStore(working_width_px=480, fixed_alignment="affine")
+        bad.add_photo("a", "cam", 0, base)
+        bad.add_photo("b", "cam", 1, day2)
+        bad.aligned_stack("a")

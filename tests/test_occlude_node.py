@@ -209,3 +209,55 @@ def test_node_keeps_at_most_max_stored_photos(scene) -> None:
         # the newest frame's stack holds only the frame still kept
         last = [m for _, m in got.items if m.kind == "dynamic" and m.photo_id == photos[2].photo_id][-1]
         assert last.status == "ok" and last.num_views == 1
+
+
+def test_node_fixed_camera_frames_borrow_the_registered_frames_model_region(scene) -> None:
+    images, _ = _frames(scene, 3)
+    photos = [_photo(img, "cam-b", (i + 1) * DAY_NS) for i, img in enumerate(images)]
+    model = BimModel(site=SITE, revision="r1", geometry_glb=meshes_to_glb(scene.model_meshes), terrain_height_m=0.0)
+    with LocalBus() as bus, start_node(SPEC, Config(site=SITE), bus) as node:
+        got = bus.collect(keys.pattern(keys.OCCLUSION, site=SITE))
+        bus.publish(keys.key(keys.BIM_MODEL, site=SITE), model, latched=True)
+        for p in photos:
+            bus.publish(keys.key(keys.PHOTO, site=SITE, camera="cam-b"), p)
+        for p in photos:
+            got.wait(where=_is("dynamic", p.photo_id, "ok"))
+        assert node.wait_idle(30.0)
+        assert not any(node.obj.dynamic_used_region.values())
+        # only the middle frame is registered: the others use its projected model (same fixed view)
+        reg = Registration(
+            site=SITE,
+            photo_id=photos[1].photo_id,
+            camera_id="cam-b",
+            intrinsics=scene.intrinsics,
+            world_from_camera=pose_to_tuple(scene.world_from_camera),
+            status="auto",
+        )
+        bus.publish(keys.key(keys.REGISTRATION, site=SITE, camera="cam-b", photo=photos[1].photo_id), reg)
+        assert node.wait_idle(30.0)
+        obj = node.obj
+        assert set(obj.model_region) == {photos[1].photo_id}
+        assert all(obj.dynamic_used_region[p.photo_id] for p in photos)
+        own = obj.model_region[photos[1].photo_id]
+        assert own.mean() > 0.05
+        for p in (photos[0], photos[2]):
+            borrowed = obj._region(p.photo_id)
+            assert borrowed is not None and borrowed.shape == own.shape
+            assert np.count_nonzero(borrowed & own) / np.count_nonzero(borrowed | own) > 0.95
+
+
+def test_node_config_selects_dynamic_score_and_alignment() -> None:
+    from nodes.occlude.node import OccludeNode
+
+    vote = OccludeNode(Config(site=SITE), None)  # type: ignore[arg-type]
+    assert vote.dyn_params.vote_quantile == 0.5 and vote.store.fixed_alignment == "homography"
+    paper = OccludeNode(
+        Config(site=SITE, dynamic_score="median", dynamic_threshold=0.05, fixed_alignment="shift"),
+        None,  # type: ignore[arg-type]
+    )
+    assert paper.dyn_params.vote_quantile is None and paper.dyn_params.threshold == 0.05
+    assert paper.store.fixed_alignment == "shift"
+    with pytest.raises(ValueError, match="dynamic_score"):
+        OccludeNode(Config(site=SITE, dynamic_score="mean"), None)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="fixed_alignment"):
+        OccludeNode(Config(site=SITE, fixed_alignment="affine"), None)  # type: ignore[arg-type]

@@ -3,12 +3,14 @@
 Steps, all at working resolution except the last:
 1. exposure normalisation: every stack image gets a per-channel gain/offset fitted to the photo on
    robust pixels (iteratively trimmed least squares), so day-to-day lighting changes cancel;
-2. background = per-pixel median of the normalised stack (the photo itself excluded);
-3. squared HSV difference between photo and background (hue circular, weighted by saturation
-   because hue is noise on grey pixels);
-4. cross-bilateral filter of the difference guided by the photo (the per-pixel maximum over the
-   channels is filtered, so "any channel above threshold" becomes "score above threshold");
-   occluded where it exceeds ``threshold`` (paper: 0.05);
+2. background = per-pixel median of the normalised stack (the photo itself excluded; the clean plate);
+3. squared HSV difference (hue circular, weighted by saturation because hue is noise on grey pixels),
+   max over channels, smoothed by a cross-bilateral filter guided by the photo (so "any channel above
+   threshold" becomes "score above threshold"). Paper (``vote_quantile=None``): difference to the
+   median background, threshold 0.05. Default (``vote_quantile=0.5``): difference to every
+   neighbour separately, and the score is a low order statistic over the neighbours that see the
+   pixel, i.e. the photo must differ from more than half of them (from both of two): an occluder
+   in one neighbour then leaves no ghost, which the median of a short stack does; threshold 0.08;
 5. temporal guard (beyond the paper): the photo must also differ from its nearest earlier and
    nearest later neighbour, inside the projected model when it is known, so construction progress
    between days is not taken for an occluder; changes between sky-like pixels (clouds) are ignored
@@ -42,7 +44,7 @@ F32 = NDArray[np.float32]
 class DynamicParams:
     """Tuning of :func:`dynamic_mask`. Filter sizes are in working-resolution pixels."""
 
-    threshold: float = 0.05
+    threshold: float = 0.08  # the paper's 0.05 is for the median score (vote_quantile=None)
     weak_ratio: float = 0.25  # hysteresis: grow from strong pixels through pixels above threshold * weak_ratio
     fill_holes: bool = True
     ghost_ratio: float = 1.0  # 0 disables ghost removal (see remove_ghosts)
@@ -58,6 +60,12 @@ class DynamicParams:
     guided_radius_px: int = 8  # full-resolution pixels
     guided_eps: float = 1e-3
     exposure_iterations: int = 3
+    # None: score against the median background (paper). A number q in [0, 1]: score = the
+    # floor(q * (n - 1))-th smallest of the per-neighbour scores over the n neighbours that see the
+    # pixel without their own occluder (q = 0.5: the photo must differ from more than half of them;
+    # with two neighbours from both), so one neighbour's occluder cannot leave a ghost
+    vote_quantile: float | None = 0.5
+    guard_views: int = 1  # vote mode: neighbours per side (earlier / later) in the temporal guard
 
 
 @dataclass
@@ -168,6 +176,87 @@ def raw_score(photo: F32, other: F32, params: DynamicParams) -> F32:
     return hsv_squared_difference(photo, other, params.hue_saturation_weighted).max(axis=2)
 
 
+def order_statistic(scores: F32, valid: NDArray[np.bool_], q: float) -> F32:
+    """Per-pixel floor(q * (n - 1))-th smallest of ``scores`` (N, h, w) over the n entries ``valid``
+    (N, h, w) at the pixel; inf where none is valid."""
+    data = np.where(valid, scores, np.inf).astype(np.float32)
+    data.sort(axis=0)
+    n = valid.sum(axis=0)
+    rank = np.clip(np.floor(q * (n - 1)).astype(np.int64), 0, data.shape[0] - 1)
+    return np.take_along_axis(data, rank[None], axis=0)[0]
+
+
+def _sides(stack: AlignedStack, per_side: int) -> list[NDArray[np.intp]]:
+    """Indices of the up to ``per_side`` nearest-in-time neighbours before and at-or-after the photo
+    (sides without neighbours omitted; when all are on one side, that side only)."""
+    dt = np.asarray(stack.times_ns, dtype=np.float64) - float(stack.photo_time_ns)
+    out = []
+    for idx in (np.flatnonzero(dt < 0), np.flatnonzero(dt >= 0)):
+        if len(idx):
+            out.append(idx[np.argsort(np.abs(dt[idx]), kind="stable")[:per_side]])
+    return out
+
+
+def vote_score(
+    photo: F32,
+    norm: F32,
+    valid: NDArray[np.bool_],
+    stack: AlignedStack,
+    params: DynamicParams,
+    progress_region: NDArray[np.bool_] | None,
+) -> F32:
+    """Order-statistic score (h, w): every neighbour's (N, h, w, 3) max-channel squared HSV difference
+    to the photo is smoothed by the cross-bilateral filter; the score is the floor(q * (n - 1))-th
+    smallest over the n neighbours valid at the pixel (q = ``params.vote_quantile``). With
+    ``temporal_guard`` it is capped, inside ``progress_region`` (everywhere when None), by the
+    smaller of the two per-side scores (median-rank of the ``guard_views`` nearest earlier, resp.
+    later, neighbours): construction progress agrees with one side, a transient occluder with none.
+    """
+    q = 0.5 if params.vote_quantile is None else float(params.vote_quantile)
+    scores = np.stack(smooth_scores(photo, [raw_score(photo, norm[i], params) for i in range(norm.shape[0])], params))
+    score = order_statistic(scores, valid, q)
+    if params.temporal_guard and stack.num_views >= 2 and len(stack.times_ns) == stack.num_views:
+        guard = np.full(score.shape, np.inf, np.float32)
+        for idx in _sides(stack, params.guard_views):
+            guard = np.minimum(guard, order_statistic(scores[idx], valid[idx], 0.5))
+        capped = np.minimum(score, guard)
+        score = capped if progress_region is None else np.where(progress_region, capped, score)
+    score[~np.isfinite(score)] = 0.0
+    return score
+
+
+def median_score(
+    photo: F32,
+    background: F32,
+    norm: F32,
+    stack: AlignedStack,
+    params: DynamicParams,
+    progress_region: NDArray[np.bool_] | None,
+) -> F32:
+    """Paper score (h, w): smoothed max-channel squared HSV difference to the median ``background``;
+    with ``temporal_guard`` capped (inside ``progress_region``, everywhere when None) by the score
+    against the nearest earlier and the nearest later neighbour."""
+    raw = [raw_score(photo, background, params)]
+    guard_valid: list[NDArray[np.bool_]] = []
+    if params.temporal_guard and stack.num_views >= 2 and len(stack.times_ns) == stack.num_views:
+        dt = np.asarray(stack.times_ns, dtype=np.float64) - float(stack.photo_time_ns)
+        sides = [np.flatnonzero(dt < 0), np.flatnonzero(dt >= 0)]
+        nearest = [int(idx[np.argmin(np.abs(dt[idx]))]) for idx in sides if len(idx)]
+        if len(nearest) == 1:  # all neighbours on one side: the two nearest
+            nearest = [int(i) for i in np.argsort(np.abs(dt))[:2]]
+        raw += [raw_score(photo, norm[i], params) for i in nearest]
+        guard_valid += [stack.valid[i] for i in nearest]
+    smoothed = smooth_scores(photo, raw, params)
+    score = smoothed[0]
+    if guard_valid:
+        guard = np.full(score.shape, np.inf, np.float32)
+        for v_i, s_i in zip(guard_valid, smoothed[1:], strict=True):
+            guard = np.minimum(guard, np.where(v_i, s_i, np.inf))
+        capped = np.minimum(score, guard)
+        score = capped if progress_region is None else np.where(progress_region, capped, score)
+    return score
+
+
 def smooth_scores(photo: F32, scores: list[F32], params: DynamicParams) -> list[F32]:
     """Cross-bilateral smoothing (guided by the photo) of up to three score maps in one filter call."""
     out: list[F32] = []
@@ -207,25 +296,10 @@ def background_and_difference(
         clean: NDArray[np.bool_] = np.logical_and(stack.valid, np.logical_not(stack.occluded))
         valid_bg = np.where(np.any(clean, axis=0, keepdims=True), clean, stack.valid).astype(np.bool_)
     background, count = masked_median(norm, valid_bg)
-    raw = [raw_score(photo, background, params)]
-    nearest: list[int] = []
-    guard_valid: list[NDArray[np.bool_]] = []
-    if params.temporal_guard and stack.num_views >= 2 and len(stack.times_ns) == stack.num_views:
-        dt = np.asarray(stack.times_ns, dtype=np.float64) - float(stack.photo_time_ns)
-        sides = [np.flatnonzero(dt < 0), np.flatnonzero(dt >= 0)]
-        nearest = [int(idx[np.argmin(np.abs(dt[idx]))]) for idx in sides if len(idx)]
-        if len(nearest) == 1:  # all neighbours on one side: the two nearest
-            nearest = [int(i) for i in np.argsort(np.abs(dt))[:2]]
-        raw += [raw_score(photo, norm[i], params) for i in nearest]
-        guard_valid += [stack.valid[i] for i in nearest]
-    smoothed = smooth_scores(photo, raw, params)
-    score = smoothed[0]
-    if guard_valid:
-        guard = np.full(score.shape, np.inf, np.float32)
-        for v_i, s_i in zip(guard_valid, smoothed[1:], strict=True):
-            guard = np.minimum(guard, np.where(v_i, s_i, np.inf))
-        capped = np.minimum(score, guard)
-        score = capped if progress_region is None else np.where(progress_region, capped, score)
+    if params.vote_quantile is not None:
+        score = vote_score(photo, norm, valid_bg, stack, params, progress_region)
+    else:
+        score = median_score(photo, background, norm, stack, params, progress_region)
     if params.ignore_sky:
         score[sky_like(photo) & sky_like(background)] = 0.0
     score[count == 0] = 0.0

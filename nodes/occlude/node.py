@@ -27,7 +27,7 @@ from constructaide.bimgeom import glb_to_meshes, load_bim_model_glb
 from constructaide.runtime import Input, NodeContext, NodeSpec, Output, run_node_cli
 from nodes.occlude.dynamic import DynamicParams, dynamic_mask
 from nodes.occlude.modeldepth import ModelMaps, ModelRenderer
-from nodes.occlude.stacks import TimelapseStore, working_size
+from nodes.occlude.stacks import TimelapseStore, scale_matrix, working_size
 from nodes.occlude.static import StaticParams, estimate_point_normals, estimate_terrain_height, static_mask
 from nodes.occlude.user import UserCorrections
 from schemas import keys
@@ -56,7 +56,9 @@ class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=Tr
     refine_previous_frame: bool = True  # recompute a camera's previous newest frame once a later one arrives
     max_stored_photos: int = 2000  # photos kept for stacks and republishing; the oldest arrivals are dropped
     max_time_gap_days: float = 0.0  # 0: no limit on the time between a photo and its neighbours
-    dynamic_threshold: float = 0.05  # squared HSV difference, any channel (paper)
+    dynamic_threshold: float = 0.08  # smoothed squared HSV difference, any channel (paper: 0.05 for the median score)
+    dynamic_score: str = "vote"  # "vote": must differ from most neighbours; "median": from the median (paper)
+    fixed_alignment: str = "homography"  # a fixed camera's frames: "homography" (SIFT) or "shift"
     depth_margin_m: float = 0.3  # static: point closer than the model by more than this occludes
     normal_angle_deg: float = 30.0  # static: normal disagreement that occludes
     terrain_height_m: float | None = None  # site ground level; else BimModel's, else estimated from the cloud
@@ -148,10 +150,17 @@ class OccludeNode:
             max_views=config.max_views,
             max_time_gap_ns=gap,
             selection=config.stack_selection,
+            fixed_alignment=config.fixed_alignment,
         )
         if config.stack_selection not in ("spread", "nearest"):
             raise ValueError(f"stack_selection must be spread or nearest, got {config.stack_selection!r}")
-        self.dyn_params = DynamicParams(threshold=config.dynamic_threshold)
+        if config.dynamic_score not in ("vote", "median"):
+            raise ValueError(f"dynamic_score must be vote or median, got {config.dynamic_score!r}")
+        if config.fixed_alignment not in ("homography", "shift"):
+            raise ValueError(f"fixed_alignment must be homography or shift, got {config.fixed_alignment!r}")
+        self.dyn_params = DynamicParams(
+            threshold=config.dynamic_threshold, vote_quantile=0.5 if config.dynamic_score == "vote" else None
+        )
         self.static_params = StaticParams(
             depth_margin_m=config.depth_margin_m, normal_angle_deg=config.normal_angle_deg
         )
@@ -347,7 +356,7 @@ class OccludeNode:
         img = self._image(photo_id) if img is None else img
         stack = self.store.aligned_stack(photo_id)
         self.dynamic_stack_ids[photo_id] = self._stack_ids(photo_id)
-        region = self.model_region.get(photo_id)
+        region = self._region(photo_id)
         self.dynamic_used_region[photo_id] = region is not None
         self.dynamic_had_later[photo_id] = any(t > stack.photo_time_ns for t in stack.times_ns)
         res = dynamic_mask(img, self.store.frames[photo_id].image_small, stack, self.dyn_params, region)
@@ -359,12 +368,46 @@ class OccludeNode:
             bg = buf.tobytes() if ok else b""
         self._publish(photo_id, "dynamic", res.status, res.mask, started, background_jpeg=bg, num_views=res.num_views)
 
+    def _region(self, photo_id: str) -> NDArray[np.bool_] | None:
+        """Projected model (working size) of a photo: its own, else, for a fixed camera, that of the
+        camera's registered frame nearest in time, warped by the stack's homography between the two."""
+        own = self.model_region.get(photo_id)
+        info = self.photos.get(photo_id)
+        if own is not None or info is None or info.camera_id is None or photo_id not in self.store.frames:
+            return own
+        others = [p for p in self.store.by_camera.get(info.camera_id, ()) if p != photo_id and p in self.model_region]
+        if not others:
+            return None
+        src = min(others, key=lambda p: abs(self.photos[p].capture_time_ns - info.capture_time_ns))
+        H = self.store.candidate_neighbours(photo_id).get(src)
+        if H is None:
+            return None
+        frame, nf = self.store.frames[photo_id], self.store.frames[src]
+        h, w = frame.image_small.shape[:2]
+        H_small = scale_matrix(frame.scale) @ H @ np.linalg.inv(scale_matrix(nf.scale))
+        warped = cv2.warpPerspective(
+            self.model_region[src].astype(np.uint8), H_small, (w, h), flags=cv2.INTER_NEAREST, borderValue=0
+        )
+        return np.asarray(warped > 0)
+
     def _refresh_dynamic_with_region(self, photo_id: str, img: U8 | None = None) -> None:
-        """Recompute a dynamic mask made before the projected model (where construction progress may
-        change the scene) was known for its photo."""
+        """Recompute dynamic masks made before the projected model (where construction progress may
+        change the scene) was known: the photo's own and, for a fixed camera, those of its frames that
+        had no region (they borrow this one)."""
+        if photo_id not in self.model_region:
+            return
         status = self.masks.get((photo_id, "dynamic"), ("", b""))[0]
-        if status == "ok" and not self.dynamic_used_region.get(photo_id, False) and photo_id in self.model_region:
+        if status == "ok" and not self.dynamic_used_region.get(photo_id, False):
             self._dynamic(photo_id, img)
+        info = self.photos.get(photo_id)
+        if info is not None and info.camera_id is not None:
+            for other in self.store.by_camera.get(info.camera_id, ()):
+                if (
+                    other != photo_id
+                    and self.masks.get((other, "dynamic"), ("", b""))[0] == "ok"
+                    and not self.dynamic_used_region.get(other, False)
+                ):
+                    self._dynamic(other)
 
     def _terrain_height_m(self) -> float | None:
         """Configured ground level, else the model's, else the cloud's dominant horizontal surface."""

@@ -151,11 +151,17 @@ class TimelapseStore:
     # homography between photos taken from different spots leaves parallax that lights up the difference)
     check_group_alignment: bool = True
     min_tile_ncc: float = 0.25
+    # "shift": a fixed camera's frames differ by a translation (phase correlation); "homography": by a
+    # homography from SIFT matches on the working images (RANSAC; falls back to the shift when too few
+    # inliers), which also absorbs daily zoom / roll jitter of the camera
+    fixed_alignment: str = "homography"
+    max_features: int = 1000  # SIFT features per working image for fixed_alignment="homography"
     frames: dict[str, StackFrame] = field(default_factory=dict)
     # (this, neighbour) -> this_from_neighbour in full-resolution pixels
     homographies: dict[tuple[str, str], F64] = field(default_factory=dict)
     by_camera: dict[str, list[str]] = field(default_factory=dict)
     _shift_cache: dict[tuple[str, str], F64] = field(default_factory=dict)
+    _features: dict[str, tuple[F64, NDArray[np.float32] | None]] = field(default_factory=dict)
 
     def add_photo(self, photo_id: str, camera_id: str | None, capture_time_ns: int, image_bgr: U8) -> StackFrame:
         """Store a photo (uint8 BGR (H, W, 3), full resolution). Returns its frame."""
@@ -225,11 +231,47 @@ class TimelapseStore:
         max_shift = 0.1 * a.shape[1]
         if response > 0.05 and abs(dx) < max_shift and abs(dy) < max_shift:
             H_small[0, 2], H_small[1, 2] = dx, dy
+        if self.fixed_alignment == "homography":
+            H_feat = self._feature_homography(photo_id, nid)
+            if H_feat is not None:
+                H_small = H_feat
+        elif self.fixed_alignment != "shift":
+            raise ValueError(f"unknown fixed_alignment {self.fixed_alignment!r} (shift or homography)")
         S = scale_matrix(self.frames[photo_id].scale)
         H = np.linalg.inv(S) @ H_small @ scale_matrix(self.frames[nid].scale)
         self._shift_cache[key] = H
         self._shift_cache[(nid, photo_id)] = np.linalg.inv(H)
         return H
+
+    def _frame_features(self, photo_id: str) -> tuple[F64, NDArray[np.float32] | None]:
+        """SIFT keypoints (N, 2) in working pixels and descriptors of a stored frame (cached)."""
+        if photo_id not in self._features:
+            grey = cv2.cvtColor(self.frames[photo_id].image_small, cv2.COLOR_BGR2GRAY)
+            kp, desc = cv2.SIFT_create(nfeatures=self.max_features).detectAndCompute(grey, None)
+            pts = np.array([k.pt for k in kp], np.float64).reshape(-1, 2)
+            self._features[photo_id] = (pts, desc)
+        return self._features[photo_id]
+
+    def _feature_homography(self, photo_id: str, nid: str, min_inliers: int = 40) -> F64 | None:
+        """this_from_neighbour (3, 3) in working pixels from SIFT matches + RANSAC (1 px), or None."""
+        pa, da = self._frame_features(photo_id)
+        pb, db = self._frame_features(nid)
+        if da is None or db is None or len(pa) < min_inliers or len(pb) < min_inliers:
+            return None
+        knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(db, da, k=2)
+        good = [m[0] for m in knn if len(m) == 2 and m[0].distance < 0.8 * m[1].distance]
+        if len(good) < min_inliers:
+            return None
+        src = pb[[m.queryIdx for m in good]]
+        dst = pa[[m.trainIdx for m in good]]
+        H, inl = cv2.findHomography(src, dst, cv2.RANSAC, 1.0, maxIters=2000, confidence=0.999)
+        if H is None or inl is None or int(inl.sum()) < min_inliers:
+            return None
+        # least-squares refit on the inliers
+        keep = inl.ravel() > 0
+        H2, _ = cv2.findHomography(src[keep], dst[keep], 0)
+        H = H2 if H2 is not None else H
+        return np.asarray(H / H[2, 2], np.float64)
 
     def aligned_stack(self, photo_id: str) -> AlignedStack:
         """Warp the nearest-in-time neighbours into ``photo_id``'s working view."""
@@ -318,3 +360,4 @@ class TimelapseStore:
             del self.homographies[k]
         for k in [k for k in self._shift_cache if photo_id in k]:
             del self._shift_cache[k]
+        self._features.pop(photo_id, None)
