@@ -8,7 +8,7 @@ import pytest
 from occlude_scenes import dynamic_sequence, iou, textured_background
 
 from nodes.occlude.dynamic import dynamic_mask, fit_exposure, hsv_squared_difference, masked_median, upsample_mask
-from nodes.occlude.stacks import TimelapseStore, scale_matrix
+from nodes.occlude.stacks import TimelapseStore, gradient_ncc, scale_matrix
 
 
 def _store(frames, camera_id="cam", working_width_px=240, **kw) -> TimelapseStore:
@@ -347,3 +347,23 @@ def test_fixed_camera_zoom_jitter_aligned_by_homography() -> None:
         bad.add_photo("a", "cam", 0, base)
         bad.add_photo("b", "cam", 1, day2)
         bad.aligned_stack("a")
+
+
+def test_gradient_ncc_tells_a_moved_camera_from_a_change_of_light() -> None:
+    rng = np.random.default_rng(7)
+    scene = textured_background(rng, 180, 320)
+    valid = np.ones(scene.shape[:2], bool)
+    # The same view under other light: darker, less contrast, a warm cast and a soft shadow band.
+    shade = np.ones(scene.shape[:2], np.float32)
+    shade[:, 200:] = 0.7
+    relit = np.clip(scene * 0.55 * shade[..., None] * np.array([0.9, 1.0, 1.15]) + 20, 0, 255).astype(np.uint8)
+    moved = np.roll(scene, (9, 14), axis=(0, 1))
+    assert gradient_ncc(scene, relit, valid) > 0.6
+    assert gradient_ncc(scene, moved, valid) < 0.3
+    # The stack keeps the relit frame and drops the moved one (same camera, no viewpoint homography).
+    store = TimelapseStore(working_width_px=320, fixed_alignment="shift")
+    store.add_photo("a", "cam", 0, scene)
+    store.add_photo("b", "cam", 10**9, relit)
+    store.add_photo("c", "cam", 2 * 10**9, moved)
+    store.refine_fixed_shift = False  # identity alignment: the moved frame stays misaligned
+    assert store.aligned_stack("a").photo_ids == ("b",)

@@ -55,6 +55,18 @@ def alignment_ncc(a_bgr: U8, b_bgr: U8, valid: NDArray[np.bool_]) -> float:
     return float((x * y).sum() / den) if den > 0 else 0.0
 
 
+def gradient_ncc(a_bgr: U8, b_bgr: U8, valid: NDArray[np.bool_], blur_px: float = 1.5) -> float:
+    """NCC over ``valid`` (h, w) of the gradient magnitudes of two aligned BGR images (h, w, 3): edges stay where
+    they are when light changes, so this tells a moved camera from a sunny frame next to an overcast one."""
+    mags = []
+    for img in (a_bgr, b_bgr):
+        g = cv2.GaussianBlur(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY).astype(np.float32), (0, 0), blur_px)
+        mags.append(np.hypot(cv2.Sobel(g, cv2.CV_32F, 1, 0), cv2.Sobel(g, cv2.CV_32F, 0, 1))[valid])
+    a, b = mags[0] - mags[0].mean(), mags[1] - mags[1].mean()
+    den = float(np.sqrt(np.sum(a * a) * np.sum(b * b)))
+    return float(np.sum(a * b) / den) if den > 0 else 0.0
+
+
 def spread_order(ids: list[str], times_ns: list[int], photo_time_ns: int) -> list[str]:
     """Reorder neighbours (any order) for temporal diversity: the nearest earlier and the nearest later
     one first, then a farthest-point sequence in capture time (each next pick maximises its time gap
@@ -143,6 +155,9 @@ class TimelapseStore:
     min_overlap: float = 0.3
     refine_fixed_shift: bool = True
     min_fixed_ncc: float = 0.5  # a fixed camera's frame is dropped when it aligns worse than this (camera moved)
+    # ... measured on gradient magnitudes (edges stay put when sun, clouds and exposure change; colour NCC of a
+    # sunny and an overcast frame of the same view falls to 0.4); None = colour NCC against min_fixed_ncc
+    min_fixed_gradient_ncc: float | None = 0.3
     # "nearest": the max_views nearest in time; "spread": the nearest earlier and later neighbours first,
     # then neighbours spread evenly over the whole time span (an occluder that stays a week is gone weeks later)
     selection: str = "nearest"
@@ -309,7 +324,11 @@ class TimelapseStore:
             valid = cover > 0
             if valid.mean() < self.min_overlap:
                 continue
-            if nid in fixed and alignment_ncc(frame.image_small, warped, valid) < self.min_fixed_ncc:
+            if nid in fixed and (
+                alignment_ncc(frame.image_small, warped, valid) < self.min_fixed_ncc
+                if self.min_fixed_gradient_ncc is None
+                else gradient_ncc(frame.image_small, warped, valid) < self.min_fixed_gradient_ncc
+            ):
                 continue  # the camera was moved between the two frames
             if (
                 self.check_group_alignment
