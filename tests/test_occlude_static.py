@@ -143,3 +143,16 @@ def test_propagation_spreads_only_to_similar_adjacent_superpixels() -> None:
     out = propagate_labels(labels, lab, state, rounds=3, max_dist=6.0)
     assert out.tolist() == [1, 1, -1, -1]
     assert propagate_labels(labels, lab, state, rounds=0, max_dist=6.0).tolist() == [1, 0, 0, -1]
+
+
+def test_terrain_height_ignores_floor_slabs_above_the_footprint() -> None:
+    rng = np.random.default_rng(3)
+    # A big first-floor slab at z = 3.4 m over the 10 x 10 m footprint outweighs a strip of ground at z = 0.
+    slab = np.c_[rng.uniform(0, 10, (600, 2)), np.full(600, 3.4)]
+    ground = np.c_[rng.uniform(12, 20, (200, 1)), rng.uniform(-5, 15, (200, 1)), np.zeros(200)]
+    pts = np.vstack([slab, ground]) + rng.normal(0, 0.005, (800, 3))
+    normals, flat = estimate_point_normals(pts)
+    assert abs(estimate_terrain_height(pts, normals, flat) - 3.4) < 0.1  # the slab wins without the model
+    footprint = (np.array([0.0, 0.0]), np.array([10.0, 10.0]))
+    z = estimate_terrain_height(pts, normals, flat, footprint_xy_m=footprint)
+    assert z is not None and abs(z) < 0.1

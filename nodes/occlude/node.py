@@ -410,12 +410,19 @@ class OccludeNode:
                     self._dynamic(other)
 
     def _terrain_height_m(self) -> float | None:
-        """Configured ground level, else the model's, else the cloud's dominant horizontal surface."""
+        """Configured ground level, else the model's, else the cloud's dominant horizontal surface (outside
+        the model's footprint once the model is known)."""
         if self.config.terrain_height_m is not None:
             return self.config.terrain_height_m
         if self.model_terrain_height_m is not None:
             return self.model_terrain_height_m
-        return self.cloud.terrain_height_m if self.cloud is not None else None
+        if self.cloud is None:
+            return None
+        if not self.meshes:
+            return self.cloud.terrain_height_m
+        xy = np.concatenate([v[:, :2] for v, _ in self.meshes.values()])
+        c = self.cloud
+        return estimate_terrain_height(c.points_m, c.normals, c.flatness, footprint_xy_m=(xy.min(0), xy.max(0)))
 
     def _num_obs(self, photo_id: str) -> int:
         if self.cloud is None or photo_id not in self.cloud.photo_index:

@@ -85,16 +85,29 @@ def estimate_point_normals(points_world_m: F64, k: int = 12) -> tuple[F32, F32]:
 
 
 def estimate_terrain_height(
-    points_world_m: F64, normals: F32, flatness: F32, bin_m: float = 0.25, min_points: int = 30
+    points_world_m: F64,
+    normals: F32,
+    flatness: F32,
+    bin_m: float = 0.25,
+    min_points: int = 30,
+    footprint_xy_m: tuple[F64, F64] | None = None,
+    footprint_margin_m: float = 1.0,
 ) -> float | None:
     """Height (world z, metres) of the most populated horizontal surface in the sparse cloud, taken as
     the site terrain; None when fewer than ``min_points`` flat points face up.
 
     The ground around a building site is the largest horizontal surface in view; its points are
-    binned by z and the fullest bin (and its neighbours) gives the median height.
+    binned by z and the fullest bin (and its neighbours) gives the median height. With
+    ``footprint_xy_m`` ((2,) min, (2,) max of the model in world x, y) points above the building's
+    footprint (grown by ``footprint_margin_m``) are left out: floor slabs and roofs are horizontal too.
     """
     pts = np.asarray(points_world_m, dtype=np.float64).reshape(-1, 3)
     horizontal = (np.abs(normals[:, 2]) > 0.95) & (flatness < 0.05)
+    if footprint_xy_m is not None:
+        lo_xy = np.asarray(footprint_xy_m[0], np.float64) - footprint_margin_m
+        hi_xy = np.asarray(footprint_xy_m[1], np.float64) + footprint_margin_m
+        inside = np.all((pts[:, :2] >= lo_xy) & (pts[:, :2] <= hi_xy), axis=1)
+        horizontal &= ~inside
     z = pts[horizontal, 2]
     if len(z) < min_points:
         return None
