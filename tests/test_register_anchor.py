@@ -188,3 +188,14 @@ def test_focal_prior_overruled_by_well_spread_clicks():
     assert sol.intrinsics.f_px == pytest.approx(1800.0, rel=0.03)
     kept = solve_anchor(px, pts, W, H, focal_px=1800.0 * 1.08, solve_focal=False)
     assert cam.viewing_angle_deg(sol.world_from_camera, T) < cam.viewing_angle_deg(kept.world_from_camera, T)
+
+
+def test_contradicted_focal_prior_is_reported_rejected():
+    T, pts, px = setup(seed=4, n=14, f_px=1800.0, noise_px=0.5)
+    wrong = solve_anchor(px, pts, W, H, focal_px=1800.0 * 1.3, focal_prior_sigma=0.001)
+    assert wrong.focal_prior_rejected and wrong.focal_solved
+    assert wrong.intrinsics.f_px == pytest.approx(1800.0, rel=0.03)
+    right = solve_anchor(px, pts, W, H, focal_px=1800.0, focal_prior_sigma=0.001)
+    assert not right.focal_prior_rejected
+    assert right.intrinsics.f_px == pytest.approx(1800.0, rel=0.002)
+    assert not solve_anchor(px, pts, W, H).focal_prior_rejected  # no prior, nothing to reject

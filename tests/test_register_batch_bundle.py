@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.optimize._numdiff import approx_derivative
 
 import nodes.register.bundle as bundle_mod
@@ -98,9 +99,22 @@ def test_analytic_jacobian_matches_finite_differences(monkeypatch):
         raise Stop
 
     monkeypatch.setattr(bundle_mod, "least_squares", fake)
-    for opts in (BundleOptions(), BundleOptions(refine_principal_point=True, refine_distortion=False)):
+    pp_prior = BundleOptions(
+        refine_principal_point=True,
+        principal_point_prior_px=np.tile([(W - 1) / 2, (H - 1) / 2], (4, 1)),
+        principal_point_prior_sigma_px=np.full(4, 8.0),
+    )
+    centre_fixed = BundleProblem(**{**prob.__dict__, "centre_fixed": np.array([False, True, False, False])})
+    cases = [
+        (prob, BundleOptions()),
+        (prob, BundleOptions(refine_principal_point=True, refine_distortion=False)),
+        (prob, pp_prior),
+        (centre_fixed, BundleOptions()),
+        (BundleProblem(**{**prob.__dict__, "pp_group": np.array([0, 0, 1, -1])}), pp_prior),
+    ]
+    for pr, opts in cases:
         try:
-            bundle_adjust(prob, opts)
+            bundle_adjust(pr, opts)
         except Stop:
             pass
         x = captured["x0"]
@@ -115,3 +129,90 @@ def test_focal_prior_holds_focal():
     opts = BundleOptions(max_nfev=100, focal_prior_px=np.full(4, F * 1.05), focal_prior_sigma_px=np.full(4, 0.01))
     res = bundle_adjust(prob, opts)
     assert np.allclose(res.f_px, F * 1.05, rtol=1e-3)
+
+
+def test_fixed_centre_camera_only_rotates():
+    """A camera tied to a known centre (a rotation-homography sibling of an anchor) recovers its rotation and
+    keeps its centre exactly."""
+    prob, poses, _ = problem(seed=4)
+    true_T1 = poses[1]
+    T0 = prob.camera_from_world.copy()
+    centre = cam.invert_rigid(true_T1)[:3, 3]
+    R_off = cam.rodrigues_to_matrix([0.01, -0.02, 0.015]) @ true_T1[:3, :3]
+    T0[1, :3, :3] = R_off
+    T0[1, :3, 3] = -R_off @ centre
+    fixed = BundleProblem(**{**prob.__dict__, "camera_from_world": T0, "centre_fixed": np.array([0, 1, 0, 0], bool)})
+    res = bundle_adjust(fixed, BundleOptions(max_nfev=100))
+    Tw = cam.invert_rigid(res.camera_from_world[1])
+    assert np.allclose(Tw[:3, 3], centre, atol=1e-9)
+    assert cam.viewing_angle_deg(Tw, cam.invert_rigid(true_T1)) < 0.05
+    assert res.final_rms_px < 0.5
+
+
+def test_principal_point_prior_limits_the_shift():
+    """Cameras with a principal point 12 px off centre: refined freely it is found; a tight prior keeps it near
+    the centre; the squared errors reported fall accordingly."""
+    prob, poses, X = problem(seed=5, perturb=False)
+    intr = cam.centered_intrinsics(W, H, F, 0.03, -0.01)
+    shifted = cam.centered_intrinsics(W, H, F, 0.03, -0.01)
+    shifted = type(intr)(**{**{f: getattr(intr, f) for f in intr.__struct_fields__}, "cx_px": intr.cx_px + 12.0})
+    obs = np.vstack([cam.project_points(shifted, poses[c], X[prob.obs_point[prob.obs_cam == c]])[0] for c in range(4)])
+    prob = BundleProblem(**{**prob.__dict__, "obs_px": obs, "click_px": prob.click_px + [12.0, 0.0]})
+    centre = np.tile([(W - 1) / 2, (H - 1) / 2], (4, 1))
+    # Linear loss: SciPy applies a robust loss to prior residuals too, which would cap a far-violated prior.
+    free = bundle_adjust(prob, BundleOptions(max_nfev=100, refine_principal_point=True, loss="linear"))
+    held = bundle_adjust(
+        prob,
+        BundleOptions(
+            max_nfev=100,
+            loss="linear",
+            refine_principal_point=True,
+            principal_point_prior_px=centre,
+            principal_point_prior_sigma_px=np.full(4, 0.01),
+        ),
+    )
+    assert np.abs(free.cx_px - centre[:, 0] - 12.0).max() < 1.0
+    assert np.abs(held.cx_px - centre[:, 0]).max() < 0.5  # vs 12 px free
+    assert free.final_sse_px2 < held.final_sse_px2
+    assert free.final_sse_px2 < free.initial_sse_px2
+
+
+def test_schur_solver_matches_trust_region():
+    prob, poses, X = problem(seed=6)
+    trf = bundle_adjust(prob, BundleOptions(max_nfev=100))
+    lm = bundle_adjust(prob, BundleOptions(max_nfev=100, solver="schur"))
+    assert lm.final_rms_px < 0.5 < lm.initial_rms_px
+    assert lm.final_sse_px2 <= 1.01 * trf.final_sse_px2
+    for c in (1, 2):
+        Tw, Tw_true = cam.invert_rigid(lm.camera_from_world[c]), cam.invert_rigid(poses[c])
+        assert cam.viewing_angle_deg(Tw, Tw_true) < 0.1
+        assert np.linalg.norm(Tw[:3, 3] - Tw_true[:3, 3]) < 0.1
+    assert np.median(np.linalg.norm(lm.points_in_world - X, axis=1)) < 0.05
+
+
+def test_shared_principal_point_found_with_exact_steps():
+    """Four cameras of one physical camera whose principal point is (9, -6) px off centre: one shared principal
+    point, solved with the Schur steps, recovers it (per camera it would trade off with each rotation)."""
+    prob, poses, X = problem(seed=7, perturb=False)
+    intr = cam.centered_intrinsics(W, H, F, 0.03, -0.01)
+    fields = {f: getattr(intr, f) for f in intr.__struct_fields__}
+    shifted = type(intr)(**{**fields, "cx_px": intr.cx_px + 9.0, "cy_px": intr.cy_px - 6.0})
+    rng = np.random.default_rng(8)
+    obs = np.vstack(
+        [cam.project_points(shifted, poses[c], X[prob.obs_point[prob.obs_cam == c]])[0] for c in range(4)]
+    ) + rng.normal(0, 0.3, prob.obs_px.shape)
+    clicks = cam.project_points(shifted, poses[0], prob.click_world)[0]
+    prob = BundleProblem(
+        **{
+            **prob.__dict__,
+            "obs_px": obs,
+            "click_px": clicks,
+            "pose_fixed": np.array([False, False, False, True]),
+            "point_ref_cam": np.full(len(X), -1),
+            "pp_group": np.zeros(4, int),
+        }
+    )
+    res = bundle_adjust(prob, BundleOptions(max_nfev=100, refine_principal_point=True, solver="schur"))
+    assert np.ptp(res.cx_px) == 0 and np.ptp(res.cy_px) == 0  # one shared principal point
+    assert res.cx_px[0] - (W - 1) / 2 == pytest.approx(9.0, abs=1.5)
+    assert res.cy_px[0] - (H - 1) / 2 == pytest.approx(-6.0, abs=1.5)

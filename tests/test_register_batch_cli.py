@@ -115,6 +115,7 @@ def test_register_cli_on_temple(tmp_path, capsys):
     report = json.loads((out / "report.json").read_text())
     assert report["num_registered"] == 16, report["unregistered"]
     assert "registered 16/16" in capsys.readouterr().out
+    assert isinstance(report["anchors_released"], bool) and report["principal_points_refined"] is False
     model = read_text_model(out)
     est = {im.name: (im.intrinsics, im.world_from_camera) for im in model.images}
     metrics = evaluate(cams, est, ds.checkpoints(cams, max_points=300))
@@ -133,3 +134,20 @@ def test_register_cli_on_temple(tmp_path, capsys):
     some = next(iter(rec.images.values()))
     T[:3] = some.cam_from_world().matrix()
     assert np.allclose(cam.invert_rigid(T), est[some.name][1], atol=1e-6)
+
+
+def test_exif_focal_read_from_png_and_jpeg(tmp_path):
+    """FocalLengthIn35mmFilm from a JPEG and from a PNG whose eXIf chunk follows the pixel data (Pillow's layout),
+    without decoding the PNG; none from an image without EXIF."""
+    from PIL import Image
+
+    img = Image.fromarray(np.zeros((60, 80, 3), np.uint8))
+    exif = Image.Exif()
+    exif.get_ifd(0x8769)[0xA405] = 28
+    img.save(tmp_path / "a.png", exif=exif.tobytes())
+    img.save(tmp_path / "a.jpg", exif=exif)
+    img.save(tmp_path / "plain.png")
+    expect = cam.focal_px_from_35mm(28.0, 80, 60) * 160 / 80
+    assert batch.exif_focal_px(tmp_path / "a.png", 160) == pytest.approx(expect)
+    assert batch.exif_focal_px(tmp_path / "a.jpg", 160) == pytest.approx(expect)
+    assert batch.exif_focal_px(tmp_path / "plain.png", 160) is None

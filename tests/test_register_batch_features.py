@@ -93,3 +93,58 @@ def test_empty_features_match_nothing():
     assert match_features(empty, blank).shape == (0, 2)
     with pytest.raises(ValueError, match="uint8"):
         extract_features(np.zeros((10, 10), np.float32))
+
+
+def test_matching_equals_brute_force_mutual_ratio_reference():
+    """Chunked matching (column maxima, no column argmax) equals a plain brute-force mutual + ratio reference."""
+    rng = np.random.default_rng(21)
+    base = rng.normal(size=(300, 128))
+    da = base[:250] + rng.normal(0, 0.3, (250, 128))
+    db = np.vstack([base[50:] + rng.normal(0, 0.3, (250, 128)), rng.normal(size=(80, 128))])
+    da /= np.linalg.norm(da, axis=1, keepdims=True)
+    db /= np.linalg.norm(db, axis=1, keepdims=True)
+
+    def feats(d):
+        return Features(np.zeros((len(d), 2), np.float32), d.astype(np.float32), np.ones(len(d), np.float32), 64, 64)
+
+    a, b = feats(da), feats(db)
+    dist = np.linalg.norm(da[:, None, :] - db[None, :, :], axis=2)
+    order = np.argsort(dist, axis=1)
+    j1 = order[:, 0]
+    ratio_ok = dist[np.arange(len(da)), j1] < 0.8 * dist[np.arange(len(da)), order[:, 1]]
+    mutual = np.argmin(dist, axis=0)[j1] == np.arange(len(da))
+    ref = {(i, int(j1[i])) for i in np.nonzero(ratio_ok & mutual)[0]}
+    for chunk in (7, 64, 4096):
+        got = {tuple(m) for m in match_features(a, b, 0.8, chunk_rows=chunk).tolist()}
+        assert got == ref
+    assert len(ref) > 100
+
+
+def test_ransac_iterations_bound():
+    from nodes.register.features import ransac_iterations
+
+    # Standard formula log(1 - p) / log(1 - w^7) with w = min inliers / matches.
+    assert ransac_iterations(40, 20) == int(np.ceil(np.log(0.001) / np.log(1 - 0.5**7)))
+    assert ransac_iterations(20, 20) == 50  # every match must be an inlier: the floor
+    assert ransac_iterations(30, 20) < ransac_iterations(40, 20) < ransac_iterations(60, 20)
+    # A pair with a few dozen chance matches is cheap; a big pair is capped by the caller (10000).
+    assert ransac_iterations(30, 20) < 200
+    assert ransac_iterations(500, 20) > 10000
+
+
+def test_pca_shortlist_matching_agrees_with_exact_matching():
+    """Candidates from 64 principal components, ratio test on exact similarities: nearly the exact matches."""
+    from nodes.register.features import pca_basis, project_pca
+
+    a = extract_features(texture(3))
+    warped = cv2.warpPerspective(texture(3), H_TRUE, (640, 480))
+    b = extract_features(warped)
+    exact = {tuple(m) for m in match_features(a, b).tolist()}
+    basis = pca_basis([a.descriptors, b.descriptors], 64)
+    assert basis.shape == (128, 64)
+    pa, pb = project_pca(a, basis), project_pca(b, basis)
+    assert pa.descriptors_pca is not None and pa.descriptors_pca.shape == (len(a), 64)
+    approx = {tuple(m) for m in match_features(pa, pb).tolist()}
+    assert len(exact) > 200
+    assert len(exact & approx) >= 0.97 * len(exact)
+    assert len(approx - exact) <= 0.03 * len(exact)

@@ -54,6 +54,8 @@ class AnchorSolution:
     loo_errors_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
     outlier_threshold_px: float = float("nan")
     distortion_solved: bool = False
+    # A focal prior was given but the clicks contradict it (a free focal halves the squared error): solved freely.
+    focal_prior_rejected: bool = False
 
 
 def _residuals(params: np.ndarray, pts: np.ndarray, px: np.ndarray, c: np.ndarray, f_fixed: float | None) -> np.ndarray:
@@ -312,6 +314,7 @@ def solve_anchor(
     params, f, cost = _solve(px, pts, c, f0, bool(solve_focal))
     do_focal = bool(solve_focal)
     prior: tuple[float, float] | None = None
+    prior_rejected = False
     if solve_focal is None and can_solve_focal:
         # Auto: without a prior always solve the focal. With a prior, focal and depth trade off for narrow fields
         # of view and clicks bunched on a distant building, so the prior is weighed against the clicks (MAP).
@@ -323,10 +326,12 @@ def solve_anchor(
             cost_m = 0.5 * float(np.sum(_residuals(p_m, pts, px, c, f_m) ** 2))
             if cost_f < 0.5 * cost_m:
                 prior = None
+                prior_rejected = True
             else:
                 p_f, f_f = p_m, f_m
             params, f, do_focal = p_f, f_f, True
         elif focal_px is None or cost_f < 0.5 * cost:
+            prior_rejected = focal_px is not None
             params, f, do_focal = p_f, f_f, True
     R = cam.rodrigues_to_matrix(params[:3])
     z = pts @ R.T[:, 2] + params[5]
@@ -413,4 +418,5 @@ def solve_anchor(
         loo_errors_px=loo,
         outlier_threshold_px=threshold,
         distortion_solved=do_dist,
+        focal_prior_rejected=prior_rejected,
     )

@@ -78,6 +78,23 @@ def load_anchor_file(path: Path) -> tuple[dict[str, Clicks], float | None]:
     return out, (float(focal) if focal is not None else None)
 
 
+def _png_exif_chunk(path: Path) -> bytes | None:
+    """Payload of a PNG's eXIf chunk, found by walking chunk headers (no decoding), or None."""
+    with open(path, "rb") as fh:
+        if fh.read(8) != b"\x89PNG\r\n\x1a\n":
+            return None
+        while True:
+            head = fh.read(8)
+            if len(head) < 8:
+                return None
+            length, kind = int.from_bytes(head[:4], "big"), head[4:]
+            if kind == b"eXIf":
+                return fh.read(length)
+            if kind == b"IEND":
+                return None
+            fh.seek(length + 4, 1)
+
+
 def exif_focal_px(path: Path, width_px: int) -> float | None:
     """Focal in pixels of an image ``width_px`` wide from EXIF FocalLengthIn35mmFilm (diagonal crop factor, like
     the ingest node), None when absent or unreadable."""
@@ -85,9 +102,18 @@ def exif_focal_px(path: Path, width_px: int) -> float | None:
         from PIL import Image
 
         with Image.open(path) as img:
-            exif = img.getexif().get_ifd(0x8769)
-            f35 = exif.get(0xA405)
             stored_w, stored_h = img.size
+            if img.format == "PNG":
+                # Pillow's PNG getexif() decodes the whole image to reach an eXIf chunk after the pixels; walk the
+                # chunk headers instead.
+                raw = img.info.get("exif") or _png_exif_chunk(Path(path))
+                if not raw:
+                    return None
+                exif_all = Image.Exif()
+                exif_all.load(raw)
+            else:
+                exif_all = img.getexif()
+            f35 = exif_all.get_ifd(0x8769).get(0xA405)
     except Exception:
         return None
     if not f35 or stored_w <= 0:
@@ -110,9 +136,17 @@ def extract_all(
         colors = bgr[ij[:, 1], ij[:, 0], ::-1].copy()
         return feats, colors
 
-    with ThreadPoolExecutor(max(1, workers)) as pool:
-        it = pool.map(job, paths)
-        return list(tqdm(it, total=len(paths), desc="features", unit="img", disable=not show_progress, file=sys.stderr))
+    # One OpenCV thread per worker: the images run in parallel already (OpenCV's own threads on top only
+    # oversubscribe the cores).
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        with ThreadPoolExecutor(max(1, workers)) as pool:
+            it = pool.map(job, paths)
+            bar = tqdm(it, total=len(paths), desc="features", unit="img", disable=not show_progress, file=sys.stderr)
+            return list(bar)
+    finally:
+        cv2.setNumThreads(before)
 
 
 def reconstruction_to_colmap(recon: Reconstruction) -> ColmapModel:
@@ -219,6 +253,9 @@ def run_batch(
         "num_images": len(recon.images),
         "num_registered": len(registered),
         "num_points": int(np.sum(np.all(np.isfinite(recon.points), axis=1))),
+        "principal_points_refined": cfg.refine_principal_point,
+        "anchors_released": recon.anchors_released,
+        "anchor_release_score": (recon.anchor_release_score if math.isfinite(recon.anchor_release_score) else None),
         "registered": registered,
         "unregistered": [
             {"image": im.name, "status": im.status, "reason": im.message} for im in recon.images if not im.registered
@@ -244,14 +281,25 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-side", type=int, default=1600, help="longest side for feature detection (px)")
     ap.add_argument("--max-features", type=int, default=4000, help="SIFT features kept per image (strongest)")
     ap.add_argument("--refine-principal-point", action="store_true", help="optimise each image's principal point")
-    ap.add_argument(
-        "--free-anchors", action="store_true", help="let anchor poses move in bundle adjustment (paper: fixed)"
+    anchor_mode = ap.add_mutually_exclusive_group()
+    anchor_mode.add_argument(
+        "--free-anchors", action="store_true", help="let anchor poses move in every bundle adjustment"
+    )
+    anchor_mode.add_argument(
+        "--fixed-anchors",
+        action="store_true",
+        help="hold anchor poses fixed to the end (the paper; default: released in a final adjustment when the "
+        "data support it)",
     )
     ap.add_argument("--quiet", action="store_true", help="no progress bars")
     args = ap.parse_args(argv)
     if args.focal_px is not None and not (args.focal_px > 0):
         raise UserError("--focal-px must be positive")
-    cfg = SfmConfig(refine_principal_point=args.refine_principal_point, fix_anchor_poses=not args.free_anchors)
+    cfg = SfmConfig(
+        refine_principal_point=args.refine_principal_point,
+        fix_anchor_poses=not args.free_anchors,
+        release_anchors=not args.fixed_anchors,
+    )
     _, report = run_batch(
         args.images,
         args.anchors,

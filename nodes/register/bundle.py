@@ -1,13 +1,14 @@
 """Constrained bundle adjustment (paper Sec. 6) with scipy's sparse least squares.
 
 Unknowns: per camera a pose update (axis-angle applied on the left of the current rotation, and the
-translation of ``camera_from_world``) unless the pose is fixed (anchor cameras, or cameras outside a local
-window); per camera focal f_px and radial k1, k2 (optionally the principal point) unless the intrinsics are
-fixed; per point either a world position (3) or, for points seen by an anchor camera, the depth along that
-anchor's ray through its observed pixel (1). Residuals (pixels): feature observations, anchor clicks (model
-points, fixed), and a weak prior pulling k1, k2 towards 0. Robust loss, finite differences over a sparse
-Jacobian pattern (``jac_sparsity``).
-"""
+translation of ``camera_from_world``; rotation only for cameras whose centre is held) unless the pose is fixed
+(anchor cameras, or cameras outside a local window); per camera focal f_px and radial k1, k2 unless the
+intrinsics are fixed; optionally principal points, one per camera or shared by a group of cameras; per point
+either a world position (3) or, for points seen by a fixed anchor camera, the depth along that anchor's ray
+through its observed pixel (1). Residuals (pixels): feature observations, anchor clicks (model points, fixed),
+a weak prior pulling k1, k2 towards 0, optional focal and principal-point priors. Robust loss; analytic sparse
+Jacobian; SciPy's trust-region solver with LSMR steps, or Levenberg-Marquardt with exact steps from the Schur
+complement on the camera parameters (``BundleOptions.solver``)."""
 
 from __future__ import annotations
 
@@ -93,7 +94,8 @@ class BundleProblem:
     ``camera_from_world`` (C, 4, 4); intrinsics arrays (C,); ``points_in_world`` (P, 3);
     ``point_ref_cam`` (P,) anchor camera whose ray carries the point (-1: free xyz) and ``point_ref_px`` (P, 2) the
     pixel of that ray; observations ``obs_cam``, ``obs_point`` (M,) int and ``obs_px`` (M, 2); clicks
-    ``click_cam`` (K,), ``click_world`` (K, 3), ``click_px`` (K, 2).
+    ``click_cam`` (K,), ``click_world`` (K, 3), ``click_px`` (K, 2); ``centre_fixed`` (C,) bool: rotation-only
+    pose updates about the current camera centre.
     """
 
     camera_from_world: np.ndarray
@@ -114,6 +116,12 @@ class BundleProblem:
     click_cam: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
     click_world: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     click_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    # (C,) int or None: with refine_principal_point, cameras with the same non-negative id share one principal
+    # point (one physical camera); -1 or None: each camera its own.
+    pp_group: np.ndarray | None = None
+    # (C,) bool or None: cameras whose centre stays where it is (only their rotation moves; e.g. a photo that a
+    # rotation homography ties to an anchor's viewpoint).
+    centre_fixed: np.ndarray | None = None
 
 
 @dataclass
@@ -126,12 +134,22 @@ class BundleOptions:
     click_weight: float = 1.0
     max_nfev: int = 50
     ftol: float = 1e-4
+    # "trf": SciPy's trust-region reflective with LSMR steps; "schur": Levenberg-Marquardt with iteratively
+    # reweighted robust loss (soft_l1 or linear only) and exact steps from the Schur complement on the camera
+    # parameters (points eliminated block by block) -- exact steps move weakly determined camera parameters
+    # (a shared principal point) that capped LSMR steps hardly move, at a fraction of an exact LSMR's cost.
+    solver: str = "trf"
     # Iteration cap of the inner LSMR solve of each trust-region step (None: SciPy's default, min(m, n)); an
     # inexact step is fine for a trust-region method and most of the time is spent there.
     lsmr_maxiter: int | None = None
     # Optional focal prior per camera (C,) px and its standard deviation (C,) px (inf = no prior).
     focal_prior_px: np.ndarray | None = None
     focal_prior_sigma_px: np.ndarray | None = None
+    # With refine_principal_point: optional prior on each camera's principal point, centre (C, 2) px (usually
+    # the image centre) and standard deviation (C,) px (inf = no prior): the data move it only as far as they
+    # support it.
+    principal_point_prior_px: np.ndarray | None = None
+    principal_point_prior_sigma_px: np.ndarray | None = None
 
 
 @dataclass
@@ -150,24 +168,46 @@ class BundleResult:
     initial_rms_px: float
     final_rms_px: float
     num_iterations: int
+    # Sum of squared pixel residuals of observations and clicks (unweighted by the robust loss) before and after.
+    initial_sse_px2: float = float("nan")
+    final_sse_px2: float = float("nan")
+    # Solver "schur" with principal points refined: Wald statistic of the principal points' offsets from their
+    # prior centres, sum over groups of d^T Cov^-1 d (Cov from the reduced normal matrix and the residual
+    # variance), and the number of groups; NaN / 0 otherwise.
+    principal_point_wald: float = float("nan")
+    principal_point_groups: int = 0
 
 
 class _Layout:
     def __init__(self, prob: BundleProblem, opts: BundleOptions):
         C = len(prob.f_px)
         P = len(prob.points_in_world)
-        self.n_intr = 1 + (2 if opts.refine_distortion else 0) + (2 if opts.refine_principal_point else 0)
+        self.n_intr = 1 + (2 if opts.refine_distortion else 0)
         idx = 0
         self.pose_col = np.full(C, -1)
+        self.rot_only = np.zeros(C, bool) if prob.centre_fixed is None else np.asarray(prob.centre_fixed, bool).copy()
         for c in range(C):
             if not prob.pose_fixed[c]:
                 self.pose_col[c] = idx
-                idx += 6
+                idx += 3 if self.rot_only[c] else 6
         self.intr_col = np.full(C, -1)
         for c in range(C):
             if not prob.intrinsics_fixed[c]:
                 self.intr_col[c] = idx
                 idx += self.n_intr
+        # Principal points: two columns per group of cameras with free intrinsics (a camera alone is its own
+        # group); pp_col[c] = the columns of camera c's group, -1 when not refined.
+        self.pp_col = np.full(C, -1)
+        self.pp_groups: list[np.ndarray] = []  # member cameras of each group, in column order
+        if opts.refine_principal_point:
+            gid = np.full(C, -1) if prob.pp_group is None else np.asarray(prob.pp_group, int)
+            key = np.where(gid >= 0, gid, -1 - np.arange(C))
+            free = np.nonzero(prob.intrinsics_fixed == 0)[0]
+            for g in dict.fromkeys(key[free].tolist()):
+                members = free[key[free] == g]
+                self.pp_col[members] = idx
+                self.pp_groups.append(members)
+                idx += 2
         self.point_col = np.full(P, -1)
         self.point_is_depth = (prob.point_ref_cam >= 0) & ~prob.point_fixed
         self.point_free = ~prob.point_fixed
@@ -191,6 +231,118 @@ def _skew(v: np.ndarray) -> np.ndarray:
     return S
 
 
+def _point_blocks(Jp: sp.csr_matrix, starts: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+    """Diagonal blocks (P, 3, 3) of Jp^T Jp for point columns in blocks at ``starts`` of size 1 or 3 (every row of
+    Jp touches one block; size-1 blocks padded with an identity)."""
+    P = len(starts)
+    coo = Jp.tocoo()
+    blk = np.searchsorted(starts, coo.col, side="right") - 1
+    off = coo.col - starts[blk]
+    R3 = np.zeros((Jp.shape[0], 3))
+    row_blk = np.zeros(Jp.shape[0], dtype=np.int64)
+    R3[coo.row, off] = coo.data
+    row_blk[coo.row] = blk
+    used = np.zeros(Jp.shape[0], bool)
+    used[coo.row] = True
+    B = np.zeros((P, 3, 3))
+    np.add.at(B, row_blk[used], np.einsum("ri,rj->rij", R3[used], R3[used]))
+    one = sizes == 1
+    B[one, 1, 1] = B[one, 2, 2] = 1.0
+    return B
+
+
+def _camera_information(J: sp.spmatrix, w: np.ndarray, n_cam: int, starts: np.ndarray, sizes: np.ndarray):
+    """Reduced (Schur-complement) normal matrix (n_cam, n_cam) of the first ``n_cam`` unknowns with the point
+    blocks eliminated, for IRLS weights ``w`` (M,): the inverse of the camera unknowns' covariance up to the
+    noise variance."""
+    sw = np.sqrt(w)
+    Jw = (sp.diags(sw) @ J).tocsc()
+    Jc, Jp = Jw[:, :n_cam].tocsr(), Jw[:, n_cam:].tocsr()
+    A_cc = (Jc.T @ Jc).toarray()
+    if Jp.shape[1] == 0:
+        return A_cc
+    A_cp = (Jc.T @ Jp).tocsr()
+    V = _point_blocks(Jp, starts, sizes)
+    P = len(starts)
+    valid = np.ones((P, 3), bool)
+    valid[sizes == 1, 1:] = False
+    vmask = valid[:, :, None] & valid[:, None, :]
+    cols3 = starts[:, None] + np.arange(3)[None, :]
+    idx_r = np.repeat(cols3, 3, axis=1).reshape(P, 3, 3)
+    idx_c = np.tile(cols3, (1, 3)).reshape(P, 3, 3)
+    V[:, np.arange(3), np.arange(3)] += 1e-12
+    Vinv = np.linalg.inv(V)
+    Vi = sp.csr_matrix((Vinv[vmask], (idx_r[vmask], idx_c[vmask])), shape=(Jp.shape[1],) * 2)
+    return A_cc - ((A_cp @ Vi) @ A_cp.T).toarray()
+
+
+def _schur_lm(residuals, jacobian, x0, n_cam, starts, sizes, loss, f_scale, max_nfev, ftol):
+    """Levenberg-Marquardt on sum rho(r^2 / s^2) (soft_l1 or linear) by iteratively reweighted Gauss-Newton steps;
+    each step solves the damped normal equations by the Schur complement on the first ``n_cam`` unknowns (the
+    rest: per-point blocks at ``starts`` / ``sizes``, columns relative to ``n_cam``). Returns (x, evaluations)."""
+
+    def cost_weights(r):
+        if loss == "linear":
+            return 0.5 * float(r @ r), np.ones_like(r)
+        z = (r / f_scale) ** 2
+        return float(f_scale**2 * np.sum(np.sqrt(1 + z) - 1)), 1 / np.sqrt(1 + z)
+
+    x = x0.copy()
+    r = residuals(x)
+    cost, w = cost_weights(r)
+    nfev, lam = 1, 1e-6  # Marquardt damping relative to diag(J^T W J): starts near Gauss-Newton
+    P = len(starts)
+    cols3 = starts[:, None] + np.arange(3)[None, :]
+    valid = np.ones((P, 3), bool)
+    valid[sizes == 1, 1:] = False
+    idx_r = np.repeat(cols3, 3, axis=1).reshape(P, 3, 3)
+    idx_c = np.tile(cols3, (1, 3)).reshape(P, 3, 3)
+    vmask = valid[:, :, None] & valid[:, None, :]
+    while nfev < max_nfev:
+        J = jacobian(x).tocsr()
+        sw = np.sqrt(w)
+        Jw = (sp.diags(sw) @ J).tocsc()
+        Jc, Jp = Jw[:, :n_cam].tocsr(), Jw[:, n_cam:].tocsr()
+        g = Jw.T @ (sw * r)
+        A_cc = (Jc.T @ Jc).toarray()
+        A_cp = (Jc.T @ Jp).tocsr()
+        V = _point_blocks(Jp, starts, sizes)
+        n_pcols = Jp.shape[1]
+        g_c, g_p = g[:n_cam], g[n_cam:]
+        diag_c = np.maximum(np.diag(A_cc), 1e-12)
+        diag_p = np.maximum(np.einsum("pii->pi", V), 1e-12)
+        improved = False
+        while nfev < max_nfev:
+            Vd = V.copy()
+            Vd[:, np.arange(3), np.arange(3)] += lam * diag_p
+            Vinv = np.linalg.inv(Vd)
+            Vinv[~vmask] = 0.0
+            Vi = sp.csr_matrix((Vinv[vmask], (idx_r[vmask], idx_c[vmask])), shape=(n_pcols, n_pcols))
+            WVi = A_cp @ Vi
+            S = A_cc + np.diag(lam * diag_c) - (WVi @ A_cp.T).toarray()
+            rhs = -(g_c - WVi @ g_p)
+            try:
+                dc = np.linalg.solve(S, rhs)
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            dp = Vi @ (-g_p - A_cp.T @ dc)
+            x_new = x + np.r_[dc, dp]
+            r_new = residuals(x_new)
+            nfev += 1
+            cost_new, w_new = cost_weights(r_new)
+            if np.isfinite(cost_new) and cost_new < cost:
+                rel = (cost - cost_new) / max(cost, 1e-300)
+                x, r, cost, w = x_new, r_new, cost_new, w_new
+                lam = max(lam / 3, 1e-9)
+                improved = True
+                break
+            lam *= 4
+        if not improved or rel < ftol:
+            break
+    return x, nfev
+
+
 def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> BundleResult:
     """Run the constrained bundle adjustment; returns adjusted copies (the problem is not modified).
 
@@ -212,6 +364,19 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
         f_sigma = np.asarray(opts.focal_prior_sigma_px, float)[focal_cams]
     else:
         focal_cams, f_prior, f_sigma = np.zeros(0, int), np.zeros(0), np.ones(0)
+    if (
+        opts.refine_principal_point
+        and opts.principal_point_prior_px is not None
+        and opts.principal_point_prior_sigma_px is not None
+    ):
+        # One prior per principal-point group (that of its first member).
+        pp_sig_all = np.broadcast_to(np.asarray(opts.principal_point_prior_sigma_px, float), (C,))
+        lead = np.array([m[0] for m in lay.pp_groups], int)
+        pp_cams = lead[np.isfinite(pp_sig_all[lead])] if len(lead) else np.zeros(0, int)
+        pp_prior = np.asarray(opts.principal_point_prior_px, float).reshape(C, 2)[pp_cams]
+        pp_sigma = pp_sig_all[pp_cams]
+    else:
+        pp_cams, pp_prior, pp_sigma = np.zeros(0, int), np.zeros((0, 2)), np.ones(0)
 
     # Anchor rays (world) and initial depths.
     depth_pts = np.nonzero(lay.point_is_depth)[0]
@@ -235,11 +400,13 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
             vals = [prob.f_px[c]]
             if opts.refine_distortion:
                 vals += [prob.k1[c], prob.k2[c]]
-            if opts.refine_principal_point:
-                vals += [prob.cx_px[c], prob.cy_px[c]]
             x0[j : j + lay.n_intr] = vals
-        if lay.pose_col[c] >= 0:
+        if lay.pose_col[c] >= 0 and not lay.rot_only[c]:
             x0[lay.pose_col[c] + 3 : lay.pose_col[c] + 6] = t0[c]
+    for members in lay.pp_groups:
+        x0[lay.pp_col[members[0]]] = float(np.mean(prob.cx_px[members]))
+        x0[lay.pp_col[members[0]] + 1] = float(np.mean(prob.cy_px[members]))
+    centre0 = -np.einsum("nji,nj->ni", R0, t0)  # camera centres (C, 3) world
     free_xyz = np.nonzero(lay.point_free & ~lay.point_is_depth)[0]
     if len(free_xyz):
         cols = lay.point_col[free_xyz]
@@ -255,17 +422,20 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
             cols = lay.pose_col[pc_]
             w = np.stack([x[cols], x[cols + 1], x[cols + 2]], axis=1)
             T[pc_, :3, :3] = rodrigues_batch(w) @ R0[pc_]
-            T[pc_, :3, 3] = np.stack([x[cols + 3], x[cols + 4], x[cols + 5]], axis=1)
+            six = ~lay.rot_only[pc_]
+            c6, col6 = pc_[six], cols[six]
+            T[c6, :3, 3] = np.stack([x[col6 + 3], x[col6 + 4], x[col6 + 5]], axis=1)
+            c3 = pc_[~six]
+            T[c3, :3, 3] = -np.einsum("nij,nj->ni", T[c3, :3, :3], centre0[c3])
         ic = np.nonzero(lay.intr_col >= 0)[0]
         if len(ic):
             cols = lay.intr_col[ic]
             f[ic] = x[cols]
-            o = 1
             if opts.refine_distortion:
                 k1[ic], k2[ic] = x[cols + 1], x[cols + 2]
-                o = 3
-            if opts.refine_principal_point:
-                cx[ic], cy[ic] = x[cols + o], x[cols + o + 1]
+        pc = np.nonzero(lay.pp_col >= 0)[0]
+        if len(pc):
+            cx[pc], cy[pc] = x[lay.pp_col[pc]], x[lay.pp_col[pc] + 1]
         pts = prob.points_in_world.copy()
         if len(free_xyz):
             cols = lay.point_col[free_xyz]
@@ -287,19 +457,27 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
         v = f[cams] * yn * D + cy[cams]
         return np.stack([u, v], axis=1), p, z, xn, yn, r2, D
 
+    def prior_residuals(f, k1, k2, cx, cy) -> np.ndarray:
+        """Raw prior residuals (distortion k1 then k2, focal, principal points), in sigmas."""
+        parts = []
+        if len(distortion_cams):
+            parts.append(np.concatenate([k1[distortion_cams], k2[distortion_cams]]) / opts.distortion_prior_px)
+        if len(focal_cams):
+            parts.append((f[focal_cams] - f_prior) / f_sigma)
+        if len(pp_cams):
+            parts.append(((np.stack([cx[pp_cams], cy[pp_cams]], axis=1) - pp_prior) / pp_sigma[:, None]).ravel())
+        return np.concatenate(parts) if parts else np.zeros(0)
+
     def residuals(x: np.ndarray) -> np.ndarray:
         T, f, k1, k2, cx, cy, pts = unpack(x)
         parts = [(project_full(T, f, k1, k2, cx, cy, obs_cam, pts[obs_point])[0] - obs_px).ravel()]
         if n_clk:
             r_clk = project_full(T, f, k1, k2, cx, cy, prob.click_cam, prob.click_world)[0] - prob.click_px
             parts.append(opts.click_weight * r_clk.ravel())
-        if len(distortion_cams):
-            parts.append(np.concatenate([k1[distortion_cams], k2[distortion_cams]]) / opts.distortion_prior_px)
-        if len(focal_cams):
-            parts.append((f[focal_cams] - f_prior) / f_sigma)
+        parts.append(prior_residuals(f, k1, k2, cx, cy))
         return np.concatenate(parts)
 
-    n_res = 2 * (n_obs + n_clk) + 2 * len(distortion_cams) + len(focal_cams)
+    n_res = 2 * (n_obs + n_clk) + 2 * len(distortion_cams) + len(focal_cams) + 2 * len(pp_cams)
 
     def jac_block(T, f, k1, k2, cams, X, weight):
         """Rows/cols/vals of the Jacobian of 2 residuals per (cams, X) w.r.t. pose, intrinsics; plus dpix/dX."""
@@ -318,15 +496,15 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
         J_xy_p[:, 1, 1] = 1 / z
         J_xy_p[:, 1, 2] = -yn / z
         J_uv_p = weight * (J_uv_xy @ J_xy_p)  # (M, 2, 3)
-        Rp = p - T[cams, :3, 3]  # R X
+        # Rotation columns: p = R X + t with R = exp(w) R0, so dp/dw = -[R X]x; for a fixed centre C,
+        # p = R (X - C) and dp/dw = -[p]x. Translation columns (unused for fixed centres): identity.
+        rot_only = lay.rot_only[cams]
+        Rp = np.where(rot_only[:, None], p, p - T[cams, :3, 3])
         J_pose = np.concatenate([J_uv_p @ -_skew(Rp), J_uv_p], axis=2)  # (M, 2, 6)
         J_intr = [weight * np.stack([xn * D, yn * D], axis=1)]
         if opts.refine_distortion:
             J_intr += [weight * fc[:, None] * np.stack([xn * r2, yn * r2], axis=1)]
             J_intr += [weight * fc[:, None] * np.stack([xn * r2 * r2, yn * r2 * r2], axis=1)]
-        if opts.refine_principal_point:
-            ones, zeros = np.full(len(cams), weight), np.zeros(len(cams))
-            J_intr += [np.stack([ones, zeros], axis=1), np.stack([zeros, ones], axis=1)]
         J_intr_a = np.stack(J_intr, axis=2)  # (M, 2, n_intr)
         J_X = J_uv_p @ T[cams, :3, :3]  # (M, 2, 3)
         return J_pose, J_intr_a, J_X
@@ -343,6 +521,14 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
         cols.append(c.ravel())
         vals.append(J[ok].ravel())
 
+    def emit_pose(rows, cols, vals, row0, cams, J_pose):
+        """Pose blocks: 6 columns, or the 3 rotation columns of fixed-centre cameras."""
+        ro = lay.rot_only[cams]
+        col = lay.pose_col[cams]
+        emit(rows, cols, vals, row0[~ro], col[~ro], J_pose[~ro])
+        if ro.any():
+            emit(rows, cols, vals, row0[ro], col[ro], np.ascontiguousarray(J_pose[ro][:, :, :3]))
+
     def jacobian(x: np.ndarray) -> sp.csr_matrix:
         T, f, k1, k2, cx, cy, pts = unpack(x)
         rows: list[np.ndarray] = []
@@ -351,8 +537,9 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
         if n_obs:
             J_pose, J_intr, J_X = jac_block(T, f, k1, k2, obs_cam, pts[obs_point], 1.0)
             ar = np.arange(n_obs)
-            emit(rows, cols, vals, ar, lay.pose_col[obs_cam], J_pose)
+            emit_pose(rows, cols, vals, ar, obs_cam, J_pose)
             emit(rows, cols, vals, ar, lay.intr_col[obs_cam], J_intr)
+            emit(rows, cols, vals, ar, lay.pp_col[obs_cam], np.broadcast_to(np.eye(2), (n_obs, 2, 2)))
             is_depth = lay.point_is_depth[obs_point]
             free = ~is_depth
             emit(rows, cols, vals, ar[free], lay.point_col[obs_point[free]], J_X[free])
@@ -362,8 +549,10 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
         if n_clk:
             J_pose, J_intr, _ = jac_block(T, f, k1, k2, prob.click_cam, prob.click_world, opts.click_weight)
             ar = np.arange(n_clk) + n_obs
-            emit(rows, cols, vals, ar, lay.pose_col[prob.click_cam], J_pose)
+            emit_pose(rows, cols, vals, ar, prob.click_cam, J_pose)
             emit(rows, cols, vals, ar, lay.intr_col[prob.click_cam], J_intr)
+            J_pp = np.broadcast_to(opts.click_weight * np.eye(2), (n_clk, 2, 2))
+            emit(rows, cols, vals, ar, lay.pp_col[prob.click_cam], J_pp)
         if len(distortion_cams):
             base = 2 * (n_obs + n_clk)
             nd = len(distortion_cams)
@@ -376,6 +565,12 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
             rows.append(base + np.arange(len(focal_cams)))
             cols.append(lay.intr_col[focal_cams])
             vals.append(1 / f_sigma)
+        if len(pp_cams):
+            base = 2 * (n_obs + n_clk) + 2 * len(distortion_cams) + len(focal_cams)
+            pc = lay.pp_col[pp_cams]
+            rows += [base + 2 * np.arange(len(pp_cams)), base + 2 * np.arange(len(pp_cams)) + 1]
+            cols += [pc, pc + 1]
+            vals += [1 / pp_sigma, 1 / pp_sigma]
         if not rows:
             return sp.csr_matrix((n_res, lay.n))
         return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n_res, lay.n))
@@ -384,7 +579,46 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
     init_rms = float(np.sqrt(np.mean(r0[: 2 * n_obs] ** 2) * 2)) if n_obs else 0.0
     nfev = 0
     x = x0
-    if lay.n > 0 and n_res >= lay.n:
+    pp_wald, pp_groups = float("nan"), 0
+    if lay.n > 0 and n_res >= lay.n and opts.solver == "schur" and opts.loss in ("soft_l1", "linear"):
+        n_cam_cols = int(lay.point_col[lay.point_free].min()) if lay.point_free.any() else lay.n
+        free_pts = np.nonzero(lay.point_free)[0]
+        starts = lay.point_col[free_pts] - n_cam_cols
+        sizes = np.where(lay.point_is_depth[free_pts], 1, 3)
+        with single_thread_blas():
+            x, nfev = _schur_lm(
+                residuals,
+                jacobian,
+                x0,
+                n_cam_cols,
+                starts,
+                sizes,
+                opts.loss,
+                opts.loss_scale_px,
+                opts.max_nfev,
+                opts.ftol,
+            )
+        if len(lay.pp_groups) and opts.principal_point_prior_px is not None:
+            r_fin = residuals(x)
+            w_fin = np.ones_like(r_fin)
+            if opts.loss == "soft_l1":
+                w_fin = 1 / np.sqrt(1 + (r_fin / opts.loss_scale_px) ** 2)
+            with single_thread_blas():
+                info = _camera_information(jacobian(x), w_fin, n_cam_cols, starts, sizes)
+            m = 2 * (n_obs + n_clk)
+            s2 = float(np.sum(w_fin[:m] * r_fin[:m] ** 2)) / max(m - lay.n, 1)
+            try:
+                cov = np.linalg.pinv(info) * s2
+                centre_px = np.asarray(opts.principal_point_prior_px, float).reshape(C, 2)
+                wald = 0.0
+                for members in lay.pp_groups:
+                    col = lay.pp_col[members[0]]
+                    d = x[col : col + 2] - centre_px[members[0]]
+                    wald += float(d @ np.linalg.solve(cov[col : col + 2, col : col + 2], d))
+                pp_wald, pp_groups = wald, len(lay.pp_groups)
+            except np.linalg.LinAlgError:
+                pass
+    elif lay.n > 0 and n_res >= lay.n:
         with single_thread_blas():
             sol = least_squares(
                 residuals,
@@ -412,4 +646,10 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
         )
     fin = np.isfinite(obs_err)
     final_rms = float(np.sqrt(np.mean(obs_err[fin] ** 2))) if fin.any() else 0.0
-    return BundleResult(T, f, cx, cy, k1, k2, pts, obs_err, clk_err, init_rms, final_rms, nfev)
+    r0_px = r0[: 2 * (n_obs + n_clk)].copy()
+    r0_px[2 * n_obs :] /= opts.click_weight if opts.click_weight else 1.0
+    init_sse = float(np.sum(np.nan_to_num(r0_px, nan=0.0, posinf=0.0, neginf=0.0) ** 2))
+    final_sse = float(np.sum(obs_err[fin] ** 2) + np.sum(clk_err[np.isfinite(clk_err)] ** 2))
+    return BundleResult(
+        T, f, cx, cy, k1, k2, pts, obs_err, clk_err, init_rms, final_rms, nfev, init_sse, final_sse, pp_wald, pp_groups
+    )
