@@ -418,6 +418,7 @@ def main(argv: list[str] | None = None) -> int:
         "paper: anchors fixed, anchor k1 = 0": SfmConfig(anchor_distortion=False, release_anchors=False),
     }
     if not args.quick:
+        cfgs["release: square pixels"] = SfmConfig(release_aspect=False)
         cfgs["pp refined"] = SfmConfig(refine_principal_point=True)
         cfgs["pp refined, anchors free"] = SfmConfig(refine_principal_point=True, fix_anchor_poses=False)
     rows: list[dict] = []

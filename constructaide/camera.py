@@ -5,7 +5,10 @@ rigid transform (camera coordinates -> world metres). ``camera_from_world`` is i
 ``[R | t]`` with ``x_cam = R @ x_world + t``. Pixels: (0, 0) is the centre of the top-left pixel.
 
 Distortion: two-term radial (Brown) on normalised coordinates,
-``x_d = x (1 + k1 r^2 + k2 r^4)``, then ``u = f x_d + cx``, ``v = f y_d + cy``.
+``x_d = x (1 + k1 r^2 + k2 r^4)``, then ``u = fx x_d + cx``, ``v = fy y_d + cy`` with ``fx = f_px`` and
+``fy = f_px * fy_over_fx`` (square pixels: ``fy_over_fx = 1``, the default). Build K and map pixels through this
+module (:func:`K_matrix`, :func:`focal_xy`, :func:`pixels_to_normalized`, :func:`normalized_to_pixels`) so that
+the pixel aspect ratio is honoured everywhere.
 """
 
 from __future__ import annotations
@@ -45,12 +48,20 @@ class PinholeCamera:
         return project_points(self.intrinsics, self.camera_from_world, points_in_world_m)
 
 
+def focal_xy(intr: Intrinsics) -> tuple[float, float]:
+    """Horizontal and vertical focal lengths (fx, fy) in pixels."""
+    return float(intr.f_px), float(intr.f_px * intr.fy_over_fx)
+
+
 def K_matrix(intr: Intrinsics) -> F64:
     """3x3 calibration matrix (distortion not included)."""
-    return np.array([[intr.f_px, 0.0, intr.cx_px], [0.0, intr.f_px, intr.cy_px], [0.0, 0.0, 1.0]])
+    fx, fy = focal_xy(intr)
+    return np.array([[fx, 0.0, intr.cx_px], [0.0, fy, intr.cy_px], [0.0, 0.0, 1.0]])
 
 
-def centered_intrinsics(width_px: int, height_px: int, f_px: float, k1: float = 0.0, k2: float = 0.0) -> Intrinsics:
+def centered_intrinsics(
+    width_px: int, height_px: int, f_px: float, k1: float = 0.0, k2: float = 0.0, fy_over_fx: float = 1.0
+) -> Intrinsics:
     """Intrinsics with the principal point at the image centre (OpenCV pixel convention)."""
     return Intrinsics(
         width_px=width_px,
@@ -60,6 +71,7 @@ def centered_intrinsics(width_px: int, height_px: int, f_px: float, k1: float = 
         cy_px=(height_px - 1) / 2.0,
         k1=float(k1),
         k2=float(k2),
+        fy_over_fx=float(fy_over_fx),
     )
 
 
@@ -97,7 +109,7 @@ def undistort_normalized(xy_d: F64, k1: float, k2: float, iterations: int = 20) 
 def pixels_to_normalized(intr: Intrinsics, pixels_px: ArrayLike) -> F64:
     """Undistorted normalised image coordinates (N, 2) of pixels (N, 2)."""
     px = np.asarray(pixels_px, dtype=np.float64).reshape(-1, 2)
-    xy_d = (px - np.array([intr.cx_px, intr.cy_px])) / intr.f_px
+    xy_d = (px - np.array([intr.cx_px, intr.cy_px])) / np.array(focal_xy(intr))
     return undistort_normalized(xy_d, intr.k1, intr.k2)
 
 
@@ -105,7 +117,7 @@ def normalized_to_pixels(intr: Intrinsics, xy: ArrayLike) -> F64:
     """Pixels (N, 2) of undistorted normalised coordinates (N, 2), distortion applied."""
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     xy_d = distort_normalized(xy, intr.k1, intr.k2)
-    return xy_d * intr.f_px + np.array([intr.cx_px, intr.cy_px])
+    return xy_d * np.array(focal_xy(intr)) + np.array([intr.cx_px, intr.cy_px])
 
 
 def project_points(intr: Intrinsics, camera_from_world: F64, points_in_world_m: ArrayLike) -> tuple[F64, F64]:

@@ -48,7 +48,9 @@ class Intrinsics(_Base, frozen=True, kw_only=True):
     """Pinhole camera with two radial distortion terms (Brown model, normalised coordinates).
 
     ``x_d = x (1 + k1 r^2 + k2 r^4)`` with ``x = X/Z`` and ``r^2 = x^2 + y^2``; pixel
-    ``u = f_px * x_d + cx_px``, ``v = f_px * y_d + cy_px`` (square pixels).
+    ``u = f_px * x_d + cx_px``, ``v = f_px * fy_over_fx * y_d + cy_px``. ``f_px`` is the horizontal focal
+    ``fx``; ``fy_over_fx`` the pixel aspect ratio ``fy / fx`` (1.0 = square pixels, the default and what
+    older messages mean).
     """
 
     width_px: int
@@ -58,6 +60,7 @@ class Intrinsics(_Base, frozen=True, kw_only=True):
     cy_px: float
     k1: float = 0.0
     k2: float = 0.0
+    fy_over_fx: float = 1.0
 
 
 class AnchorPoint(_Base, frozen=True, kw_only=True):
@@ -224,12 +227,22 @@ class Registration(Message, frozen=True, kw_only=True):
     processing_ms: float = 0.0
 
 
+SPARSE_POINT_FROM_MODEL = 1
+"""SparseCloud point flag: the point's 3D position was looked up on the BIM (depth of the model) and no two-view
+triangulation has reproduced it (something unmodelled may stand in front of the model there)."""
+SPARSE_POINT_VERIFIED = 2
+"""SparseCloud point flag: triangulated from epipolar-guided matches (densification), free of the repeated-texture
+mismatches that blind matching keeps; the static-occlusion test uses only such points when flags are given."""
+
+
 class SparseCloud(Message, frozen=True, kw_only=True):
     """Triangulated points with their observations.
 
     ``points_xyz_f32``: float32 (N, 3) in world metres; ``colors_rgb_u8``: uint8 (N, 3);
     observation arrays share one length M: ``obs_point_i32`` (index into points),
     ``obs_photo_i32`` (index into ``photo_ids``), ``obs_pixel_f32`` float32 (M, 2).
+    ``point_flags_u8``: uint8 (N,) bit set of ``SPARSE_POINT_FROM_MODEL`` / ``SPARSE_POINT_VERIFIED`` per point,
+    or empty (older publishers: no flags known).
     """
 
     revision: int = 0
@@ -239,6 +252,7 @@ class SparseCloud(Message, frozen=True, kw_only=True):
     obs_point_i32: bytes = b""
     obs_photo_i32: bytes = b""
     obs_pixel_f32: bytes = b""
+    point_flags_u8: bytes = b""
 
 
 class ViewpointGroup(Message, frozen=True, kw_only=True):

@@ -7,7 +7,14 @@ import numpy as np
 import pytest
 from occlude_scenes import dynamic_sequence, iou, textured_background
 
-from nodes.occlude.dynamic import dynamic_mask, fit_exposure, hsv_squared_difference, masked_median, upsample_mask
+from nodes.occlude.dynamic import (
+    dynamic_mask,
+    fit_exposure,
+    hsv_squared_difference,
+    masked_median,
+    upsample_mask,
+    with_appearance,
+)
 from nodes.occlude.stacks import TimelapseStore, gradient_ncc, scale_matrix
 
 
@@ -367,3 +374,118 @@ def test_gradient_ncc_tells_a_moved_camera_from_a_change_of_light() -> None:
     store.add_photo("c", "cam", 2 * 10**9, moved)
     store.refine_fixed_shift = False  # identity alignment: the moved frame stays misaligned
     assert store.aligned_stack("a").photo_ids == ("b",)
+
+
+def _no_stack(h: int, w: int):
+    from nodes.occlude.stacks import AlignedStack
+
+    return AlignedStack("p", np.zeros((0, h, w, 3), np.uint8), np.zeros((0, h, w), bool))
+
+
+def _vehicle_image(rng: np.random.Generator, background: np.ndarray, box: np.ndarray, gain: float) -> np.ndarray:
+    """The occlude_scenes vehicle colour (BGR 30, 60, 200 + noise) drawn over ``background`` where ``box`` > 0."""
+    colour = np.array([30, 60, 200], np.float32) + rng.normal(0, 5, background.shape).astype(np.float32)
+    img = np.where(box[..., None] > 0, colour, background.astype(np.float32))
+    return np.clip(img * gain + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
+
+
+@pytest.fixture(scope="module")
+def trained_colour_model():
+    """A colour model that learnt from the time-lapse masks of a fixed camera whose vehicle moves."""
+    from nodes.occlude.dynamic import ColourModel, DynamicParams
+
+    frames = dynamic_sequence(7, 6, gains=(1.0, 0.9, 1.1, 1.0, 0.95, 1.05))
+    store = _store(frames, working_width_px=480)
+    model = ColourModel()
+    for i, f in enumerate(frames):
+        small = store.frames[f"p{i}"].image_small
+        res = dynamic_mask(f.image, small, store.aligned_stack(f"p{i}"), DynamicParams(appearance="off"))
+        assert res.timelapse_small is not None and iou(res.mask, f.truth) > 0.85
+        model.add(f"p{i}", small, res.timelapse_small)
+    return model
+
+
+def test_colour_model_labels_a_photo_without_a_stack(trained_colour_model) -> None:
+    from nodes.occlude.dynamic import DynamicParams
+
+    rng = np.random.default_rng(99)
+    h, w = 270, 480
+    other_scene = textured_background(rng, h, w)  # another viewpoint: no same-view neighbour
+    box = np.zeros((h, w), np.uint8)
+    cv2.rectangle(box, (150, 120), (260, 200), 255, -1)
+    phone = _vehicle_image(rng, other_scene, box, 0.9)
+    res = dynamic_mask(phone, phone, _no_stack(h, w), DynamicParams(), None, trained_colour_model)
+    assert res.status == "ok" and res.num_views == 0 and res.background is None
+    assert res.appearance_px > 0 and iou(res.mask, box) > 0.85
+    # without the vehicle nothing has its colour
+    clean = np.clip(other_scene.astype(np.float32) * 0.9, 0, 255).astype(np.uint8)
+    empty = dynamic_mask(clean, clean, _no_stack(h, w), DynamicParams(), None, trained_colour_model)
+    assert empty.status == "ok" and np.count_nonzero(empty.mask) / empty.mask.size < 0.01
+    # the previous behaviour: no colour model, no mask
+    off = dynamic_mask(phone, phone, _no_stack(h, w), DynamicParams(appearance="off"), None, trained_colour_model)
+    assert off.status == "not_enough_views" and not off.mask.any()
+    # a model that has seen fewer than appearance_min_frames masks is not used
+    unready_params = DynamicParams(appearance_min_frames=7)
+    unready = dynamic_mask(phone, phone, _no_stack(h, w), unready_params, None, trained_colour_model)
+    assert unready.status == "not_enough_views"
+    with pytest.raises(ValueError, match="appearance mode"):
+        dynamic_mask(phone, phone, _no_stack(h, w), DynamicParams(appearance="always"), None, trained_colour_model)
+
+
+def test_colour_model_finds_a_parked_occluder_and_vetoes_static_colours(trained_colour_model) -> None:
+    from nodes.occlude.dynamic import DynamicParams
+
+    rng = np.random.default_rng(5)
+    h, w = 270, 480
+    scene = textured_background(rng, h, w)
+    parked = np.zeros((h, w), np.uint8)  # the vehicle stands still in every frame of this camera
+    cv2.rectangle(parked, (40, 150), (150, 230), 255, -1)
+    change = np.zeros((h, w), bool)  # on day 2 a patch shows other parts of the static scene (like new construction)
+    change[40:110, 300:420] = True
+    images = []
+    for i in range(4):
+        bg = scene.copy()
+        if i == 2:
+            bg[40:110, 300:420] = scene[150:220, 200:320]
+        images.append(_vehicle_image(rng, bg, parked, 1.0 + 0.05 * i))
+    store = TimelapseStore(working_width_px=480)
+    for i, img in enumerate(images):
+        store.add_photo(f"b{i}", "cam-b", i * 10**9, img)
+    small = store.frames["b2"].image_small
+    stack = store.aligned_stack("b2")
+    off = dynamic_mask(images[2], small, stack, DynamicParams(appearance="off"), None, trained_colour_model)
+    assert np.count_nonzero(off.mask[parked > 0]) < 0.05 * np.count_nonzero(parked)  # no time-lapse can see it
+    assert np.count_nonzero(off.mask[change]) > 0.8 * change.sum()  # the change differs from every neighbour
+    res = dynamic_mask(images[2], small, stack, DynamicParams(), None, trained_colour_model)
+    assert np.count_nonzero(res.mask[parked > 0]) > 0.9 * np.count_nonzero(parked)
+    assert np.count_nonzero(res.mask[change]) < 0.05 * change.sum()  # vetoed: colours of the static scene
+    assert res.timelapse_small is not None and np.array_equal(res.timelapse_small, off.timelapse_small)
+    # with_appearance on a finished time-lapse result gives the same mask (the bench applies it afterwards)
+    late = with_appearance(off, images[2], small, trained_colour_model, DynamicParams())
+    assert iou(late.mask, res.mask) > 0.99 and late.background is off.background
+    # "no_stack" leaves time-lapse masks alone
+    only = dynamic_mask(images[2], small, stack, DynamicParams(appearance="no_stack"), None, trained_colour_model)
+    assert np.array_equal(only.mask, off.mask)
+
+
+def test_colour_model_bookkeeping() -> None:
+    from nodes.occlude.dynamic import ColourModel
+
+    rng = np.random.default_rng(1)
+    img = textured_background(rng, 60, 80)
+    mask = np.zeros((60, 80), np.uint8)
+    mask[10:30, 10:40] = 255
+    model = ColourModel()
+    model.add("a", img, mask)
+    model.add("a", img, mask)  # recomputed mask: replaces, does not add up
+    dyn, other = model.totals()
+    assert model.num_frames == 1 and dyn.sum() == 600 and other.sum() == 60 * 80 - 600
+    model.add("b", img, np.zeros_like(mask))
+    model.forget("a")  # the pixels stay, the per-photo record goes
+    dyn, other = model.totals()
+    assert model.num_frames == 2 and "a" not in model.per_photo and dyn.sum() == 600
+    post = model.posterior(img, 20.0)
+    assert post.shape == (60, 80) and 0.0 <= post.min() and post.max() <= 1.0
+    assert post[mask > 0].mean() > post[mask == 0].mean()
+    with pytest.raises(ValueError, match="does not match"):
+        model.add("c", img, mask[:10])

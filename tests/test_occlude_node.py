@@ -16,6 +16,8 @@ from constructaide.runtime.local import LocalBus
 from nodes.occlude.node import SPEC, Config
 from schemas import keys
 from schemas.messages import (
+    SPARSE_POINT_FROM_MODEL,
+    SPARSE_POINT_VERIFIED,
     Annotation,
     BimModel,
     OcclusionMask,
@@ -259,5 +261,102 @@ def test_node_config_selects_dynamic_score_and_alignment() -> None:
     assert paper.store.fixed_alignment == "shift"
     with pytest.raises(ValueError, match="dynamic_score"):
         OccludeNode(Config(site=SITE, dynamic_score="mean"), None)  # type: ignore[arg-type]
+    assert vote.dyn_params.appearance == "all" and vote.dyn_params.appearance_veto == 0.15
+    with pytest.raises(ValueError, match="dynamic_appearance"):
+        OccludeNode(Config(site=SITE, dynamic_appearance="colour"), None)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="fixed_alignment"):
         OccludeNode(Config(site=SITE, fixed_alignment="affine"), None)  # type: ignore[arg-type]
+
+
+def test_node_fast_path_frames_take_their_cameras_static_mask(scene) -> None:
+    """Only the first frame of a fixed camera has sparse observations (a key image); the others, registered by
+    the fast path without features, take its static mask. Points flagged as BIM-depth or not verified by
+    guided matching are not used."""
+    images, _ = _frames(scene, 3)
+    photos = [_photo(img, "cam-a", (i + 1) * DAY_NS) for i, img in enumerate(images)]
+    model = BimModel(site=SITE, revision="r1", geometry_glb=meshes_to_glb(scene.model_meshes), terrain_height_m=0.0)
+    pts = scene.points_m.astype(np.float32)
+    n = len(pts)
+    flags = np.full(n, SPARSE_POINT_VERIFIED, np.uint8)
+    flags[::3] = SPARSE_POINT_FROM_MODEL | SPARSE_POINT_VERIFIED  # dropped: looked up on the BIM
+    flags[1::3] = 0  # dropped: blind matches
+    cloud = SparseCloud(
+        site=SITE,
+        revision=1,
+        photo_ids=(photos[0].photo_id,),
+        points_xyz_f32=pts.tobytes(),
+        colors_rgb_u8=np.zeros((n, 3), np.uint8).tobytes(),
+        obs_point_i32=np.arange(n, dtype=np.int32).tobytes(),
+        obs_photo_i32=np.zeros(n, np.int32).tobytes(),
+        obs_pixel_f32=scene.pixels_px.astype(np.float32).tobytes(),
+        point_flags_u8=flags.tobytes(),
+    )
+    with LocalBus() as bus, start_node(SPEC, Config(site=SITE), bus) as node:
+        got = bus.collect(keys.pattern(keys.OCCLUSION, site=SITE))
+        bus.publish(keys.key(keys.BIM_MODEL, site=SITE), model, latched=True)
+        bus.publish(keys.key(keys.SPARSE, site=SITE), cloud, latched=True)
+        for p in photos:
+            bus.publish(keys.key(keys.PHOTO, site=SITE, camera="cam-a"), p)
+            reg = Registration(
+                site=SITE,
+                photo_id=p.photo_id,
+                camera_id="cam-a",
+                intrinsics=scene.intrinsics,
+                world_from_camera=pose_to_tuple(scene.world_from_camera),
+                status="auto",
+            )
+            bus.publish(keys.key(keys.REGISTRATION, site=SITE, camera="cam-a", photo=p.photo_id), reg)
+        assert node.wait_idle(60.0)
+        last = {}
+        for _, m in got.items:
+            if m.kind == "static":
+                last[m.photo_id] = m
+        judged = last[photos[0].photo_id].num_views
+        # only the verified points (a third of the cloud) are judged; a bit over half of them show the model
+        assert 0 < judged <= 0.6 * np.count_nonzero(flags == SPARSE_POINT_VERIFIED)
+        assert iou(_mask(last[photos[0].photo_id]), scene.truth) > 0.7
+        for p in photos[1:]:
+            m = last[p.photo_id]
+            assert m.status == "ok" and m.num_views == 0  # no points of its own
+            assert node.obj.static_borrowed[p.photo_id] == photos[0].photo_id
+            assert iou(_mask(m), scene.truth) > 0.7
+
+
+def _vehicle(img: np.ndarray, x0: int, y0: int, bw: int, bh: int) -> tuple[np.ndarray, np.ndarray]:
+    """A copy of ``img`` with the red vehicle of ``_frames`` at (x0, y0), and its truth mask."""
+    out = img.copy()
+    truth = np.zeros(img.shape[:2], np.uint8)
+    cv2.rectangle(truth, (x0, y0), (x0 + bw, y0 + bh), 255, -1)
+    out[truth > 0] = (30, 40, 210)
+    return out, truth
+
+
+@pytest.mark.parametrize("appearance", ["all", "off"])
+def test_node_labels_photos_without_a_stack_by_colour(scene, appearance: str) -> None:
+    h, w = scene.image.shape[:2]
+    fixed = [_vehicle(scene.image, int(w * (0.05 + 0.14 * i)), int(h * 0.6), w // 8, h // 7)[0] for i in range(6)]
+    # a phone photo from elsewhere (here: the scene mirrored), no viewpoint group: no stack
+    phone_img, phone_truth = _vehicle(np.ascontiguousarray(scene.image[:, ::-1]), w // 3, h // 2, w // 6, h // 6)
+    phone = _photo(phone_img, None, 3 * DAY_NS)
+    photos = [_photo(img, "cam-c", (i + 1) * DAY_NS) for i, img in enumerate(fixed)]
+    with LocalBus() as bus, start_node(SPEC, Config(site=SITE, dynamic_appearance=appearance), bus) as node:
+        got = bus.collect(keys.pattern(keys.OCCLUSION, site=SITE))
+        bus.publish(keys.key(keys.PHOTO, site=SITE, camera=None), phone)
+        got.wait(where=_is("dynamic", phone.photo_id, "not_enough_views"))  # the colour model knows nothing yet
+        for p in photos:
+            bus.publish(keys.key(keys.PHOTO, site=SITE, camera="cam-c"), p)
+        for p in photos:
+            got.wait(where=_is("dynamic", p.photo_id, "ok"))
+        assert node.wait_idle(30.0)
+        obj = node.obj
+        assert obj.colour.num_frames == len(photos)  # every fixed frame's time-lapse mask was learnt
+        last = [m for _, m in got.items if m.kind == "dynamic" and m.photo_id == phone.photo_id][-1]
+        if appearance == "off":
+            assert last.status == "not_enough_views" and last.mask_png == b""
+            return
+        # redone once the model had seen enough masks: labelled by colour alone
+        assert last.status == "ok" and last.num_views == 0 and last.background_jpeg == b""
+        assert iou(_mask(last), phone_truth) > 0.8
+        assert phone.photo_id in obj.dynamic_no_stack
+        combined = [m for _, m in got.items if m.kind == "combined" and m.photo_id == phone.photo_id][-1]
+        assert combined.status == "ok" and iou(_mask(combined), phone_truth) > 0.8

@@ -165,6 +165,26 @@ def test_two_anchors_triangulate_and_confirm(scene, with_bim: bool) -> None:
     assert len(reg.map) > 200
     if with_bim:  # the second anchor's views confirm BIM-depth points of the first
         assert (reg.map.confirmed & reg.map.fixed).sum() > 50
+    # densification: epipolar-guided matches between the two anchors, flagged verified, on the true surface
+    model_only = reg.map.fixed & ~reg.map.confirmed
+    ver = reg.map.verified & ~model_only
+    assert ver.sum() > 50
+    key = reg.keys[0]
+    kp = np.array([f for pid in np.flatnonzero(ver) for ki, f in reg.map.obs[pid] if ki == 0])
+    pid0 = np.array([pid for pid in np.flatnonzero(ver) for ki, _ in reg.map.obs[pid] if ki == 0])
+    z = scene.depth_lookup(key.world_from_camera, key.intrinsics, key.feats.keypoints_px[kp])
+    xy = cam.pixels_to_normalized(key.intrinsics, key.feats.keypoints_px[kp])
+    true_pts = np.c_[xy * z[:, None], z] @ key.world_from_camera[:3, :3].T + key.world_from_camera[:3, 3]
+    err = np.linalg.norm(reg.map.points()[pid0] - true_pts, axis=1)
+    assert np.nanmedian(err) < 0.1 and np.mean(err < 0.3) > 0.85
+    flags = reg.sparse_arrays()["point_flags"]
+    assert flags.dtype == np.uint8 and np.all((flags[ver] & 2) > 0) and np.all((flags[model_only] & 1) > 0)
+    off = StreamingRegistrar(StreamConfig(densify=False), site="t")
+    for i, eye in enumerate([(-5.0, -3.0, 2.0), (5.0, -3.0, 2.5)]):
+        Ta = cam.look_at(eye, (0.0, 16.0, 3.0))
+        px, pts = anchor_clicks(ip, Ta, noise_px=0.3, seed=i)
+        off.register_anchor(photo(scene, f"a{i}", ip, Ta, camera_id=None), px, pts)
+    assert not off.map.verified.any()
     Tq = cam.look_at((0.0, -4.0, 1.6), (0.0, 16.0, 3.0))
     out = reg.register(photo(scene, "q", ip, Tq, camera_id=None))
     assert out.registration.method == "pnp", out.registration.message

@@ -27,7 +27,7 @@ The clean background plate is the photo outside the mask and the (upsampled) med
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 import cv2
@@ -66,6 +66,15 @@ class DynamicParams:
     # with two neighbours from both), so one neighbour's occluder cannot leave a ghost
     vote_quantile: float | None = 0.5
     guard_views: int = 1  # vote mode: neighbours per side (earlier / later) in the temporal guard
+    # appearance model (see ColourModel): "off"; "no_stack": label photos without a stack (phone photos) by the
+    # colours of the time-lapse masks of the site's other photos; "all": and add such pixels to time-lapse masks
+    # too (occluders that do not move while the stack is taken, e.g. a site cabin for a week)
+    appearance: str = "all"
+    appearance_threshold: float = 0.5  # posterior P(dynamic | colour) above which a pixel is labelled
+    appearance_prior_count: float = 20.0  # pseudo-count of other pixels per colour bin: rare colours stay background
+    appearance_sigma_px: float = 2.0  # Gaussian smoothing of the posterior map
+    appearance_min_frames: int = 5  # time-lapse masks the model must have seen before it is used
+    appearance_veto: float = 0.15  # "all": time-lapse blobs whose mean posterior is below this are dropped
 
 
 @dataclass
@@ -77,6 +86,119 @@ class DynamicResult:
     mask: U8
     background: U8 | None
     num_views: int
+    # working-size 0/255 time-lapse mask (before any appearance pixels): what ColourModel.add learns from
+    timelapse_small: U8 | None = None
+    appearance_px: int = 0  # working-size pixels labelled by the appearance model only
+
+
+@dataclass
+class ColourModel:
+    """Colour histograms (HSV bins) of the time-lapse dynamic masks of a site's photos and of the rest of
+    those photos, for labelling photos that have no time-lapse stack (beyond the paper).
+
+    Each photo contributes the pixels of its working image inside its time-lapse mask (dynamic) and
+    outside it (other); :meth:`posterior` is P(dynamic | colour) per pixel of a new image,
+    ``dynamic / (dynamic + other + prior_count)`` of its bin. Colours that the site's building, ground,
+    fence and sky also show get a low posterior because those surfaces are in every photo's "other"
+    pixels; only colours seen (almost) exclusively on things that moved score high. That works when
+    equipment and vehicles differ in colour from the static scene (true of the synthetic site's
+    crane, trucks and cabins; on a real site a grey truck in front of a grey facade would not score).
+
+    ``add`` replaces a photo's earlier contribution (its mask was recomputed); ``forget`` keeps the
+    contribution but drops the per-photo record (bounded memory).
+    """
+
+    bins: tuple[int, int, int] = (36, 8, 8)  # hue (OpenCV 0-180), saturation, value
+    per_photo: dict[str, tuple[F32, F32]] = field(default_factory=dict)
+    _base: tuple[F32, F32] | None = None
+    _base_frames: int = 0
+    _sum: tuple[F32, F32] | None = None
+
+    def _bin_index(self, photo_small: U8) -> NDArray[np.int32]:
+        """Flat colour-bin index (h, w) of each pixel of a uint8 BGR image (OpenCV 8-bit HSV, uniform bins)."""
+        hsv = cv2.cvtColor(photo_small, cv2.COLOR_BGR2HSV).astype(np.int32)
+        nh, ns, nv = self.bins
+        ih = np.minimum(hsv[..., 0] * nh // 180, nh - 1)
+        return np.asarray((ih * ns + hsv[..., 1] * ns // 256) * nv + hsv[..., 2] * nv // 256, np.int32)
+
+    def _hist(self, index: NDArray[np.int32], mask: NDArray[np.bool_]) -> F32:
+        n = int(np.prod(self.bins))
+        return np.bincount(index[mask], minlength=n).astype(np.float32).reshape(self.bins)
+
+    def add(self, photo_id: str, photo_small: U8, mask_small: NDArray[np.generic]) -> None:
+        """Learn from a photo's working image (uint8 BGR (h, w, 3)) and its time-lapse mask (h, w), non-zero =
+        dynamic."""
+        if mask_small.shape != photo_small.shape[:2]:
+            raise ValueError(f"photo {photo_id}: mask {mask_small.shape} does not match image {photo_small.shape[:2]}")
+        index = self._bin_index(photo_small)
+        dyn = np.asarray(mask_small) > 0
+        self.per_photo[photo_id] = (self._hist(index, dyn), self._hist(index, ~dyn))
+        self._sum = None
+
+    def forget(self, photo_id: str) -> None:
+        """Drop the per-photo record; its pixels stay in the model."""
+        entry = self.per_photo.pop(photo_id, None)
+        if entry is None:
+            return
+        if self._base is None:
+            self._base = (entry[0].copy(), entry[1].copy())
+        else:
+            self._base = (self._base[0] + entry[0], self._base[1] + entry[1])
+        self._base_frames += 1
+
+    @property
+    def num_frames(self) -> int:
+        return len(self.per_photo) + self._base_frames
+
+    def totals(self) -> tuple[F32, F32]:
+        """(dynamic, other) histograms summed over all contributions."""
+        if self._sum is None:
+            shape = tuple(self.bins)
+            dyn = np.zeros(shape, np.float32) if self._base is None else self._base[0].copy()
+            other = np.zeros(shape, np.float32) if self._base is None else self._base[1].copy()
+            for d, o in self.per_photo.values():
+                dyn += d
+                other += o
+            self._sum = (dyn, other)
+        return self._sum
+
+    def posterior(self, photo_small: U8, prior_count: float) -> F32:
+        """P(dynamic | colour) (h, w) in [0, 1] for a uint8 BGR working image."""
+        dyn, other = self.totals()
+        table = (dyn / (dyn + other + max(prior_count, 1e-6))).astype(np.float32).ravel()
+        return table[self._bin_index(photo_small)]
+
+
+def smoothed_posterior(photo_small: U8, model: ColourModel, params: DynamicParams) -> F32:
+    """:meth:`ColourModel.posterior` (h, w) smoothed by a Gaussian of ``params.appearance_sigma_px``."""
+    post = model.posterior(photo_small, params.appearance_prior_count)
+    if params.appearance_sigma_px > 0:
+        post = np.asarray(cv2.GaussianBlur(post, (0, 0), params.appearance_sigma_px), np.float32)
+    return post
+
+
+def appearance_small_mask(photo_small: U8, posterior: F32, params: DynamicParams) -> U8:
+    """Working-size 0/255 mask of the pixels whose (smoothed) posterior (h, w) exceeds
+    ``params.appearance_threshold`` (small blobs dropped, enclosed holes filled); open sky never."""
+    small = np.where(posterior > params.appearance_threshold, 255, 0).astype(np.uint8)
+    if params.ignore_sky:
+        small[open_sky(photo_small.astype(np.float32) * np.float32(1.0 / 255.0))] = 0
+    small = remove_small_components(small, int(params.min_component_frac * small.size))
+    return fill_holes(small) if params.fill_holes else small
+
+
+def veto_by_colour(mask_small: U8, posterior: F32, min_mean: float) -> U8:
+    """Drop the 8-connected blobs of a 0/255 mask whose mean posterior is below ``min_mean``: they have
+    the colours of the static scene (construction progress, shadows, misalignment), not of anything
+    that was seen to move."""
+    n, labels = cv2.connectedComponents((mask_small > 0).astype(np.uint8), connectivity=8)
+    if n <= 1 or min_mean <= 0:
+        return mask_small
+    sums = np.bincount(labels.ravel(), weights=posterior.ravel().astype(np.float64), minlength=n)
+    area = np.bincount(labels.ravel(), minlength=n)
+    keep = sums >= min_mean * area
+    keep[0] = False
+    return np.where(keep[labels], 255, 0).astype(np.uint8)
 
 
 def fit_exposure(src: F32, dst: F32, valid: NDArray[np.bool_], iterations: int = 3, max_samples: int = 20000) -> F32:
@@ -128,21 +250,31 @@ def masked_median(images: F32, valid: NDArray[np.bool_]) -> tuple[F32, NDArray[n
     return med.astype(np.float32), count
 
 
-def hsv_squared_difference(a_bgr: F32, b_bgr: F32, saturation_weighted: bool = True) -> F32:
-    """Squared per-channel HSV difference (h, w, 3) of two float BGR images in [0, 1].
+def to_hsv(bgr: F32) -> F32:
+    """HSV (h, w, 3) of a float BGR image in [0, 1]: H in degrees [0, 360), S and V in [0, 1]."""
+    return np.asarray(cv2.cvtColor(np.clip(bgr, 0.0, 1.0), cv2.COLOR_BGR2HSV), np.float32)
+
+
+def hsv_channel_differences(ha: F32, hb: F32, saturation_weighted: bool = True) -> tuple[F32, F32, F32]:
+    """Squared hue, saturation and value differences (each (h, w)) of two HSV images (:func:`to_hsv`).
 
     Hue difference is circular in [0, 0.5] (H scaled to [0, 1)); with ``saturation_weighted`` it is
     multiplied by the smaller saturation of the two pixels.
     """
-    ha = cv2.cvtColor(np.clip(a_bgr, 0.0, 1.0), cv2.COLOR_BGR2HSV)
-    hb = cv2.cvtColor(np.clip(b_bgr, 0.0, 1.0), cv2.COLOR_BGR2HSV)
     dh = np.abs(ha[..., 0] - hb[..., 0]) / 360.0
     dh = np.minimum(dh, 1.0 - dh)
     if saturation_weighted:
         dh = dh * np.minimum(ha[..., 1], hb[..., 1])
     ds = ha[..., 1] - hb[..., 1]
     dv = ha[..., 2] - hb[..., 2]
-    return np.stack([dh * dh, ds * ds, dv * dv], axis=-1).astype(np.float32)
+    return dh * dh, ds * ds, dv * dv
+
+
+def hsv_squared_difference(a_bgr: F32, b_bgr: F32, saturation_weighted: bool = True) -> F32:
+    """Squared per-channel HSV difference (h, w, 3) of two float BGR images in [0, 1] (see
+    :func:`hsv_channel_differences`)."""
+    d = hsv_channel_differences(to_hsv(a_bgr), to_hsv(b_bgr), saturation_weighted)
+    return np.stack(d, axis=-1).astype(np.float32)
 
 
 def sky_like(bgr: F32, max_std: float = 0.08) -> NDArray[np.bool_]:
@@ -171,9 +303,12 @@ def open_sky(photo_bgr: F32) -> NDArray[np.bool_]:
     return (cv2.dilate(sky, np.ones((9, 9), np.uint8)) > 0) & sky_like(photo_bgr)
 
 
-def raw_score(photo: F32, other: F32, params: DynamicParams) -> F32:
-    """Per-pixel max over channels of the squared HSV difference (h, w), before smoothing."""
-    return hsv_squared_difference(photo, other, params.hue_saturation_weighted).max(axis=2)
+def raw_score(photo: F32, other: F32, params: DynamicParams, photo_hsv: F32 | None = None) -> F32:
+    """Per-pixel max over channels of the squared HSV difference (h, w), before smoothing.
+    ``photo_hsv``: :func:`to_hsv` of ``photo`` when already computed."""
+    hp = to_hsv(photo) if photo_hsv is None else photo_hsv
+    dh, ds, dv = hsv_channel_differences(hp, to_hsv(other), params.hue_saturation_weighted)
+    return np.maximum(np.maximum(dh, ds), dv).astype(np.float32)
 
 
 def order_statistic(scores: F32, valid: NDArray[np.bool_], q: float) -> F32:
@@ -213,7 +348,9 @@ def vote_score(
     later, neighbours): construction progress agrees with one side, a transient occluder with none.
     """
     q = 0.5 if params.vote_quantile is None else float(params.vote_quantile)
-    scores = np.stack(smooth_scores(photo, [raw_score(photo, norm[i], params) for i in range(norm.shape[0])], params))
+    hp = to_hsv(photo)
+    raw = [raw_score(photo, norm[i], params, hp) for i in range(norm.shape[0])]
+    scores = np.stack(smooth_scores(photo, raw, params))
     score = order_statistic(scores, valid, q)
     if params.temporal_guard and stack.num_views >= 2 and len(stack.times_ns) == stack.num_views:
         guard = np.full(score.shape, np.inf, np.float32)
@@ -449,16 +586,20 @@ def dynamic_mask(
     stack: AlignedStack,
     params: DynamicParams | None = None,
     progress_region: NDArray[np.bool_] | None = None,
+    appearance: ColourModel | None = None,
 ) -> DynamicResult:
     """Dynamic-occluder mask and clean plate of a photo (uint8 BGR, full and working size).
 
     ``progress_region``: bool (h, w) at working size, where the building may change between views
-    (the projected BIM); see :func:`background_and_difference`.
+    (the projected BIM); see :func:`background_and_difference`. ``appearance``: the site's colour
+    model, used as ``params.appearance`` says once it has seen ``appearance_min_frames`` masks (see
+    :func:`appearance_combine`). ``timelapse_small`` of the result is the mask before that step.
     """
     params = params or DynamicParams()
     h, w = photo_full.shape[:2]
     if stack.num_views < max(1, params.min_views):
-        return DynamicResult("not_enough_views", np.zeros((h, w), np.uint8), None, stack.num_views)
+        res = DynamicResult("not_enough_views", np.zeros((h, w), np.uint8), None, stack.num_views)
+        return with_appearance(res, photo_full, photo_small, appearance, params)
     background, score, count = background_and_difference(photo_small, stack, params, progress_region)
     small = hysteresis_mask(score, params.threshold, params.threshold * params.weak_ratio)
     if params.ignore_sky:
@@ -468,6 +609,67 @@ def dynamic_mask(
         small = remove_ghosts(small, photo_small, (background * 255.0).astype(np.uint8), params.ghost_ratio)
     if params.fill_holes:
         small = fill_holes(small)
+    combined, added = appearance_combine(small, photo_small, appearance, params)
+    mask, plate = _finish(photo_full, combined, background, count, params)
+    return DynamicResult("ok", mask, plate, stack.num_views, small, added)
+
+
+def _finish(
+    photo_full: U8, small: U8, background: F32 | None, count: NDArray[np.int32] | None, params: DynamicParams
+) -> tuple[U8, U8 | None]:
+    """Full-resolution mask of a working-size 0/255 mask and the clean plate (None without a background)."""
     soft = cv2.GaussianBlur(small.astype(np.float32) / 255.0, (3, 3), 0)
     mask = upsample_mask(soft, photo_full, params.guided_radius_px, params.guided_eps)
-    return DynamicResult("ok", mask, clean_plate(photo_full, small, mask, background, count), stack.num_views)
+    if background is None or count is None:
+        return mask, None
+    return mask, clean_plate(photo_full, small, mask, background, count)
+
+
+def _appearance_ready(model: ColourModel | None, params: DynamicParams) -> bool:
+    if params.appearance not in ("off", "no_stack", "all"):
+        raise ValueError(f"unknown appearance mode {params.appearance!r} (off, no_stack or all)")
+    return model is not None and params.appearance != "off" and model.num_frames >= max(1, params.appearance_min_frames)
+
+
+def appearance_combine(
+    timelapse_small: U8, photo_small: U8, model: ColourModel | None, params: DynamicParams
+) -> tuple[U8, int]:
+    """With ``params.appearance == "all"`` and a ready model: a time-lapse working-size mask without its
+    blobs of static-scene colour (:func:`veto_by_colour`, ``appearance_veto``) and with the appearance
+    pixels (:func:`appearance_small_mask`) added. Returns the mask and the number of added pixels;
+    the mask itself otherwise."""
+    if params.appearance != "all" or not _appearance_ready(model, params):
+        return timelapse_small, 0
+    assert model is not None
+    post = smoothed_posterior(photo_small, model, params)
+    kept = veto_by_colour(timelapse_small, post, params.appearance_veto)
+    added = (appearance_small_mask(photo_small, post, params) > 0) & (kept == 0)
+    small = np.where(added, 255, kept).astype(np.uint8)
+    return (fill_holes(small) if params.fill_holes else small), int(np.count_nonzero(added))
+
+
+def with_appearance(
+    res: DynamicResult,
+    photo_full: U8,
+    photo_small: U8,
+    model: ColourModel | None,
+    params: DynamicParams,
+) -> DynamicResult:
+    """Apply the appearance model to a finished result: a photo without a stack gets
+    :func:`appearance_small_mask` as its mask (status ok, ``num_views`` 0, no clean plate) with
+    ``params.appearance`` "no_stack" or "all"; with "all" a time-lapse result is redone by
+    :func:`appearance_combine` (its clean plate kept). Unchanged when the model is None or not ready."""
+    if not _appearance_ready(model, params):
+        return res
+    assert model is not None
+    if res.status != "ok":
+        extra = appearance_small_mask(photo_small, smoothed_posterior(photo_small, model, params), params)
+        mask, _ = _finish(photo_full, extra, None, None, params)
+        return DynamicResult("ok", mask, None, 0, None, int(np.count_nonzero(extra)))
+    if res.timelapse_small is None:
+        return res
+    small, added = appearance_combine(res.timelapse_small, photo_small, model, params)
+    if np.array_equal(small, res.timelapse_small):
+        return res
+    mask, _ = _finish(photo_full, small, None, None, params)
+    return DynamicResult("ok", mask, res.background, res.num_views, res.timelapse_small, added)

@@ -6,8 +6,9 @@ for kinds ``dynamic`` (with the clean background plate), ``static``, ``user`` an
 (union of the ``ok`` masks of the other kinds; what the render node should use).
 
 Incremental: a new photo gets its masks from its own stack; older photos are recomputed only when
-they had no usable stack yet (``not_enough_views``) or when their inputs changed (their viewpoint
-group, a registration, a sparse cloud with markedly more observations of them, a new model).
+they had no usable stack yet (``not_enough_views``, or a mask from the colour model alone, which is
+also redone as that model learns) or when their inputs changed (their viewpoint group, a
+registration, a sparse cloud with markedly more observations of them, a new model).
 """
 
 from __future__ import annotations
@@ -25,13 +26,15 @@ from numpy.typing import NDArray
 
 from constructaide.bimgeom import glb_to_meshes, load_bim_model_glb
 from constructaide.runtime import Input, NodeContext, NodeSpec, Output, run_node_cli
-from nodes.occlude.dynamic import DynamicParams, dynamic_mask
+from nodes.occlude.dynamic import ColourModel, DynamicParams, dynamic_mask
 from nodes.occlude.modeldepth import ModelMaps, ModelRenderer
 from nodes.occlude.stacks import TimelapseStore, scale_matrix, working_size
 from nodes.occlude.static import StaticParams, estimate_point_normals, estimate_terrain_height, static_mask
 from nodes.occlude.user import UserCorrections
 from schemas import keys
 from schemas.messages import (
+    SPARSE_POINT_FROM_MODEL,
+    SPARSE_POINT_VERIFIED,
     Annotation,
     BimModel,
     BimUpdate,
@@ -59,11 +62,20 @@ class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=Tr
     dynamic_threshold: float = 0.08  # smoothed squared HSV difference, any channel (paper: 0.05 for the median score)
     dynamic_score: str = "vote"  # "vote": must differ from most neighbours; "median": from the median (paper)
     fixed_alignment: str = "homography"  # a fixed camera's frames: "homography" (SIFT) or "shift"
+    # colour model learnt from the time-lapse masks (dynamic.ColourModel): "all" labels photos without a stack and
+    # adds to / vetoes time-lapse masks, "no_stack" only labels photos without a stack, "off"
+    dynamic_appearance: str = "all"
+    appearance_veto: float = 0.15  # time-lapse blobs whose mean P(dynamic | colour) is below this are dropped
+    appearance_refresh_growth: float = 0.25  # redo stack-less photos once the colour model saw this many more masks
     depth_margin_m: float = 0.3  # static: point closer than the model by more than this occludes
     normal_angle_deg: float = 30.0  # static: normal disagreement that occludes
     terrain_height_m: float | None = None  # site ground level; else BimModel's, else estimated from the cloud
     static_excludes_dynamic: bool = True  # static mask minus the photo's dynamic mask
     sparse_growth: float = 0.2  # recompute a static mask when a photo's observations grew by this fraction
+    # a fixed-camera frame judging fewer sparse points than this (a frame registered by the fast path has no
+    # features of its own) also takes the static mask of its camera's frame that judged the most, warped by the
+    # stack homography: fences, ground and trees stay where they are (0: off)
+    static_borrow_below_points: int = 20
     jpeg_quality: int = 90
 
 
@@ -104,7 +116,9 @@ def encode_png(mask: U8) -> bytes:
 
 
 def decode_sparse(msg: SparseCloud) -> _Cloud:
-    """Arrays of a SparseCloud message (see its docstring) with PCA normals per point."""
+    """Arrays of a SparseCloud message (see its docstring) with PCA normals per point. With point flags, only the
+    points flagged ``SPARSE_POINT_VERIFIED`` and not ``SPARSE_POINT_FROM_MODEL`` are kept (with their
+    observations)."""
     pts = np.frombuffer(msg.points_xyz_f32, np.float32)
     if pts.size % 3:
         raise ValueError(f"sparse cloud: points_xyz_f32 has {pts.size} floats, not a multiple of 3")
@@ -120,6 +134,17 @@ def decode_sparse(msg: SparseCloud) -> _Cloud:
         raise ValueError("sparse cloud: obs_point_i32 indexes outside the points")
     if len(obs_photo) and (obs_photo.max() >= len(msg.photo_ids) or obs_photo.min() < 0):
         raise ValueError("sparse cloud: obs_photo_i32 indexes outside photo_ids")
+    if msg.point_flags_u8:
+        flags = np.frombuffer(msg.point_flags_u8, np.uint8)
+        if len(flags) != len(pts64):
+            raise ValueError(f"sparse cloud: {len(flags)} point flags for {len(pts64)} points")
+        # only triangulated, guided-matching points judge the model: a BIM-depth point lies on the model by
+        # construction, and blind matches of repeated texture land at wrong depths
+        usable = ((flags & SPARSE_POINT_VERIFIED) > 0) & ((flags & SPARSE_POINT_FROM_MODEL) == 0)
+        keep = usable[obs_point]
+        remap = np.cumsum(usable) - 1
+        pts64 = pts64[usable]
+        obs_point, obs_photo, obs_pixel = remap[obs_point[keep]].astype(np.int32), obs_photo[keep], obs_pixel[keep]
     normals, flatness = estimate_point_normals(pts64)
     terrain = estimate_terrain_height(pts64, normals, flatness)
     return _Cloud(
@@ -158,8 +183,13 @@ class OccludeNode:
             raise ValueError(f"dynamic_score must be vote or median, got {config.dynamic_score!r}")
         if config.fixed_alignment not in ("homography", "shift"):
             raise ValueError(f"fixed_alignment must be homography or shift, got {config.fixed_alignment!r}")
+        if config.dynamic_appearance not in ("all", "no_stack", "off"):
+            raise ValueError(f"dynamic_appearance must be all, no_stack or off, got {config.dynamic_appearance!r}")
         self.dyn_params = DynamicParams(
-            threshold=config.dynamic_threshold, vote_quantile=0.5 if config.dynamic_score == "vote" else None
+            threshold=config.dynamic_threshold,
+            vote_quantile=0.5 if config.dynamic_score == "vote" else None,
+            appearance=config.dynamic_appearance,
+            appearance_veto=config.appearance_veto,
         )
         self.static_params = StaticParams(
             depth_margin_m=config.depth_margin_m, normal_angle_deg=config.normal_angle_deg
@@ -175,10 +205,14 @@ class OccludeNode:
         self.masks: dict[tuple[str, str], tuple[str, bytes]] = {}  # (photo, kind) -> (status, png)
         self.dynamic_stack_ids: dict[str, tuple[str, ...]] = {}
         self.static_obs_count: dict[str, int] = {}
+        self.static_judged: dict[str, int] = {}  # sparse points judged by a photo's own static mask
+        self.static_borrowed: dict[str, str] = {}  # photo -> the camera frame whose static mask it took
         self._dirty: set[str] = set()
         self.model_region: dict[str, NDArray[np.bool_]] = {}  # projected model at dynamic working size
         self.dynamic_used_region: dict[str, bool] = {}
         self.dynamic_had_later: dict[str, bool] = {}  # the stack held a later frame when last computed
+        self.colour = ColourModel()  # learns from every time-lapse dynamic mask
+        self.dynamic_no_stack: dict[str, int] = {}  # photo without a stack -> colour-model masks seen when computed
 
     # ----------------------------------------------------------------- handlers
 
@@ -198,7 +232,7 @@ class OccludeNode:
                 if other == msg.photo_id:
                     continue
                 status = self.masks.get((other, "dynamic"), ("ok",))[0]
-                if status == "not_enough_views":
+                if other in self.dynamic_no_stack:  # it may have a stack now
                     self._dynamic(other)
                 elif (
                     self.config.refine_previous_frame
@@ -226,9 +260,7 @@ class OccludeNode:
                 )
             groups[n.photo_id] = np.asarray(n.this_from_neighbour, dtype=np.float64).reshape(3, 3)
         self.store.set_neighbours(msg.photo_id, groups)
-        touched = [msg.photo_id] + [
-            p for p in groups if self.masks.get((p, "dynamic"), ("ok",))[0] == "not_enough_views"
-        ]
+        touched = [msg.photo_id] + [p for p in groups if p in self.dynamic_no_stack]
         for pid in touched:
             if pid in self.photos and self._stack_ids(pid) != self.dynamic_stack_ids.get(pid):
                 self._dynamic(pid)
@@ -312,8 +344,15 @@ class OccludeNode:
             self.model_region,
             self.dynamic_used_region,
             self.dynamic_had_later,
+            self.dynamic_no_stack,
+            self.static_judged,
+            self.static_borrowed,
         ):
             d.pop(photo_id, None)
+        self.colour.forget(photo_id)
+        for other, donor in list(self.static_borrowed.items()):
+            if donor == photo_id:
+                del self.static_borrowed[other]
         self._dirty.discard(photo_id)
 
     def close(self) -> None:
@@ -359,14 +398,35 @@ class OccludeNode:
         region = self._region(photo_id)
         self.dynamic_used_region[photo_id] = region is not None
         self.dynamic_had_later[photo_id] = any(t > stack.photo_time_ns for t in stack.times_ns)
-        res = dynamic_mask(img, self.store.frames[photo_id].image_small, stack, self.dyn_params, region)
+        small = self.store.frames[photo_id].image_small
+        res = dynamic_mask(img, small, stack, self.dyn_params, region, self.colour)
         if self.config.two_pass and res.status == "ok":
             self.store.set_occluder_mask(photo_id, res.mask)
+        learnt = res.num_views > 0 and res.timelapse_small is not None
+        if learnt and res.timelapse_small is not None:
+            self.colour.add(photo_id, small, res.timelapse_small)
+            self.dynamic_no_stack.pop(photo_id, None)
+        else:
+            self.dynamic_no_stack[photo_id] = self.colour.num_frames
         bg = b""
         if res.background is not None:
             ok, buf = cv2.imencode(".jpg", res.background, [cv2.IMWRITE_JPEG_QUALITY, self.config.jpeg_quality])
             bg = buf.tobytes() if ok else b""
         self._publish(photo_id, "dynamic", res.status, res.mask, started, background_jpeg=bg, num_views=res.num_views)
+        if learnt:
+            self._refresh_appearance()
+
+    def _refresh_appearance(self) -> None:
+        """Recompute the dynamic masks of photos without a stack (labelled by the colour model alone) once the
+        model has become usable or has seen ``appearance_refresh_growth`` more time-lapse masks since."""
+        if self.config.dynamic_appearance == "off":
+            return
+        n, ready = self.colour.num_frames, self.dyn_params.appearance_min_frames
+        if n < ready:
+            return
+        for pid, seen in list(self.dynamic_no_stack.items()):
+            if pid in self.photos and (seen < ready or n >= seen * (1.0 + self.config.appearance_refresh_growth)):
+                self._dynamic(pid)
 
     def _region(self, photo_id: str) -> NDArray[np.bool_] | None:
         """Projected model (working size) of a photo: its own, else, for a fixed camera, that of the
@@ -478,7 +538,55 @@ class OccludeNode:
             dyn = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_GRAYSCALE)
             if dyn is not None and dyn.shape == mask.shape:
                 mask = mask & ~dyn
-        self._publish(photo_id, "static", res.status, mask, started, num_views=res.num_points)
+        status = res.status
+        self.static_judged[photo_id] = res.num_points
+        self.static_borrowed.pop(photo_id, None)
+        info = self.photos[photo_id]
+        if info.camera_id is not None and res.num_points < self.config.static_borrow_below_points:
+            borrowed = self._borrow_static(photo_id, info.camera_id, maps.has_model, (W, H))
+            if borrowed is not None:
+                mask, status = mask | borrowed, "ok"
+        self._publish(photo_id, "static", status, mask, started, num_views=res.num_points)
+        for other, donor in list(self.static_borrowed.items()):
+            if donor == photo_id and other != photo_id:  # its mask changed: the frames that took it follow
+                self._static(other)
+        if info.camera_id is not None and res.num_points >= max(1, self.config.static_borrow_below_points):
+            # a (better) donor for the camera's frames that judge too few points of their own
+            for other in self.store.by_camera.get(info.camera_id, ()):
+                donor = self.static_borrowed.get(other)
+                if (
+                    other != photo_id
+                    and other in self.registrations
+                    and self.static_judged.get(other, 0) < self.config.static_borrow_below_points
+                    and (donor is None or self.static_judged.get(donor, 0) < res.num_points)
+                ):
+                    self._static(other)
+
+    def _borrow_static(
+        self, photo_id: str, camera_id: str, has_model_small: NDArray[np.bool_], size: tuple[int, int]
+    ) -> U8 | None:
+        """The static mask (H, W) 0/255 of the camera's frame that judged the most points (at least
+        ``static_borrow_below_points``), warped into ``photo_id`` by the stack homography and limited to this
+        frame's projected model; None when no frame qualifies."""
+        donors = [
+            q
+            for q in self.store.by_camera.get(camera_id, ())
+            if q != photo_id
+            and self.static_judged.get(q, 0) >= self.config.static_borrow_below_points
+            and self.masks.get((q, "static"), ("",))[0] == "ok"
+        ]
+        if not donors:
+            return None
+        q = max(donors, key=lambda d: self.static_judged[d])
+        H_this_from_q = self.store.candidate_neighbours(photo_id).get(q)
+        png = self.masks[(q, "static")][1]
+        src = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_GRAYSCALE) if png else None
+        if H_this_from_q is None or src is None:
+            return None
+        warped = cv2.warpPerspective(src, H_this_from_q, size, flags=cv2.INTER_NEAREST, borderValue=0)
+        model = cv2.resize(has_model_small.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST)
+        self.static_borrowed[photo_id] = q
+        return np.where((warped > 0) & (model > 0), 255, 0).astype(np.uint8)
 
     def _user(self, photo_id: str) -> None:
         info = self.photos.get(photo_id)

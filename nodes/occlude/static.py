@@ -6,9 +6,18 @@ model surface around that pixel, or (within the margin) when its normal, estimat
 nearest neighbours in the cloud, differs from the model's normal by more than
 ``normal_angle_deg`` (normals only where the neighbourhood is flat enough to trust). SLIC
 superpixels are flooded where occluding points are at least ``vote_fraction`` of the points judged
-in them (paper: any point), then the labels spread to point-less adjacent superpixels of similar
-colour (sparse clouds leave many superpixels without points). Model pixels whose surface lies
-below the site terrain are occluded by the ground. The mask is smoothed with a cross-bilateral
+in them (paper: any point), then the labels spread to the superpixels without points (sparse clouds
+leave most of them empty): by default one harmonic (random-walker) solve over the superpixel graph,
+affinity ``exp(-(dLab / harmonic_sigma_lab)^2)`` between adjacent superpixels, seeded by the flooded
+(occluded) and judged-clear superpixels and by those mostly below the terrain, so a label runs across
+a fence panel and its lettering but stops at a colour edge (``propagation="rounds"``: the greedy
+spreading to similar neighbours for a few rounds). Model pixels whose surface lies below the site
+terrain are occluded by the ground.
+
+Only points the registration confirmed by epipolar-guided matching should be given (the node keeps the
+SparseCloud points flagged ``SPARSE_POINT_VERIFIED``): a blind match of repeated texture triangulates
+at a wrong depth and reprojects perfectly in its two views, and a point looked up on the BIM lies on
+the model by construction. The mask is smoothed with a cross-bilateral
 filter guided by the photo, limited to the projected model (nothing else can be occluded) and
 upsampled with a guided filter.
 """
@@ -46,6 +55,11 @@ class StaticParams:
     vote_fraction: float = 0.5  # flood a superpixel when occluding >= this fraction of its judged points
     propagate_rounds: int = 3  # spread labels to point-less superpixels of similar colour (0: paper, no spreading)
     propagate_lab_dist: float = 6.0  # max mean-Lab distance (OpenCV 8-bit Lab units) for spreading
+    # "harmonic": one random-walker solve over the superpixel graph (see harmonic_labels); "rounds": greedy
+    # spreading for propagate_rounds rounds (0: the paper, no spreading)
+    propagation: Literal["harmonic", "rounds"] = "harmonic"
+    harmonic_sigma_lab: float = 2.0
+    harmonic_ground_seeds: bool = True  # superpixels mostly under the terrain seed the spreading as occluded
     bilateral_diameter_px: int = 9
     bilateral_sigma_color: float = 0.1
     bilateral_sigma_space_px: float = 4.0
@@ -166,9 +180,16 @@ def classify_points(
 
 
 def superpixel_flood(
-    photo_small: U8, pixels_small: F64, judged: NDArray[np.bool_], occluding: NDArray[np.bool_], params: StaticParams
+    photo_small: U8,
+    pixels_small: F64,
+    judged: NDArray[np.bool_],
+    occluding: NDArray[np.bool_],
+    params: StaticParams,
+    seed_occluded: NDArray[np.bool_] | None = None,
 ) -> U8:
-    """SLIC superpixels of the working photo flooded by occluding points. uint8 (h, w) 0/1."""
+    """SLIC superpixels of the working photo flooded by occluding points, labels then spread to superpixels
+    without points (``params.propagation``). ``seed_occluded`` (h, w): pixels known occluded without points (the
+    ground rule), seeds for the harmonic spreading. uint8 (h, w) 0/1."""
     h, w = photo_small.shape[:2]
     lab = cv2.cvtColor(photo_small, cv2.COLOR_BGR2LAB)
     slic = cv2.ximgproc.createSuperpixelSLIC(lab, cv2.ximgproc.SLICO, params.slic_region_px, params.slic_ruler)
@@ -181,11 +202,70 @@ def superpixel_flood(
     n_occ = np.bincount(lab_of[occluding], minlength=nlab)
     n_judged = np.bincount(lab_of[judged], minlength=nlab)
     flooded = (n_occ >= 1) & (n_occ >= params.vote_fraction * n_judged)
-    if params.propagate_rounds > 0:
+    clear_seeds = bool(np.any(~flooded & (n_judged > 0)))
+    if params.propagation == "harmonic" and clear_seeds:
+        # (without a single clear superpixel the harmonic solution is "occluded" wherever a seed reaches:
+        # the greedy rounds below are the safer spreading then)
+        state = np.where(flooded, 1, np.where(n_judged > 0, -1, 0)).astype(np.int8)
+        if seed_occluded is not None:  # e.g. the ground rule: superpixels mostly below the terrain
+            frac = np.bincount(labels.ravel(), weights=seed_occluded.ravel().astype(np.float64), minlength=nlab)
+            frac /= np.maximum(np.bincount(labels.ravel(), minlength=nlab), 1)
+            state[(state == 0) & (frac > 0.5)] = 1
+        flooded = harmonic_labels(labels, lab, state, params.harmonic_sigma_lab) > 0.5
+    elif params.propagate_rounds > 0 and flooded.any():
         state = np.where(flooded, 1, np.where(n_judged > 0, -1, 0)).astype(np.int8)
         state = propagate_labels(labels, lab, state, params.propagate_rounds, params.propagate_lab_dist)
         flooded = state > 0
     return flooded[labels].astype(np.uint8)
+
+
+def _superpixel_graph(labels: NDArray[np.int32], lab: U8) -> tuple[F64, NDArray[np.int64], F64]:
+    """Mean Lab colour (n, 3) per superpixel, adjacent pairs (E, 2) (each once) and their colour distances (E,)."""
+    n = int(labels.max()) + 1
+    counts = np.maximum(np.bincount(labels.ravel(), minlength=n), 1).astype(np.float64)
+    mean = np.stack(
+        [
+            np.bincount(labels.ravel(), weights=lab[..., c].ravel().astype(np.float64), minlength=n) / counts
+            for c in range(3)
+        ],
+        axis=1,
+    )
+    pairs = np.concatenate(
+        [
+            np.stack([labels[:, :-1].ravel(), labels[:, 1:].ravel()], axis=1),
+            np.stack([labels[:-1, :].ravel(), labels[1:, :].ravel()], axis=1),
+        ]
+    )
+    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+    pairs = np.unique(np.sort(pairs, axis=1), axis=0).astype(np.int64)
+    dist = np.linalg.norm(mean[pairs[:, 0]] - mean[pairs[:, 1]], axis=1)
+    return mean, pairs, dist
+
+
+def harmonic_labels(labels: NDArray[np.int32], lab: U8, state: NDArray[np.int8], sigma_lab: float) -> F64:
+    """Occlusion probability (n,) per superpixel by harmonic label propagation (the random-walker / Gaussian-field
+    solution): superpixels with points keep their label (``state`` +1 occluded -> 1, -1 clear -> 0), every other
+    one takes the affinity-weighted mean of its neighbours, affinity ``exp(-(dLab / sigma_lab)^2)`` between
+    adjacent superpixels. One sparse solve over all of them, so a label crosses a fence panel's lettering when the
+    panel colour continues behind it, and stops at a colour edge; superpixels connected to no label get 0."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+
+    n = len(state)
+    _, pairs, dist = _superpixel_graph(labels, lab)
+    w = np.exp(-((dist / max(sigma_lab, 1e-6)) ** 2)) + 1e-9
+    W = sp.coo_matrix((np.r_[w, w], (np.r_[pairs[:, 0], pairs[:, 1]], np.r_[pairs[:, 1], pairs[:, 0]])), (n, n)).tocsr()
+    f = np.where(state > 0, 1.0, 0.0)
+    known = state != 0
+    unknown = np.flatnonzero(~known)
+    if len(unknown) == 0 or not known.any():
+        return f
+    L = sp.diags(np.asarray(W.sum(axis=1)).ravel()) - W
+    L_uu = L[unknown][:, unknown].tocsc()
+    rhs = -(L[unknown][:, np.flatnonzero(known)] @ f[known])
+    # a small ridge towards 0 keeps components without any label solvable and at "not occluded"
+    f[unknown] = spla.spsolve(L_uu + sp.identity(len(unknown), format="csc") * 1e-6, rhs)
+    return np.clip(f, 0.0, 1.0)
 
 
 def propagate_labels(
@@ -270,8 +350,15 @@ def static_mask(
     if int(judged.sum()) < params.min_points and not ground.any():
         return StaticResult("not_enough_views", np.zeros((H, W), np.uint8), int(judged.sum()), 0)
     flood = (
-        superpixel_flood(photo_small, pixels_small, judged, occluding, params)
-        if occluding.any()
+        superpixel_flood(
+            photo_small,
+            pixels_small,
+            judged,
+            occluding,
+            params,
+            ground & maps.has_model if params.harmonic_ground_seeds else None,
+        )
+        if occluding.any() or (params.propagation == "harmonic" and params.harmonic_ground_seeds and ground.any())
         else np.zeros((h, w), np.uint8)
     )
     soft = np.maximum(flood.astype(np.float32), ground.astype(np.float32))

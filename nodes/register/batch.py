@@ -26,10 +26,12 @@ from tqdm import tqdm
 from constructaide import camera as cam
 from constructaide.errors import UserError
 from nodes.register.colmap_io import ColmapImage, ColmapModel, write_text_model
+from nodes.register.densify import DensifyParams, View, densify
 from nodes.register.features import Features, extract_features
 from nodes.register.sfm import Clicks, Reconstruction, SfmConfig, add_image, reconstruct
 
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp"}
+DEFAULT_DENSIFY = DensifyParams()
 
 
 def find_images(images_dir: Path) -> list[tuple[str, Path]]:
@@ -149,6 +151,102 @@ def extract_all(
         cv2.setNumThreads(before)
 
 
+def exif_capture_time_ns(path: Path) -> int:
+    """EXIF DateTimeOriginal as nanoseconds (with OffsetTimeOriginal when present, else read as UTC: only the
+    order of the photos matters here), 0 when absent or unreadable."""
+    import datetime as dt
+
+    try:
+        from PIL import Image
+
+        with Image.open(path) as img:
+            raw = img.info.get("exif") or (_png_exif_chunk(Path(path)) if img.format == "PNG" else None)
+            if raw:
+                exif_all = Image.Exif()
+                exif_all.load(raw)
+            else:
+                exif_all = img.getexif()
+            ifd = exif_all.get_ifd(0x8769)
+            text, offset = ifd.get(0x9003), ifd.get(0x9011)
+        when = dt.datetime.strptime(str(text).strip(), "%Y:%m:%d %H:%M:%S")
+        tz = dt.UTC
+        if offset:
+            sign = -1 if str(offset).startswith("-") else 1
+            hh, mm = str(offset).lstrip("+-").split(":")
+            tz = dt.timezone(sign * dt.timedelta(hours=int(hh), minutes=int(mm)))
+        return int(when.replace(tzinfo=tz).timestamp() * 1e9)
+    except Exception:
+        return 0
+
+
+def densify_reconstruction(
+    recon: Reconstruction,
+    params: DensifyParams | None = None,
+    capture_times_ns: list[int] | None = None,
+    show_progress: bool = False,
+) -> dict:
+    """Densify a finished reconstruction in place (``nodes.register.densify``): new tracks for the guided matches
+    and new observations of the existing tracks in the registered images. Returns counts for the report."""
+    t0 = time.perf_counter()
+    reg = recon.registered_indices()
+    if len(reg) < 2:
+        return {"new_points": 0, "new_observations": 0, "pairs": 0, "secs": 0.0}
+    local = {i: k for k, i in enumerate(reg)}
+    views = [
+        View(
+            recon.images[i].intrinsics,  # type: ignore[arg-type]
+            np.asarray(recon.images[i].world_from_camera, np.float64),
+            recon.images[i].features.keypoints_px.astype(np.float64),
+            recon.images[i].features.descriptors,
+            recon.images[i].features.scales,
+            capture_times_ns[i] if capture_times_ns else 0,
+        )
+        for i in reg
+    ]
+    known = np.flatnonzero(np.all(np.isfinite(recon.points), axis=1))
+    known_obs = [[(local[i], f) for i, f in recon.track_obs[t].items() if i in local] for t in known]
+    bar = tqdm(total=0, desc="densify", unit="pair", disable=not show_progress, file=sys.stderr)
+
+    def prog(done: int, total: int) -> None:
+        bar.total = total
+        bar.n = done
+        bar.refresh()
+
+    dense = densify(views, params, recon.points[known], known_obs, progress=prog)
+    bar.close()
+    first = len(recon.points)
+    recon._add_tracks(dense.num_points)
+    recon.points[first:] = dense.points_m
+    new_tracks: list[dict[int, int]] = [{} for _ in range(dense.num_points)]
+    for p, v, f in zip(dense.obs_point, dense.obs_view, dense.obs_feature, strict=True):
+        new_tracks[p][reg[v]] = int(f)
+        recon.feature_track[reg[v]][f] = first + p
+    for p, obs in enumerate(new_tracks):
+        i, f = next(iter(obs.items()))
+        colors = recon.images[i].colors_rgb_u8
+        if colors is not None:
+            recon.colors[first + p] = colors[f]
+    recon.track_obs.extend(new_tracks)
+    for k, v, f in dense.known_new_obs:
+        t = int(known[k])
+        recon.track_obs[t][reg[v]] = int(f)
+        recon.feature_track[reg[v]][f] = t
+    verified = np.zeros(len(recon.points), bool)
+    verified[known] = dense.known_verified
+    verified[first:] = True
+    recon.point_verified = verified
+    secs = time.perf_counter() - t0
+    recon.timings_secs["densify"] = secs
+    return {
+        "confirmed_registration_points": int(dense.known_verified.sum()),
+        "registration_points": len(known),
+        "new_points": dense.num_points,
+        "new_observations": int(len(dense.obs_point) + len(dense.known_new_obs)),
+        "pairs": len(dense.pairs),
+        "secs": secs,
+    }
+
+
 def reconstruction_to_colmap(recon: Reconstruction) -> ColmapModel:
     """Registered images and triangulated points as a COLMAP model (every keypoint written as a 2D point)."""
     pts, cols, *_ = recon.sparse_arrays()
@@ -182,6 +280,9 @@ def image_report(recon: Reconstruction) -> list[dict]:
         if im.registered:
             d.update(
                 f_px=im.intrinsics.f_px,
+                fy_over_fx=im.intrinsics.fy_over_fx,
+                cx_px=im.intrinsics.cx_px,
+                cy_px=im.intrinsics.cy_px,
                 k1=im.intrinsics.k1,
                 k2=im.intrinsics.k2,
                 num_inliers=im.num_inliers,
@@ -206,8 +307,12 @@ def run_batch(
     max_side_px: int | None = 1600,
     bim_paths: tuple[Path, ...] = (),
     show_progress: bool = True,
+    densify_params: DensifyParams | None = DEFAULT_DENSIFY,
 ) -> tuple[Reconstruction, dict]:
-    """Register every image under ``images_dir``; write the COLMAP model and report.json to ``out_dir``."""
+    """Register every image under ``images_dir``; write the COLMAP model and report.json to ``out_dir``.
+
+    With ``densify_params`` (the default) the registered cloud is then densified by epipolar-guided matching
+    (:func:`densify_reconstruction`; ``None`` skips it); its time is reported separately (``timings_secs``)."""
     t0 = time.perf_counter()
     cfg = cfg or SfmConfig()
     anchors, file_focal = load_anchor_file(anchors_path)
@@ -242,6 +347,10 @@ def run_batch(
     reconstruct(recon, anchors, cfg, progress=prog, match_progress=lambda: bar_m.update())
     bar_m.close()
     bar_r.close()
+    dense_stats = None
+    if densify_params is not None:
+        times = [exif_capture_time_ns(p) for _, p in named]
+        dense_stats = densify_reconstruction(recon, densify_params, times, show_progress)
     out_dir = Path(out_dir)
     write_text_model(reconstruction_to_colmap(recon), out_dir)
     registered = [im.name for im in recon.images if im.registered]
@@ -262,6 +371,7 @@ def run_batch(
         ],
         "needs_anchor": [{"image": n, "reason": r, "num_matched_tracks": c} for n, r, c in recon.needs_anchor],
         "images": image_report(recon),
+        "densify": dense_stats,
         "timings_secs": {"features": features_secs, **recon.timings_secs, "total": time.perf_counter() - t0},
     }
     (out_dir / "report.json").write_text(json.dumps(report, indent=2))
@@ -291,6 +401,11 @@ def main(argv: list[str] | None = None) -> int:
         help="hold anchor poses fixed to the end (the paper; default: released in a final adjustment when the "
         "data support it)",
     )
+    ap.add_argument(
+        "--no-densify",
+        action="store_true",
+        help="skip densifying the cloud by epipolar-guided matching after registration",
+    )
     ap.add_argument("--quiet", action="store_true", help="no progress bars")
     args = ap.parse_args(argv)
     if args.focal_px is not None and not (args.focal_px > 0):
@@ -310,6 +425,7 @@ def main(argv: list[str] | None = None) -> int:
         max_side_px=args.max_side,
         bim_paths=tuple(args.bim),
         show_progress=not args.quiet,
+        densify_params=None if args.no_densify else DEFAULT_DENSIFY,
     )
     print(
         f"registered {report['num_registered']}/{report['num_images']} images, {report['num_points']} points "

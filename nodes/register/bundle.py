@@ -3,12 +3,12 @@
 Unknowns: per camera a pose update (axis-angle applied on the left of the current rotation, and the
 translation of ``camera_from_world``; rotation only for cameras whose centre is held) unless the pose is fixed
 (anchor cameras, or cameras outside a local window); per camera focal f_px and radial k1, k2 unless the
-intrinsics are fixed; optionally principal points, one per camera or shared by a group of cameras; per point
-either a world position (3) or, for points seen by a fixed anchor camera, the depth along that anchor's ray
-through its observed pixel (1). Residuals (pixels): feature observations, anchor clicks (model points, fixed),
-a weak prior pulling k1, k2 towards 0, optional focal and principal-point priors. Robust loss; analytic sparse
-Jacobian; SciPy's trust-region solver with LSMR steps, or Levenberg-Marquardt with exact steps from the Schur
-complement on the camera parameters (``BundleOptions.solver``)."""
+intrinsics are fixed; optionally principal points and pixel aspect ratios (fy / fx), one per camera or shared by
+a group of cameras; per point either a world position (3) or, for points seen by a fixed anchor camera, the depth
+along that anchor's ray through its observed pixel (1). Residuals (pixels): feature observations, anchor clicks
+(model points, fixed), a weak prior pulling k1, k2 towards 0, optional focal, principal-point and aspect priors.
+Robust loss; analytic sparse Jacobian; SciPy's trust-region solver with LSMR steps, or Levenberg-Marquardt with
+exact steps from the Schur complement on the camera parameters (``BundleOptions.solver``)."""
 
 from __future__ import annotations
 
@@ -122,6 +122,8 @@ class BundleProblem:
     # (C,) bool or None: cameras whose centre stays where it is (only their rotation moves; e.g. a photo that a
     # rotation homography ties to an anchor's viewpoint).
     centre_fixed: np.ndarray | None = None
+    # (C,) pixel aspect ratios fy / fx (v = f * fy_over_fx * y_d + cy), or None: square pixels (1.0).
+    fy_over_fx: np.ndarray | None = None
 
 
 @dataclass
@@ -150,6 +152,11 @@ class BundleOptions:
     # support it.
     principal_point_prior_px: np.ndarray | None = None
     principal_point_prior_sigma_px: np.ndarray | None = None
+    # Pixel aspect ratio fy / fx, one per principal-point group (pp_group; shared like the principal point), under
+    # a prior centred on 1 (square pixels) of standard deviation ``aspect_prior_sigma`` (None = no prior). With an
+    # aspect refined, the focal prior applies to the mean focal (fx + fy) / 2.
+    refine_aspect: bool = False
+    aspect_prior_sigma: float | None = None
 
 
 @dataclass
@@ -176,6 +183,11 @@ class BundleResult:
     # variance), and the number of groups; NaN / 0 otherwise.
     principal_point_wald: float = float("nan")
     principal_point_groups: int = 0
+    # (C,) adjusted aspect ratios fy / fx (None: the problem's, unchanged), and with refine_aspect and the "schur"
+    # solver the Wald statistic of the aspects' offsets from 1 (sum over groups) and the number of groups.
+    fy_over_fx: np.ndarray | None = None
+    aspect_wald: float = float("nan")
+    aspect_groups: int = 0
 
 
 class _Layout:
@@ -195,19 +207,25 @@ class _Layout:
             if not prob.intrinsics_fixed[c]:
                 self.intr_col[c] = idx
                 idx += self.n_intr
-        # Principal points: two columns per group of cameras with free intrinsics (a camera alone is its own
-        # group); pp_col[c] = the columns of camera c's group, -1 when not refined.
+        # Principal points (two columns) and aspect ratios (one column) per group of cameras with free intrinsics
+        # (a camera alone is its own group); pp_col[c] / asp_col[c] = the columns of camera c's group, -1 when not
+        # refined.
         self.pp_col = np.full(C, -1)
+        self.asp_col = np.full(C, -1)
         self.pp_groups: list[np.ndarray] = []  # member cameras of each group, in column order
-        if opts.refine_principal_point:
+        if opts.refine_principal_point or opts.refine_aspect:
             gid = np.full(C, -1) if prob.pp_group is None else np.asarray(prob.pp_group, int)
             key = np.where(gid >= 0, gid, -1 - np.arange(C))
             free = np.nonzero(prob.intrinsics_fixed == 0)[0]
             for g in dict.fromkeys(key[free].tolist()):
                 members = free[key[free] == g]
-                self.pp_col[members] = idx
                 self.pp_groups.append(members)
-                idx += 2
+                if opts.refine_principal_point:
+                    self.pp_col[members] = idx
+                    idx += 2
+                if opts.refine_aspect:
+                    self.asp_col[members] = idx
+                    idx += 1
         self.point_col = np.full(P, -1)
         self.point_is_depth = (prob.point_ref_cam >= 0) & ~prob.point_fixed
         self.point_free = ~prob.point_fixed
@@ -377,6 +395,15 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
         pp_sigma = pp_sig_all[pp_cams]
     else:
         pp_cams, pp_prior, pp_sigma = np.zeros(0, int), np.zeros((0, 2)), np.ones(0)
+    a0 = np.ones(C) if prob.fy_over_fx is None else np.asarray(prob.fy_over_fx, float).copy()
+    # Aspect priors: one per group (its first member), centred on square pixels.
+    if opts.refine_aspect and opts.aspect_prior_sigma is not None and np.isfinite(opts.aspect_prior_sigma):
+        asp_cams = np.array([m[0] for m in lay.pp_groups], int)
+        asp_sigma = float(opts.aspect_prior_sigma)
+    else:
+        asp_cams, asp_sigma = np.zeros(0, int), 1.0
+    # The focal prior is on (fx + fy) / 2 when an aspect moves (a prior "focal" of a camera with non-square pixels).
+    focal_mean = opts.refine_aspect or bool(np.any(a0 != 1.0))
 
     # Anchor rays (world) and initial depths.
     depth_pts = np.nonzero(lay.point_is_depth)[0]
@@ -385,9 +412,9 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
     ray_dir = np.zeros((len(prob.points_in_world), 3))
     x0 = np.zeros(lay.n)
     if len(depth_pts):
-        xy_d = (prob.point_ref_px[depth_pts] - np.stack([prob.cx_px[rc], prob.cy_px[rc]], axis=1)) / prob.f_px[rc][
-            :, None
-        ]
+        xy_d = (prob.point_ref_px[depth_pts] - np.stack([prob.cx_px[rc], prob.cy_px[rc]], axis=1)) / np.stack(
+            [prob.f_px[rc], prob.f_px[rc] * a0[rc]], axis=1
+        )
         xy = undistort_batch(xy_d, prob.k1[rc], prob.k2[rc])
         Rw = np.transpose(R0[rc], (0, 2, 1))
         ray_dir[depth_pts] = np.einsum("nij,nj->ni", Rw, np.c_[xy, np.ones(len(xy))])
@@ -404,8 +431,11 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
         if lay.pose_col[c] >= 0 and not lay.rot_only[c]:
             x0[lay.pose_col[c] + 3 : lay.pose_col[c] + 6] = t0[c]
     for members in lay.pp_groups:
-        x0[lay.pp_col[members[0]]] = float(np.mean(prob.cx_px[members]))
-        x0[lay.pp_col[members[0]] + 1] = float(np.mean(prob.cy_px[members]))
+        if lay.pp_col[members[0]] >= 0:
+            x0[lay.pp_col[members[0]]] = float(np.mean(prob.cx_px[members]))
+            x0[lay.pp_col[members[0]] + 1] = float(np.mean(prob.cy_px[members]))
+        if lay.asp_col[members[0]] >= 0:
+            x0[lay.asp_col[members[0]]] = float(np.mean(a0[members]))
     centre0 = -np.einsum("nji,nj->ni", R0, t0)  # camera centres (C, 3) world
     free_xyz = np.nonzero(lay.point_free & ~lay.point_is_depth)[0]
     if len(free_xyz):
@@ -416,7 +446,7 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
     def unpack(x: np.ndarray):
         T = prob.camera_from_world.copy()
         f, k1, k2 = prob.f_px.copy(), prob.k1.copy(), prob.k2.copy()
-        cx, cy = prob.cx_px.copy(), prob.cy_px.copy()
+        cx, cy, a = prob.cx_px.copy(), prob.cy_px.copy(), a0.copy()
         pc_ = np.nonzero(lay.pose_col >= 0)[0]
         if len(pc_):
             cols = lay.pose_col[pc_]
@@ -436,6 +466,9 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
         pc = np.nonzero(lay.pp_col >= 0)[0]
         if len(pc):
             cx[pc], cy[pc] = x[lay.pp_col[pc]], x[lay.pp_col[pc] + 1]
+        ac = np.nonzero(lay.asp_col >= 0)[0]
+        if len(ac):
+            a[ac] = x[lay.asp_col[ac]]
         pts = prob.points_in_world.copy()
         if len(free_xyz):
             cols = lay.point_col[free_xyz]
@@ -443,9 +476,9 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
         if len(depth_pts):
             d = x[lay.point_col[depth_pts]]
             pts[depth_pts] = ray_origin[depth_pts] + d[:, None] * ray_dir[depth_pts]
-        return T, f, k1, k2, cx, cy, pts
+        return T, f, k1, k2, cx, cy, a, pts
 
-    def project_full(T, f, k1, k2, cx, cy, cams, X):
+    def project_full(T, f, k1, k2, cx, cy, a, cams, X):
         """Pixels (M, 2), camera points (M, 3), and pieces for the Jacobian."""
         p = _cam_from_world(T[cams], X)
         z = np.where(p[:, 2] > 1e-9, p[:, 2], 1e-9)
@@ -454,42 +487,47 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
         r2 = xn * xn + yn * yn
         D = 1 + k1[cams] * r2 + k2[cams] * r2 * r2
         u = f[cams] * xn * D + cx[cams]
-        v = f[cams] * yn * D + cy[cams]
+        v = f[cams] * a[cams] * yn * D + cy[cams]
         return np.stack([u, v], axis=1), p, z, xn, yn, r2, D
 
-    def prior_residuals(f, k1, k2, cx, cy) -> np.ndarray:
-        """Raw prior residuals (distortion k1 then k2, focal, principal points), in sigmas."""
+    def prior_residuals(f, k1, k2, cx, cy, a) -> np.ndarray:
+        """Raw prior residuals (distortion k1 then k2, focal, principal points, aspects), in sigmas."""
         parts = []
         if len(distortion_cams):
             parts.append(np.concatenate([k1[distortion_cams], k2[distortion_cams]]) / opts.distortion_prior_px)
         if len(focal_cams):
-            parts.append((f[focal_cams] - f_prior) / f_sigma)
+            f_eff = f[focal_cams] * (1 + a[focal_cams]) / 2 if focal_mean else f[focal_cams]
+            parts.append((f_eff - f_prior) / f_sigma)
         if len(pp_cams):
             parts.append(((np.stack([cx[pp_cams], cy[pp_cams]], axis=1) - pp_prior) / pp_sigma[:, None]).ravel())
+        if len(asp_cams):
+            parts.append((a[asp_cams] - 1.0) / asp_sigma)
         return np.concatenate(parts) if parts else np.zeros(0)
 
     def residuals(x: np.ndarray) -> np.ndarray:
-        T, f, k1, k2, cx, cy, pts = unpack(x)
-        parts = [(project_full(T, f, k1, k2, cx, cy, obs_cam, pts[obs_point])[0] - obs_px).ravel()]
+        T, f, k1, k2, cx, cy, a, pts = unpack(x)
+        parts = [(project_full(T, f, k1, k2, cx, cy, a, obs_cam, pts[obs_point])[0] - obs_px).ravel()]
         if n_clk:
-            r_clk = project_full(T, f, k1, k2, cx, cy, prob.click_cam, prob.click_world)[0] - prob.click_px
+            r_clk = project_full(T, f, k1, k2, cx, cy, a, prob.click_cam, prob.click_world)[0] - prob.click_px
             parts.append(opts.click_weight * r_clk.ravel())
-        parts.append(prior_residuals(f, k1, k2, cx, cy))
+        parts.append(prior_residuals(f, k1, k2, cx, cy, a))
         return np.concatenate(parts)
 
-    n_res = 2 * (n_obs + n_clk) + 2 * len(distortion_cams) + len(focal_cams) + 2 * len(pp_cams)
+    n_res = 2 * (n_obs + n_clk) + 2 * len(distortion_cams) + len(focal_cams) + 2 * len(pp_cams) + len(asp_cams)
 
-    def jac_block(T, f, k1, k2, cams, X, weight):
-        """Rows/cols/vals of the Jacobian of 2 residuals per (cams, X) w.r.t. pose, intrinsics; plus dpix/dX."""
-        _, p, z, xn, yn, r2, D = project_full(T, f, k1, k2, prob.cx_px, prob.cy_px, cams, X)
+    def jac_block(T, f, k1, k2, a, cams, X, weight):
+        """Rows/cols/vals of the Jacobian of 2 residuals per (cams, X) w.r.t. pose, intrinsics, aspect; plus
+        dpix/dX."""
+        _, p, z, xn, yn, r2, D = project_full(T, f, k1, k2, prob.cx_px, prob.cy_px, a, cams, X)
         fc = f[cams]
+        ac = a[cams]
         dD = k1[cams] + 2 * k2[cams] * r2  # dD/d(r2)
         # d(u,v)/d(xn,yn)
         J_uv_xy = np.zeros((len(cams), 2, 2))
         J_uv_xy[:, 0, 0] = fc * (D + xn * dD * 2 * xn)
         J_uv_xy[:, 0, 1] = fc * xn * dD * 2 * yn
-        J_uv_xy[:, 1, 0] = fc * yn * dD * 2 * xn
-        J_uv_xy[:, 1, 1] = fc * (D + yn * dD * 2 * yn)
+        J_uv_xy[:, 1, 0] = fc * ac * yn * dD * 2 * xn
+        J_uv_xy[:, 1, 1] = fc * ac * (D + yn * dD * 2 * yn)
         J_xy_p = np.zeros((len(cams), 2, 3))
         J_xy_p[:, 0, 0] = 1 / z
         J_xy_p[:, 0, 2] = -xn / z
@@ -501,13 +539,14 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
         rot_only = lay.rot_only[cams]
         Rp = np.where(rot_only[:, None], p, p - T[cams, :3, 3])
         J_pose = np.concatenate([J_uv_p @ -_skew(Rp), J_uv_p], axis=2)  # (M, 2, 6)
-        J_intr = [weight * np.stack([xn * D, yn * D], axis=1)]
+        J_intr = [weight * np.stack([xn * D, ac * yn * D], axis=1)]
         if opts.refine_distortion:
-            J_intr += [weight * fc[:, None] * np.stack([xn * r2, yn * r2], axis=1)]
-            J_intr += [weight * fc[:, None] * np.stack([xn * r2 * r2, yn * r2 * r2], axis=1)]
+            J_intr += [weight * fc[:, None] * np.stack([xn * r2, ac * yn * r2], axis=1)]
+            J_intr += [weight * fc[:, None] * np.stack([xn * r2 * r2, ac * yn * r2 * r2], axis=1)]
         J_intr_a = np.stack(J_intr, axis=2)  # (M, 2, n_intr)
         J_X = J_uv_p @ T[cams, :3, :3]  # (M, 2, 3)
-        return J_pose, J_intr_a, J_X
+        J_asp = weight * np.stack([np.zeros_like(yn), fc * yn * D], axis=1)[:, :, None]  # (M, 2, 1)
+        return J_pose, J_intr_a, J_X, J_asp
 
     def emit(rows, cols, vals, row0, col_start, J):
         """Add dense blocks J (M, 2, W) at rows 2*row0.. and columns col_start (M,) (skipping col_start < 0)."""
@@ -530,16 +569,17 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
             emit(rows, cols, vals, row0[ro], col[ro], np.ascontiguousarray(J_pose[ro][:, :, :3]))
 
     def jacobian(x: np.ndarray) -> sp.csr_matrix:
-        T, f, k1, k2, cx, cy, pts = unpack(x)
+        T, f, k1, k2, cx, cy, a, pts = unpack(x)
         rows: list[np.ndarray] = []
         cols: list[np.ndarray] = []
         vals: list[np.ndarray] = []
         if n_obs:
-            J_pose, J_intr, J_X = jac_block(T, f, k1, k2, obs_cam, pts[obs_point], 1.0)
+            J_pose, J_intr, J_X, J_asp = jac_block(T, f, k1, k2, a, obs_cam, pts[obs_point], 1.0)
             ar = np.arange(n_obs)
             emit_pose(rows, cols, vals, ar, obs_cam, J_pose)
             emit(rows, cols, vals, ar, lay.intr_col[obs_cam], J_intr)
             emit(rows, cols, vals, ar, lay.pp_col[obs_cam], np.broadcast_to(np.eye(2), (n_obs, 2, 2)))
+            emit(rows, cols, vals, ar, lay.asp_col[obs_cam], J_asp)
             is_depth = lay.point_is_depth[obs_point]
             free = ~is_depth
             emit(rows, cols, vals, ar[free], lay.point_col[obs_point[free]], J_X[free])
@@ -547,12 +587,13 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
                 J_d = J_X[is_depth] @ ray_dir[obs_point[is_depth]][:, :, None]
                 emit(rows, cols, vals, ar[is_depth], lay.point_col[obs_point[is_depth]], J_d)
         if n_clk:
-            J_pose, J_intr, _ = jac_block(T, f, k1, k2, prob.click_cam, prob.click_world, opts.click_weight)
+            J_pose, J_intr, _, J_asp = jac_block(T, f, k1, k2, a, prob.click_cam, prob.click_world, opts.click_weight)
             ar = np.arange(n_clk) + n_obs
             emit_pose(rows, cols, vals, ar, prob.click_cam, J_pose)
             emit(rows, cols, vals, ar, lay.intr_col[prob.click_cam], J_intr)
             J_pp = np.broadcast_to(opts.click_weight * np.eye(2), (n_clk, 2, 2))
             emit(rows, cols, vals, ar, lay.pp_col[prob.click_cam], J_pp)
+            emit(rows, cols, vals, ar, lay.asp_col[prob.click_cam], J_asp)
         if len(distortion_cams):
             base = 2 * (n_obs + n_clk)
             nd = len(distortion_cams)
@@ -564,13 +605,23 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
             base = 2 * (n_obs + n_clk) + 2 * len(distortion_cams)
             rows.append(base + np.arange(len(focal_cams)))
             cols.append(lay.intr_col[focal_cams])
-            vals.append(1 / f_sigma)
+            vals.append((1 + a[focal_cams]) / 2 / f_sigma if focal_mean else 1 / f_sigma)
+            with_asp = lay.asp_col[focal_cams] >= 0
+            if focal_mean and with_asp.any():
+                rows.append(base + np.nonzero(with_asp)[0])
+                cols.append(lay.asp_col[focal_cams[with_asp]])
+                vals.append(f[focal_cams[with_asp]] / 2 / f_sigma[with_asp])
         if len(pp_cams):
             base = 2 * (n_obs + n_clk) + 2 * len(distortion_cams) + len(focal_cams)
             pc = lay.pp_col[pp_cams]
             rows += [base + 2 * np.arange(len(pp_cams)), base + 2 * np.arange(len(pp_cams)) + 1]
             cols += [pc, pc + 1]
             vals += [1 / pp_sigma, 1 / pp_sigma]
+        if len(asp_cams):
+            base = 2 * (n_obs + n_clk) + 2 * len(distortion_cams) + len(focal_cams) + 2 * len(pp_cams)
+            rows.append(base + np.arange(len(asp_cams)))
+            cols.append(lay.asp_col[asp_cams])
+            vals.append(np.full(len(asp_cams), 1 / asp_sigma))
         if not rows:
             return sp.csr_matrix((n_res, lay.n))
         return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n_res, lay.n))
@@ -580,6 +631,7 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
     nfev = 0
     x = x0
     pp_wald, pp_groups = float("nan"), 0
+    asp_wald, asp_groups = float("nan"), 0
     if lay.n > 0 and n_res >= lay.n and opts.solver == "schur" and opts.loss in ("soft_l1", "linear"):
         n_cam_cols = int(lay.point_col[lay.point_free].min()) if lay.point_free.any() else lay.n
         free_pts = np.nonzero(lay.point_free)[0]
@@ -598,7 +650,8 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
                 opts.max_nfev,
                 opts.ftol,
             )
-        if len(lay.pp_groups) and opts.principal_point_prior_px is not None:
+        want_pp = opts.refine_principal_point and opts.principal_point_prior_px is not None
+        if len(lay.pp_groups) and (want_pp or opts.refine_aspect):
             r_fin = residuals(x)
             w_fin = np.ones_like(r_fin)
             if opts.loss == "soft_l1":
@@ -609,13 +662,19 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
             s2 = float(np.sum(w_fin[:m] * r_fin[:m] ** 2)) / max(m - lay.n, 1)
             try:
                 cov = np.linalg.pinv(info) * s2
-                centre_px = np.asarray(opts.principal_point_prior_px, float).reshape(C, 2)
-                wald = 0.0
-                for members in lay.pp_groups:
-                    col = lay.pp_col[members[0]]
-                    d = x[col : col + 2] - centre_px[members[0]]
-                    wald += float(d @ np.linalg.solve(cov[col : col + 2, col : col + 2], d))
-                pp_wald, pp_groups = wald, len(lay.pp_groups)
+                if want_pp:
+                    centre_px = np.asarray(opts.principal_point_prior_px, float).reshape(C, 2)
+                    wald = 0.0
+                    for members in lay.pp_groups:
+                        col = lay.pp_col[members[0]]
+                        d = x[col : col + 2] - centre_px[members[0]]
+                        wald += float(d @ np.linalg.solve(cov[col : col + 2, col : col + 2], d))
+                    pp_wald, pp_groups = wald, len(lay.pp_groups)
+                if opts.refine_aspect:
+                    cols_a = np.array([lay.asp_col[m_[0]] for m_ in lay.pp_groups], int)
+                    var_a = np.diag(cov)[cols_a]
+                    asp_wald = float(np.sum((x[cols_a] - 1.0) ** 2 / np.maximum(var_a, 1e-300)))
+                    asp_groups = len(cols_a)
             except np.linalg.LinAlgError:
                 pass
     elif lay.n > 0 and n_res >= lay.n:
@@ -635,14 +694,14 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
                 xtol=1e-8,
             )
         x, nfev = sol.x, int(sol.nfev)
-    T, f, k1, k2, cx, cy, pts = unpack(x)
-    proj, p_all, *_ = project_full(T, f, k1, k2, cx, cy, prob.obs_cam, pts[prob.obs_point])
+    T, f, k1, k2, cx, cy, a, pts = unpack(x)
+    proj, p_all, *_ = project_full(T, f, k1, k2, cx, cy, a, prob.obs_cam, pts[prob.obs_point])
     obs_err = np.linalg.norm(proj - prob.obs_px, axis=1)
     obs_err[p_all[:, 2] <= 0] = np.inf
     clk_err = np.zeros(n_clk)
     if n_clk:
         clk_err = np.linalg.norm(
-            project_full(T, f, k1, k2, cx, cy, prob.click_cam, prob.click_world)[0] - prob.click_px, axis=1
+            project_full(T, f, k1, k2, cx, cy, a, prob.click_cam, prob.click_world)[0] - prob.click_px, axis=1
         )
     fin = np.isfinite(obs_err)
     final_rms = float(np.sqrt(np.mean(obs_err[fin] ** 2))) if fin.any() else 0.0
@@ -651,5 +710,23 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
     init_sse = float(np.sum(np.nan_to_num(r0_px, nan=0.0, posinf=0.0, neginf=0.0) ** 2))
     final_sse = float(np.sum(obs_err[fin] ** 2) + np.sum(clk_err[np.isfinite(clk_err)] ** 2))
     return BundleResult(
-        T, f, cx, cy, k1, k2, pts, obs_err, clk_err, init_rms, final_rms, nfev, init_sse, final_sse, pp_wald, pp_groups
+        T,
+        f,
+        cx,
+        cy,
+        k1,
+        k2,
+        pts,
+        obs_err,
+        clk_err,
+        init_rms,
+        final_rms,
+        nfev,
+        init_sse,
+        final_sse,
+        pp_wald,
+        pp_groups,
+        a,
+        asp_wald,
+        asp_groups,
     )

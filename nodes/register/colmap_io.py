@@ -3,7 +3,9 @@
 COLMAP conventions: image coordinates have (0, 0) at the upper-left corner of the top-left pixel, so a pixel in
 the project's OpenCV convention maps to ``u_colmap = u + 0.5`` (same for v and for the principal point).
 ``images.txt`` stores ``camera_from_world`` as quaternion (QW QX QY QZ) and translation. Cameras are written
-with the RADIAL model ``f cx cy k1 k2`` (the project's distortion model exactly).
+with the RADIAL model ``f cx cy k1 k2`` (the project's distortion model exactly), or, for non-square pixels
+(``Intrinsics.fy_over_fx != 1``), the OPENCV model ``fx fy cx cy k1 k2 p1 p2`` with ``p1 = p2 = 0`` (the same
+radial model with separate focals).
 """
 
 from __future__ import annotations
@@ -89,8 +91,13 @@ def write_text_model(model: ColmapModel, out_dir: Path) -> None:
     for k, im in enumerate(model.images):
         cid = iid = k + 1
         x = im.intrinsics
-        params = " ".join(_f(v) for v in (x.f_px, x.cx_px + 0.5, x.cy_px + 0.5, x.k1, x.k2))
-        cams.append(f"{cid} RADIAL {x.width_px} {x.height_px} {params}")
+        if x.fy_over_fx == 1.0:
+            model_name, vals = "RADIAL", (x.f_px, x.cx_px + 0.5, x.cy_px + 0.5, x.k1, x.k2)
+        else:
+            fx, fy = cam.focal_xy(x)
+            model_name, vals = "OPENCV", (fx, fy, x.cx_px + 0.5, x.cy_px + 0.5, x.k1, x.k2, 0.0, 0.0)
+        params = " ".join(_f(v) for v in vals)
+        cams.append(f"{cid} {model_name} {x.width_px} {x.height_px} {params}")
         T = cam.invert_rigid(np.asarray(im.world_from_camera, dtype=np.float64))
         q = rotation_to_quaternion(T[:3, :3])
         t = T[:3, 3]
@@ -118,6 +125,7 @@ def write_text_model(model: ColmapModel, out_dir: Path) -> None:
 
 
 def _intrinsics_from_colmap(model: str, w: int, h: int, p: list[float]) -> Intrinsics:
+    aspect = 1.0
     if model == "RADIAL":
         f, cx, cy, k1, k2 = p
     elif model == "SIMPLE_RADIAL":
@@ -127,11 +135,17 @@ def _intrinsics_from_colmap(model: str, w: int, h: int, p: list[float]) -> Intri
         f, cx, cy = p
         k1 = k2 = 0.0
     elif model == "PINHOLE":
-        f, cx, cy = (p[0] + p[1]) / 2, p[2], p[3]
+        f, fy, cx, cy = p
+        aspect = fy / f
         k1 = k2 = 0.0
+    elif model == "OPENCV":
+        f, fy, cx, cy, k1, k2, p1, p2 = p
+        if p1 != 0.0 or p2 != 0.0:
+            raise ValueError(f"COLMAP OPENCV camera with tangential distortion ({p1}, {p2}) is not supported")
+        aspect = fy / f
     else:
         raise ValueError(f"unsupported COLMAP camera model {model}")
-    return Intrinsics(width_px=w, height_px=h, f_px=f, cx_px=cx - 0.5, cy_px=cy - 0.5, k1=k1, k2=k2)
+    return Intrinsics(width_px=w, height_px=h, f_px=f, cx_px=cx - 0.5, cy_px=cy - 0.5, k1=k1, k2=k2, fy_over_fx=aspect)
 
 
 def read_text_model(in_dir: Path) -> ColmapModel:

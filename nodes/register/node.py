@@ -249,6 +249,7 @@ class RegisterNode:
             obs_point_i32=np.ascontiguousarray(arr["obs_point"], "<i4").tobytes(),
             obs_photo_i32=np.ascontiguousarray(arr["obs_photo"], "<i4").tobytes(),
             obs_pixel_f32=np.ascontiguousarray(arr["obs_pixel"], "<f4").tobytes(),
+            point_flags_u8=np.ascontiguousarray(arr["point_flags"], np.uint8).tobytes(),
         )
         self.ctx.publish(keys.key(keys.SPARSE, site=self.ctx.site), cloud)
 

@@ -17,7 +17,8 @@ does; :func:`reconstruct` runs the whole batch algorithm:
    solved by PnP-RANSAC (inliers within 1 % of the width) refined with the paper's epipolar term;
 6. when none qualifies, the image with the fewest matched tracks needs anchor clicks (``request_anchor``);
 7. finally, the anchors that observe enough triangulated points are released (held by their clicks) and one
-   principal point per camera is refined, kept only when significant (:func:`release_anchors_if_significant`).
+   principal point and one pixel aspect ratio per camera are refined, each kept only when significant
+   (:func:`release_anchors_if_significant`).
 
 Pixels: OpenCV convention. Poses: ``world_from_camera`` (4, 4), OpenCV camera frame, model units.
 """
@@ -93,6 +94,14 @@ class SfmConfig:
     # size and focal prior (an image's own principal point is nearly a rotation of it, so per image it is hardly
     # observable; shared over many poses and held against the clicks it is).
     share_principal_point: bool = True
+    # Pixel aspect ratio fy / fx: False = square pixels (the paper); True = refined in every bundle adjustment, one
+    # per camera group like the principal point, under the prior below.
+    refine_aspect: bool = False
+    # Standard deviation of a prior holding each aspect ratio near 1 (square pixels), None = no prior.
+    aspect_sigma: float | None = 0.01
+    # The final release (release_anchors) also refines one aspect ratio per camera group, kept only when
+    # significant (Wald test like the principal point's); False = square pixels to the end.
+    release_aspect: bool = True
     # The paper holds anchor poses fixed (and carries points on anchor rays); False lets them move, constrained by
     # their clicks and feature tracks like any camera, throughout.
     fix_anchor_poses: bool = True
@@ -104,6 +113,10 @@ class SfmConfig:
     # their clicks alone (synthetic site: 0-250 per anchor, fixed cameras 40 m from the building; temple 600-800,
     # fountain 1900-2400).
     release_min_observations: int = 300
+    # Points per image in that final adjustment (its longest tracks; 0 = every triangulated point). The incremental
+    # adjustments keep ba_points_per_image for speed; the final one uses all (fountain-P11: centre error over six
+    # click-noise draws 8.8 -> 7.8 mm mean).
+    release_points_per_image: int = 0
     loss_scale_px: float = 2.0
     ba_max_nfev: int = 40
     # Cap on the inner LSMR iterations of each bundle-adjustment step (inexact trust-region steps): ~2x faster
@@ -201,6 +214,11 @@ class Reconstruction:
     anchors_released: bool = False
     # Wald statistic of the shared principal points in the release (kept when > 9 per parameter), NaN if not run.
     principal_point_wald: float = float("nan")
+    # (T,) bool per track once densified (nodes.register.batch.densify_reconstruction): confirmed by epipolar-guided
+    # matching (the densified tracks are by construction); None before. Occlusion reasoning uses confirmed ones only.
+    point_verified: np.ndarray | None = None
+    # Same for the aspect ratios (fy / fx, one per camera group) in the release, NaN if not refined there.
+    aspect_wald: float = float("nan")
 
     def index(self, name: str) -> int:
         for i, im in enumerate(self.images):
@@ -620,7 +638,7 @@ def _project(intr: Intrinsics, rvec: np.ndarray, t: np.ndarray, f: float, pts: n
     xy = p[:, :2] / np.maximum(p[:, 2:3], 1e-9)
     r2 = np.sum(xy * xy, axis=1, keepdims=True)
     xy = xy * (1 + intr.k1 * r2 + intr.k2 * r2 * r2)
-    return xy * f + np.array([intr.cx_px, intr.cy_px])
+    return xy * np.array([f, f * intr.fy_over_fx]) + np.array([intr.cx_px, intr.cy_px])
 
 
 def solve_pose_epipolar(
@@ -971,6 +989,7 @@ def bundle(
         cy_px=np.array([x.cy_px for x in intr]),
         k1=np.array([x.k1 for x in intr]),
         k2=np.array([x.k2 for x in intr]),
+        fy_over_fx=np.array([x.fy_over_fx for x in intr]),
         pose_fixed=pose_fixed,
         intrinsics_fixed=intr_fixed,
         points_in_world=recon.points[pt_list] if pt_list else np.zeros((0, 3)),
@@ -1004,6 +1023,8 @@ def bundle(
         max_nfev=cfg.ba_max_nfev,
         lsmr_maxiter=cfg.ba_lsmr_maxiter,
         solver=cfg.ba_solver,
+        refine_aspect=cfg.refine_aspect,
+        aspect_prior_sigma=cfg.aspect_sigma,
     )
     res = bundle_adjust(prob, opts)
     for c, i in enumerate(reg):
@@ -1018,6 +1039,7 @@ def bundle(
             cy_px=float(res.cy_px[c]),
             k1=float(res.k1[c]),
             k2=float(res.k2[c]),
+            fy_over_fx=float(res.fy_over_fx[c]) if res.fy_over_fx is not None else im.intrinsics.fy_over_fx,
         )
         if i not in anchors:
             im.world_from_camera = cam.invert_rigid(res.camera_from_world[c])
@@ -1058,6 +1080,8 @@ def bundle(
         "residuals": float(2 * (len(obs_img) + len(prob.click_cam))),
         "principal_point_wald": res.principal_point_wald,
         "principal_point_groups": float(res.principal_point_groups),
+        "aspect_wald": res.aspect_wald,
+        "aspect_groups": float(res.aspect_groups),
         "iterations": float(res.num_iterations),
     }
 
@@ -1067,44 +1091,62 @@ ANCHOR_RELEASE_THRESHOLD = 9.0
 
 def release_anchors_if_significant(recon: Reconstruction, cfg: SfmConfig) -> float:
     """One bundle adjustment with the well-tracked anchors' poses free (held by their clicks, like the other
-    cameras by their tracks) and the principal points refined (shared per camera, under their prior), kept when
-    the data support it; otherwise the fixed-anchor solution is restored.
+    cameras by their tracks) and the principal points and pixel aspect ratios refined (shared per camera, under
+    their priors), kept when the data support it; otherwise the fixed-anchor solution is restored.
 
-    An anchor's pose is solved from a dozen clicks under the centred-principal-point model; a real camera whose
-    principal point is off centre (fountain-P11: 22 px) or click noise leaves a pose error that a fixed anchor
-    hands on to every image registered from it. Anchors observing fewer than ``release_min_observations``
-    triangulated points stay fixed (their tracks cannot check their clicks). The release adds 6 parameters per
-    released anchor and 2 per principal-point group; with total squared errors (features and clicks, px^2) S0
-    before and S1 after over m residuals, it is kept when ``(S0 - S1) / (k s^2) > 9`` with k added parameters and
-    s^2 = S1 / m the noise variance per residual. Returns that statistic (NaN when there is nothing to release)."""
+    An anchor's pose is solved from a dozen clicks under the centred-principal-point, square-pixel model; a real
+    camera whose principal point is off centre (fountain-P11: 22 px) or whose pixels are not square (fountain-P11:
+    fy / fx = 1.0017), or click noise, leaves a pose error that a fixed anchor hands on to every image registered
+    from it. Anchors observing fewer than ``release_min_observations`` triangulated points stay fixed (their tracks
+    cannot check their clicks). The principal points (2 per group) and the aspect ratios (1 per group) stay refined
+    only when their offsets from the centre / from 1 are significant (Wald statistic > 9 per parameter); otherwise
+    the release is redone without them. The release adds 6 parameters per released anchor plus those; with total
+    squared errors (features and clicks, px^2) S0 before and S1 after over m residuals, it is kept when
+    ``(S0 - S1) / (k s^2) > 9`` with k added parameters and s^2 = S1 / m the noise variance per residual. Returns
+    that statistic (NaN when there is nothing to release)."""
     reg = recon.registered_indices()
     anchors = [i for i in reg if recon.images[i].status == "anchor"]
     tracked = [i for i in anchors if matched_track_count(recon, i) >= cfg.release_min_observations]
     if not tracked or len(reg) < 2:
         return float("nan")
-    n_pp = len(set(principal_point_groups(recon, reg).tolist())) if cfg.share_principal_point else len(reg)
+    n_grp = len(set(principal_point_groups(recon, reg).tolist())) if cfg.share_principal_point else len(reg)
     snap = _snapshot(recon)
     # Exact steps (Schur complement): the shared principal point and the anchors' rotations form a soft mode that
     # capped, inexact LSMR steps barely move (fountain-P11: 2 px of a 22 px offset found with the cap, 20 without).
-    release = {"refine_principal_point": True, "ba_solver": "schur"}
+    use_pp, use_asp = True, bool(cfg.release_aspect)
     held = set(anchors) - set(tracked)
-    stats = bundle(recon, SfmConfig(**{**cfg.__dict__, **release}), fixed_anchors=held)
-    # The principal points stay refined only when their offsets are significant (Wald statistic above 9 per
-    # parameter); otherwise the release is redone with centred ones (a centred lens would only trade its
-    # principal point for a common rotation of the cameras within the clicks' noise).
+
+    def adjust() -> dict[str, float]:
+        release = {
+            "refine_principal_point": use_pp,
+            "refine_aspect": use_asp,
+            "ba_solver": "schur",
+            "ba_points_per_image": cfg.release_points_per_image,
+        }
+        return bundle(recon, SfmConfig(**{**cfg.__dict__, **release}), fixed_anchors=held)
+
+    stats = adjust()
     wald = stats.get("principal_point_wald", float("nan"))
-    if not (wald > 9.0 * 2 * n_pp):
+    wald_a = stats.get("aspect_wald", float("nan"))
+    # Parameters whose offsets are not significant are dropped and the release redone without them (a centred lens
+    # would only trade its principal point for a common rotation of the cameras within the clicks' noise).
+    for _ in range(2):
+        drop_pp = use_pp and not (stats.get("principal_point_wald", np.nan) > 9.0 * 2 * n_grp)
+        drop_asp = use_asp and not (stats.get("aspect_wald", np.nan) > 9.0 * n_grp)
+        if not (drop_pp or drop_asp):
+            break
         _restore(recon, snap)
         snap = _snapshot(recon)
-        release["refine_principal_point"] = False
-        n_pp = 0
-        stats = bundle(recon, SfmConfig(**{**cfg.__dict__, **release}), fixed_anchors=held)
+        use_pp, use_asp = use_pp and not drop_pp, use_asp and not drop_asp
+        stats = adjust()
     recon.principal_point_wald = float(wald)
+    recon.aspect_wald = float(wald_a)
+    n_added = 6 * len(tracked) + n_grp * (2 * int(use_pp) + int(use_asp))
     s0, s1, m = stats.get("initial_sse_px2", 0.0), stats.get("final_sse_px2", 0.0), stats.get("residuals", 0.0)
     if not stats or m <= 0 or s1 <= 0:
         _restore(recon, snap)
         return float("nan")
-    score = (s0 - s1) / ((6 * len(tracked) + 2 * n_pp) * s1 / m)
+    score = (s0 - s1) / (n_added * s1 / m)
     if not score > ANCHOR_RELEASE_THRESHOLD:
         _restore(recon, snap)
     return float(score)

@@ -48,7 +48,10 @@ from scipy.optimize import least_squares
 from constructaide import camera as cam
 from constructaide.gl import offscreen_renderer
 from nodes.register import anchors, bundle, features
+from nodes.register.densify import DensifyParams, View, densify
 from nodes.register.viewpoints import ViewpointGraph, rotation_deviation, rotation_homography
+from schemas.messages import SPARSE_POINT_FROM_MODEL as POINT_FROM_MODEL
+from schemas.messages import SPARSE_POINT_VERIFIED as POINT_VERIFIED
 from schemas.messages import Intrinsics, Registration
 
 DepthLookup = Callable[[np.ndarray, Intrinsics, np.ndarray, int], np.ndarray]
@@ -110,6 +113,10 @@ class StreamConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     # viewpoints
     viewpoint_max_neighbours: int = 30
     viewpoint_max_angle_deg: float = 20.0
+    # densification (nodes.register.densify): epipolar-guided matching of each new key image with the registered
+    # ones, for the points the static-occlusion test needs
+    densify: bool = True
+    densify_pairs: int = 3
 
 
 # ---------------------------------------------------------------------------
@@ -258,6 +265,7 @@ class PointMap:
         self.rgb = np.zeros((0, 3), np.uint8)
         self.fixed_flags = np.zeros(0, bool)
         self.confirmed_flags = np.zeros(0, bool)
+        self.verified_flags = np.zeros(0, bool)
         self.obs: list[list[tuple[int, int]]] = []
         self._n = 0
 
@@ -274,6 +282,11 @@ class PointMap:
         """(P,) bool: points seen consistently from two viewpoints (BIM-depth points start unconfirmed)."""
         return self.confirmed_flags[: self._n]
 
+    @property
+    def verified(self) -> np.ndarray:
+        """(P,) bool: points from epipolar-guided matching (densification), free of repeated-texture mismatches."""
+        return self.verified_flags[: self._n]
+
     def add(
         self,
         xyz: np.ndarray,
@@ -281,6 +294,7 @@ class PointMap:
         obs: list[list[tuple[int, int]]],
         fixed: bool = False,
         confirmed: bool = True,
+        verified: bool = False,
     ) -> np.ndarray:
         """Append points (P, 3) with colours (P, 3) and observations; returns their ids (P,)."""
         xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
@@ -295,12 +309,16 @@ class PointMap:
             fixed_grown[: self._n] = self.fixed_flags[: self._n]
             conf_grown = np.zeros(cap, bool)
             conf_grown[: self._n] = self.confirmed_flags[: self._n]
+            ver_grown = np.zeros(cap, bool)
+            ver_grown[: self._n] = self.verified_flags[: self._n]
             self.xyz, self.rgb, self.fixed_flags, self.confirmed_flags = grown, rgb_grown, fixed_grown, conf_grown
+            self.verified_flags = ver_grown
         ids = np.arange(self._n, self._n + n)
         self.xyz[ids] = xyz
         self.rgb[ids] = np.asarray(rgb, np.uint8).reshape(-1, 3)
         self.fixed_flags[ids] = fixed
         self.confirmed_flags[ids] = confirmed
+        self.verified_flags[ids] = verified
         self.obs.extend(obs)
         self._n += n
         return ids
@@ -330,6 +348,7 @@ def _with_focal(intr: Intrinsics, f_px: float) -> Intrinsics:
         cy_px=intr.cy_px,
         k1=intr.k1,
         k2=intr.k2,
+        fy_over_fx=intr.fy_over_fx,
     )
 
 
@@ -563,7 +582,7 @@ class MeshDepthLookup:
         parts = [self.meshes[n][0] for n in names] + ([self.ground[0]] if self.ground is not None else [])
         far = max(float(np.max(np.linalg.norm(v - world_from_camera[:3, 3], axis=1))) for v in parts) * 1.1 + 1.0
         camera = pyrender.IntrinsicsCamera(
-            fx=intr.f_px, fy=intr.f_px, cx=intr.cx_px + 0.5, cy=intr.cy_px + 0.5, znear=0.05, zfar=far
+            fx=intr.f_px, fy=cam.focal_xy(intr)[1], cx=intr.cx_px + 0.5, cy=intr.cy_px + 0.5, znear=0.05, zfar=far
         )
         gl_from_cv = np.diag([1.0, -1.0, -1.0, 1.0])
         node = scene.add(camera, pose=np.asarray(world_from_camera, np.float64) @ gl_from_cv)
@@ -581,12 +600,17 @@ class MeshDepthLookup:
         if len(px) == 0:
             return out
         pinhole = Intrinsics(
-            width_px=intr.width_px, height_px=intr.height_px, f_px=intr.f_px, cx_px=intr.cx_px, cy_px=intr.cy_px
+            width_px=intr.width_px,
+            height_px=intr.height_px,
+            f_px=intr.f_px,
+            cx_px=intr.cx_px,
+            cy_px=intr.cy_px,
+            fy_over_fx=intr.fy_over_fx,
         )
         depth = self.depth_map(world_from_camera, pinhole, capture_time_ns)
         lo = cv2.erode(np.where(depth > 0, depth, np.inf).astype(np.float32), np.ones((3, 3), np.uint8))
         hi = cv2.dilate(depth, np.ones((3, 3), np.uint8))
-        undist = cam.pixels_to_normalized(intr, px) * intr.f_px + np.array([intr.cx_px, intr.cy_px])
+        undist = cam.normalized_to_pixels(pinhole, cam.pixels_to_normalized(intr, px))
         uv = np.round(undist).astype(int)
         h, w = depth.shape
         inside = (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] < w) & (uv[:, 1] < h)
@@ -645,7 +669,8 @@ class StreamingRegistrar:
         return bool(self.keys)
 
     def sparse_arrays(self) -> dict[str, np.ndarray | list[str]]:
-        """Map arrays: ``points_xyz`` (P, 3) f32, ``colors_rgb`` (P, 3) u8, ``obs_point`` / ``obs_photo`` (M,) i32,
+        """Map arrays: ``points_xyz`` (P, 3) f32, ``colors_rgb`` (P, 3) u8, ``point_flags`` (P,) u8 (bits
+        ``POINT_FROM_MODEL``, ``POINT_VERIFIED``, as in SparseCloud), ``obs_point`` / ``obs_photo`` (M,) i32,
         ``obs_pixel`` (M, 2) f32 and ``photo_ids`` (key images)."""
         obs_p, obs_i, obs_px = [], [], []
         for pid, obs in enumerate(self.map.obs):
@@ -653,9 +678,12 @@ class StreamingRegistrar:
                 obs_p.append(pid)
                 obs_i.append(ki)
                 obs_px.append(self.keys[ki].feats.keypoints_px[kp])
+        model_only = self.map.fixed & ~self.map.confirmed  # a BIM-depth point no second view has reproduced
+        flags = model_only.astype(np.uint8) * POINT_FROM_MODEL + self.map.verified.astype(np.uint8) * POINT_VERIFIED
         return {
             "points_xyz": self.map.points().astype(np.float32),
             "colors_rgb": self.map.colors().astype(np.uint8),
+            "point_flags": flags.astype(np.uint8),
             "obs_point": np.asarray(obs_p, np.int32),
             "obs_photo": np.asarray(obs_i, np.int32),
             "obs_pixel": np.asarray(obs_px, np.float32).reshape(-1, 2),
@@ -692,6 +720,7 @@ class StreamingRegistrar:
                 photo, photo.image, sol.intrinsics, sol.world_from_camera, is_anchor=True, clicks=clicks
             )
         changed = self._link_key_image(key, photo.image)
+        self._densify_key(self.key_index[photo.photo_id], photo.image)
         if photo.camera_id is not None:
             self._init_track(photo, sol.intrinsics, sol.world_from_camera)
         self._record(photo, sol.intrinsics, sol.world_from_camera, "anchor")
@@ -1036,6 +1065,7 @@ class StreamingRegistrar:
             self._local_ba(kidx, list(matches))
             intr, world_from_camera = key.intrinsics, key.world_from_camera
             rms = self._key_rms(kidx)
+        self._densify_key(kidx, image)
         if photo.camera_id is not None:
             self._init_track(photo, intr, world_from_camera)
         changed += self._record(photo, intr, world_from_camera, method)
@@ -1310,6 +1340,51 @@ class StreamingRegistrar:
             other.point_ids[mv[:, 1]] = ids
         self._confirm_points(key, matches)
         return changed
+
+    def _densify_key(self, kidx: int, image: FrameImage) -> int:
+        """Epipolar-guided matching of key image ``kidx`` with up to ``densify_pairs`` registered key images
+        (nodes.register.densify; features already holding a point are left out); the new points enter the map as
+        verified, with their observations extended to the other key images, and the map points ``kidx`` observes
+        are verified (the flag is set when guided matching reproduces one of their matches). Returns how many
+        points were added."""
+        c = self.config
+        if not c.densify or len(self.keys) < 2:
+            return 0
+        views = [
+            View(
+                k.intrinsics,
+                k.world_from_camera,
+                k.feats.keypoints_px.astype(np.float64),
+                k.feats.descriptors,
+                k.feats.scales,
+                k.capture_time_ns,
+            )
+            for k in self.keys
+        ]
+        known_obs = [list(o) for o in self.map.obs]
+        dense = densify(
+            views, DensifyParams(pairs_per_view=c.densify_pairs), self.map.points(), known_obs, only_view=kidx
+        )
+        self.map.verified_flags[: len(self.map)] |= dense.known_verified  # blind tracks that guided matching confirms
+        if dense.num_points == 0:
+            return 0
+        obs: list[list[tuple[int, int]]] = [[] for _ in range(dense.num_points)]
+        for p, v, f in zip(dense.obs_point, dense.obs_view, dense.obs_feature, strict=True):
+            if self.keys[int(v)].point_ids[int(f)] < 0:
+                obs[int(p)].append((int(v), int(f)))
+        keep = [i for i, o in enumerate(obs) if len(o) >= 2]
+        if not keep:
+            return 0
+        rgb = []
+        for i in keep:  # every new point comes from a pair of kidx's, so kidx observes it
+            kp = next(f for v, f in obs[i] if v == kidx) if any(v == kidx for v, _ in obs[i]) else None
+            px = self.keys[kidx].feats.keypoints_px[kp : kp + 1] if kp is not None else None
+            rgb.append(self._colors_at(image, px.astype(np.float64))[0] if px is not None else np.full(3, 128))
+        ids = self.map.add(dense.points_m[keep], np.array(rgb, np.uint8), [obs[i] for i in keep], verified=True)
+        for pid, i in zip(ids, keep, strict=True):
+            for v, f in obs[i]:
+                self.keys[v].point_ids[f] = pid
+        return len(keep)
 
     def _triangulate(self, key: KeyImage, other: KeyImage, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Two-view triangulation of matches ``m`` (M, 2) between two key images: points (M, 3) m, valid (M,)."""
