@@ -264,7 +264,13 @@ def time_full_hd(
             if res.status == "ok":
                 store.set_occluder_mask(p.photo_id, res.mask)
             if res.num_views and res.timelapse_small is not None:
-                colour.add(p.photo_id, store.frames[p.photo_id].image_small, res.timelapse_small)
+                colour.add(
+                    p.photo_id,
+                    store.frames[p.photo_id].image_small,
+                    res.timelapse_small,
+                    p.camera_id,
+                    lambda pid, st=store: st.frames[pid].image_small if pid in st.frames else None,
+                )
             cv2.imencode(".png", res.mask)
             if res.background is not None:
                 cv2.imencode(".jpg", res.background, [cv2.IMWRITE_JPEG_QUALITY, 90])
@@ -445,7 +451,13 @@ def evaluate_dynamic(
     for p in photos:
         tl = timelapse[p.photo_id]
         if tl.num_views and tl.timelapse_small is not None:
-            colour.add(p.photo_id, store.frames[p.photo_id].image_small, tl.timelapse_small)
+            colour.add(
+                p.photo_id,
+                store.frames[p.photo_id].image_small,
+                tl.timelapse_small,
+                p.camera_id,
+                lambda pid: store.frames[pid].image_small if pid in store.frames else None,
+            )
     tl_dyn: dict[str, Pooled] = {}
     for p in photos:
         img = images[p.rel]
@@ -650,8 +662,9 @@ def main(argv: list[str] | None = None) -> int:
         f"({n_fixed} fixed-camera over {n_cams} cameras, {len(photos) - n_fixed} phone), "
         f"{len(groups)} same-viewpoint pairs from SIFT + RANSAC with the "
         f"register node's rule (one homography explains >= 80 % of >= 30 matches) ({homography_secs:.0f} s). "
-        f"Ground level {terrain} m from site.toml. Photos without a stack ({n_not_enough}) or without a registration "
-        "count as empty masks (IoU 0 where they have truth). IoU is pooled over a group's photos (sum of "
+        f"Ground level {terrain} m from site.toml. Photos without a stack ({n_not_enough}) have only the colour "
+        "model's dynamic mask (empty in the time-lapse-only column); photos without a registration count as empty "
+        "static masks (IoU 0 where they have truth). IoU is pooled over a group's photos (sum of "
         "intersections / sum of unions); mean IoU is the mean of per-photo IoUs.",
         "",
         "### dynamic (time-lapse vote; baseline OpenCV MOG2 on the same aligned stacks; "
@@ -667,7 +680,8 @@ def main(argv: list[str] | None = None) -> int:
         "registration borrows the projected model of its camera's nearest registered frame. Then the colour model "
         "(beyond the paper): HSV histograms of all photos' time-lapse masks against the rest of those photos "
         "give P(dynamic | colour); photos without a stack (phone) get the pixels above 0.5 (smoothed), time-lapse "
-        "masks get them added and lose blobs whose mean P is below 0.15 (colours of the static scene). Here the "
+        "masks get them added and lose blobs whose mean P and pixels whose P is below 0.2 (colours of the static "
+        "scene; only while >= 70 % of the learnt mask pixels have P >= 0.2). Here the "
         "model is trained on the whole run's time-lapse masks (the node: on those computed so far). It works "
         "because the synthetic site's equipment has colours the static scene lacks; a real site need not. "
         "'Time-lapse only': the same run without the colour model (the previous default). Last column: the "

@@ -489,3 +489,73 @@ def test_colour_model_bookkeeping() -> None:
     assert post[mask > 0].mean() > post[mask == 0].mean()
     with pytest.raises(ValueError, match="does not match"):
         model.add("c", img, mask[:10])
+
+
+def test_colour_model_leaves_a_cameras_moved_places_out_of_the_background() -> None:
+    from nodes.occlude.dynamic import ColourModel
+
+    rng = np.random.default_rng(2)
+    images = {f"f{i}": textured_background(rng, 60, 80) for i in range(3)}
+    first = np.zeros((60, 80), np.uint8)
+    first[10:30, 10:40] = 255  # something moved here in frame f0 only
+    empty = np.zeros_like(first)
+    model = ColourModel(moved_dilation_px=0)
+    model.add("f0", images["f0"], first, "cam")
+    model.add("f1", images["f1"], empty, "cam", images.get)
+    # f1's pixels at the place where f0 saw something move are neither dynamic nor background
+    assert model.per_photo["f1"].other.sum() == 60 * 80 - 600
+    # the place grows in f2: f0 and f1 are recounted without it (their images come from image_of)
+    grown = np.zeros_like(first)
+    grown[40:60, 40:80] = 255
+    model.add("f2", images["f2"], grown, "cam", images.get)
+    assert model.per_photo["f1"].other.sum() == 60 * 80 - 600 - 800
+    assert model.per_photo["f0"].other.sum() == 60 * 80 - 600 - 800
+    assert model.per_photo["f0"].dynamic.sum() == 600  # its own mask, kept bit-packed, unchanged
+    # photos without a camera (phone) and a model without the exclusion count every other pixel
+    model.add("phone", images["f1"], empty)
+    assert model.per_photo["phone"].other.sum() == 60 * 80
+    plain = ColourModel(moved_dilation_px=None)
+    plain.add("f0", images["f0"], first, "cam")
+    plain.add("f1", images["f1"], empty, "cam", images.get)
+    assert plain.per_photo["f1"].other.sum() == 60 * 80 and not plain.moved
+
+
+def test_colour_pixel_veto_drops_a_shadow_and_needs_a_model_that_recognises_its_masks(trained_colour_model) -> None:
+    from nodes.occlude.dynamic import ColourModel, DynamicParams
+
+    rng = np.random.default_rng(8)
+    h, w = 270, 480
+    scene = textured_background(rng, h, w)
+    images, vehicles, shadows = [], [], []
+    for i in range(4):  # a vehicle that moves, with its shadow (the scene darkened) attached below it
+        x0 = 30 + 110 * i
+        box = np.zeros((h, w), np.uint8)
+        cv2.rectangle(box, (x0, 100), (x0 + 80, 160), 255, -1)
+        shadow = np.zeros((h, w), bool)
+        shadow[161:200, x0 : x0 + 100] = True
+        bg = scene.astype(np.float32)
+        bg[shadow] *= 0.45
+        images.append(_vehicle_image(rng, bg, box, 1.0))
+        vehicles.append(box > 0)
+        shadows.append(shadow)
+    store = TimelapseStore(working_width_px=480)
+    for i, img in enumerate(images):
+        store.add_photo(f"s{i}", "cam-s", i * 10**9, img)
+    small, stack = store.frames["s1"].image_small, store.aligned_stack("s1")
+    off = dynamic_mask(images[1], small, stack, DynamicParams(appearance="off"))
+    assert np.count_nonzero(off.mask[shadows[1]]) > 0.8 * shadows[1].sum()  # the time-lapse takes the shadow too
+    assert trained_colour_model.recall(0.2, 20.0) > 0.9
+    res = dynamic_mask(images[1], small, stack, DynamicParams(), None, trained_colour_model)
+    assert np.count_nonzero(res.mask[shadows[1]]) < 0.1 * shadows[1].sum()
+    assert np.count_nonzero(res.mask[vehicles[1]]) > 0.95 * vehicles[1].sum()
+    # a model whose moving things share the static scene's colours does not recognise its own masks:
+    # no veto then, the time-lapse mask stays as it is
+    frames = dynamic_sequence(3, 5, gains=(1.0,) * 5)
+    texture = textured_background(np.random.default_rng(4), 270, 480)
+    plain = ColourModel()
+    for i, f in enumerate(frames):
+        img = np.where(f.truth[..., None] > 0, texture, f.image).astype(np.uint8)  # the "vehicle" is scene texture
+        plain.add(f"t{i}", img, f.truth)
+    assert plain.recall(0.2, 20.0) < 0.7
+    kept = dynamic_mask(images[1], small, stack, DynamicParams(), None, plain)
+    assert np.count_nonzero(kept.mask[shadows[1]]) > 0.8 * shadows[1].sum()

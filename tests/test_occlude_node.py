@@ -261,7 +261,7 @@ def test_node_config_selects_dynamic_score_and_alignment() -> None:
     assert paper.store.fixed_alignment == "shift"
     with pytest.raises(ValueError, match="dynamic_score"):
         OccludeNode(Config(site=SITE, dynamic_score="mean"), None)  # type: ignore[arg-type]
-    assert vote.dyn_params.appearance == "all" and vote.dyn_params.appearance_veto == 0.15
+    assert vote.dyn_params.appearance == "all" and vote.dyn_params.appearance_veto == 0.2
     with pytest.raises(ValueError, match="dynamic_appearance"):
         OccludeNode(Config(site=SITE, dynamic_appearance="colour"), None)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="fixed_alignment"):

@@ -24,7 +24,8 @@ from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 from PIL import Image, ImageOps, UnidentifiedImageError
 
 from constructaide import camera as cam
-from schemas.messages import GeoPoint, Photo
+from constructaide.geo import exif_gps
+from schemas.messages import Photo
 
 MAX_PIXELS = 120_000_000
 """Default decompression-bomb limit (width * height)."""
@@ -35,7 +36,7 @@ MIN_FOV_DEG, MAX_FOV_DEG = 1.0, 170.0
 JPEG_QUALITY = 95
 
 # EXIF tags
-_EXIF_IFD, _GPS_IFD = 0x8769, 0x8825
+_EXIF_IFD = 0x8769
 _DATETIME, _ORIENTATION = 0x0132, 0x0112
 _DATETIME_ORIGINAL, _OFFSET_TIME_ORIGINAL, _OFFSET_TIME = 0x9003, 0x9011, 0x9010
 _SUBSEC_ORIGINAL = 0x9291
@@ -180,36 +181,6 @@ def _rational(value: object) -> float | None:
     except (TypeError, ValueError, ZeroDivisionError):
         return None
     return f if math.isfinite(f) else None
-
-
-def exif_gps(exif: Image.Exif) -> GeoPoint | None:
-    """WGS84 position from the EXIF GPS IFD, ``None`` when absent or out of range."""
-    gps = _exif_sub(exif, _GPS_IFD)
-    if 2 not in gps or 4 not in gps:
-        return None
-
-    def deg(dms: Any) -> float | None:
-        try:
-            d, m, s = (_rational(x) for x in dms)
-        except (TypeError, ValueError):
-            return None
-        if d is None or m is None or s is None:
-            return None
-        return d + m / 60.0 + s / 3600.0
-
-    lat, lon = deg(gps[2]), deg(gps[4])
-    if lat is None or lon is None:
-        return None
-    if str(gps.get(1, "N")).upper().startswith("S"):
-        lat = -lat
-    if str(gps.get(3, "E")).upper().startswith("W"):
-        lon = -lon
-    if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
-        return None
-    alt = _rational(gps.get(6)) if 6 in gps else None
-    if alt is not None and gps.get(5) in (1, b"\x01"):
-        alt = -alt
-    return GeoPoint(lat_deg=lat, lon_deg=lon, alt_m=alt)
 
 
 def exif_focal(exif: Image.Exif, width_px: int, height_px: int) -> tuple[float | None, float | None]:

@@ -65,7 +65,8 @@ class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=Tr
     # colour model learnt from the time-lapse masks (dynamic.ColourModel): "all" labels photos without a stack and
     # adds to / vetoes time-lapse masks, "no_stack" only labels photos without a stack, "off"
     dynamic_appearance: str = "all"
-    appearance_veto: float = 0.15  # time-lapse blobs whose mean P(dynamic | colour) is below this are dropped
+    appearance_veto: float = 0.2  # time-lapse blobs whose mean P(dynamic | colour) is below this are dropped
+    appearance_pixel_veto: float = 0.2  # ... and time-lapse pixels whose smoothed P is below this
     appearance_refresh_growth: float = 0.25  # redo stack-less photos once the colour model saw this many more masks
     depth_margin_m: float = 0.3  # static: point closer than the model by more than this occludes
     normal_angle_deg: float = 30.0  # static: normal disagreement that occludes
@@ -190,6 +191,7 @@ class OccludeNode:
             vote_quantile=0.5 if config.dynamic_score == "vote" else None,
             appearance=config.dynamic_appearance,
             appearance_veto=config.appearance_veto,
+            appearance_pixel_veto=config.appearance_pixel_veto,
         )
         self.static_params = StaticParams(
             depth_margin_m=config.depth_margin_m, normal_angle_deg=config.normal_angle_deg
@@ -404,7 +406,8 @@ class OccludeNode:
             self.store.set_occluder_mask(photo_id, res.mask)
         learnt = res.num_views > 0 and res.timelapse_small is not None
         if learnt and res.timelapse_small is not None:
-            self.colour.add(photo_id, small, res.timelapse_small)
+            camera = self.photos[photo_id].camera_id if photo_id in self.photos else None
+            self.colour.add(photo_id, small, res.timelapse_small, camera, self._working_image)
             self.dynamic_no_stack.pop(photo_id, None)
         else:
             self.dynamic_no_stack[photo_id] = self.colour.num_frames
@@ -415,6 +418,10 @@ class OccludeNode:
         self._publish(photo_id, "dynamic", res.status, res.mask, started, background_jpeg=bg, num_views=res.num_views)
         if learnt:
             self._refresh_appearance()
+
+    def _working_image(self, photo_id: str) -> U8 | None:
+        frame = self.store.frames.get(photo_id)
+        return None if frame is None else frame.image_small
 
     def _refresh_appearance(self) -> None:
         """Recompute the dynamic masks of photos without a stack (labelled by the colour model alone) once the
