@@ -536,6 +536,34 @@ def previous_rows(ev: DynamicEval) -> list[list[object]]:
     return [[r[0], r[2]] for r in ev.rows]
 
 
+def static_table(label: str, res: dict[str, dict[str, Pooled]], regs: dict, cloud: np.ndarray, secs: float, n: int):
+    """Markdown lines of one static table (per group: node output, mean, without subtracting dynamic, paper)."""
+    rows_s = []
+    for g in sorted(res["static"]) + ["overall"]:
+        ss, sm, pp = (
+            overall(res[k]) if g == "overall" else res[k][g] for k in ("static", "static_minus_dynamic", "paper")
+        )
+        rows_s.append(
+            [g, len(sm.ious), round(sm.iou, 3), round(float(np.mean(sm.ious)), 3), round(ss.iou, 3), round(pp.iou, 3)]
+        )
+    return [
+        f"#### {label}: {len(regs)}/{n} photos registered, {len(cloud)} sparse points ({secs:.0f} s)",
+        "",
+        table(
+            [
+                "group",
+                "photos",
+                "IoU (node output)",
+                "mean IoU",
+                "IoU without subtracting dynamic",
+                "paper-only (baseline)",
+            ],
+            rows_s,
+        ),
+        "",
+    ]
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--size", default="small")
@@ -561,6 +589,12 @@ def main(argv: list[str] | None = None) -> int:
         choices=("system", "none"),
         default="system",
         help="model region for the --also-dynamic sites: system (register batch, as the node has it) or none",
+    )
+    ap.add_argument(
+        "--also-static",
+        action="store_true",
+        help="score static masks on the --also-dynamic sites too (system registration, plain and with anchor "
+        "requests answered)",
     )
     ap.add_argument("--cache", type=Path, default=ROOT / ".cache" / "synth")
     ap.add_argument("--no-write", action="store_true", help="do not touch BENCHMARKS.md")
@@ -617,38 +651,8 @@ def main(argv: list[str] | None = None) -> int:
 
     static_tables = []
     for label, res in static_res.items():
-        rows_s = []
-        for g in sorted(res["static"]) + ["overall"]:
-            ss, sm, pp = (
-                overall(res[k]) if g == "overall" else res[k][g] for k in ("static", "static_minus_dynamic", "paper")
-            )
-            rows_s.append(
-                [
-                    g,
-                    len(sm.ious),
-                    round(sm.iou, 3),
-                    round(float(np.mean(sm.ious)), 3),
-                    round(ss.iou, 3),
-                    round(pp.iou, 3),
-                ]
-            )
         regs, cloud, secs = registrations[label]
-        static_tables += [
-            f"#### {label}: {len(regs)}/{len(photos)} photos registered, {len(cloud)} sparse points ({secs:.0f} s)",
-            "",
-            table(
-                [
-                    "group",
-                    "photos",
-                    "IoU (node output)",
-                    "mean IoU",
-                    "IoU without subtracting dynamic",
-                    "paper-only (baseline)",
-                ],
-                rows_s,
-            ),
-            "",
-        ]
+        static_tables += static_table(label, res, regs, cloud, secs, len(photos))
 
     runs = 1 if args.quick else 3
     secs_hd = time_full_hd(photos, groups, dyn_regs, renderer, terrain, per_photo_normals(dyn_regs, dyn_cloud), runs)
@@ -715,26 +719,48 @@ def main(argv: list[str] | None = None) -> int:
         ex_photos = load_photos(extra)
         ex_groups = sift_homographies(ex_photos)
         ex_regs: dict[str, Registered] = {}
+        ex_cloud = np.zeros((0, 3))
+        plain_secs = 0.0
         ex_renderer = None
         reg_note = "no registration: temporal guard everywhere"
         if args.also_registration == "system":
             t0 = time.perf_counter()
-            ex_regs, _, _ = system_registration(extra)
+            ex_regs, ex_cloud, _ = system_registration(extra)
+            plain_secs = time.perf_counter() - t0
             ex_renderer = ModelRenderer(glb_to_meshes((extra / "model" / "building.glb").read_bytes()))
             reg_note = (
                 f"model region from system registration (register batch): {len(ex_regs)}/{len(ex_photos)} "
-                f"photos registered ({time.perf_counter() - t0:.0f} s)"
+                f"photos registered ({plain_secs:.0f} s)"
             )
         ex = evaluate_dynamic(extra, ex_photos, ex_groups, ex_regs, ex_renderer)
         ex_prev = evaluate_dynamic(
             extra, ex_photos, ex_groups, ex_regs, ex_renderer, PREVIOUS_STACKS, PREVIOUS_PARAMS, borrow_regions=False
         )
+        ex_static: list[str] = []
+        if args.also_static and ex_renderer is not None:
+            ex_terrain = tomllib.loads((extra / "site.toml").read_text()).get("site", {}).get("terrain_height_m")
+            t0 = time.perf_counter()
+            ex_answered, ex_cloud_a, ex_rep = system_registration(extra, answer_anchor_requests=True)
+            secs_a = time.perf_counter() - t0
+            n_anch = sum(im.get("status") == "anchor" for im in ex_rep.get("images", []))
+            for lab, rr, cc, sec in (
+                ("system registration (register batch)", ex_regs, ex_cloud, plain_secs),
+                (
+                    f"system registration, anchor requests answered ({n_anch} anchors used)",
+                    ex_answered,
+                    ex_cloud_a,
+                    secs_a,
+                ),
+            ):
+                res = evaluate_static(extra, ex_photos, ex.images, rr, cc, ex_renderer, ex_terrain, ex.masks)
+                ex_static += static_table(lab, res, rr, cc, sec, len(ex_photos))
         if ex_renderer is not None:
             ex_renderer.close()
         ex.rows = [r + [p[1]] for r, p in zip(ex.rows, previous_rows(ex_prev), strict=True)]
         body += [
             "",
-            f"### dynamic on `{extra.name}` ({reg_note}; no static masks)",
+            f"### dynamic{' and static' if ex_static else ''} on `{extra.name}` ({reg_note}"
+            f"{'' if ex_static else '; no static masks'})",
             "",
             f"{len(ex_photos)} photos, {len(ex_groups)} same-viewpoint pairs, {ex.n_not_enough} without a stack; "
             f"{ex.persistent_frac:.0%} of true dynamic-occluder pixels are persistent in their stack.",
@@ -743,6 +769,8 @@ def main(argv: list[str] | None = None) -> int:
                 DYN_COLUMNS,
                 ex.rows,
             ),
+            "",
+            *ex_static,
         ]
     text = "\n".join(body)
     print(text)

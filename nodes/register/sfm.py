@@ -106,7 +106,7 @@ class SfmConfig:
     # their clicks and feature tracks like any camera, throughout.
     fix_anchor_poses: bool = True
     # With fixed anchors: after the last image, one bundle adjustment with the anchors free (held by their clicks)
-    # and the (shared) principal points refined is kept when the data support it (see
+    # and the (shared) principal points and aspect ratios refined is kept when the data support it (see
     # release_anchors_if_significant); False = the paper, fixed to the end.
     release_anchors: bool = True
     # Only anchors observing at least this many triangulated track points are released: the others' poses rest on
