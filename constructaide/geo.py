@@ -19,7 +19,8 @@ EARTH_RADIUS_M = 6_371_008.8
 _GPS_IFD = 0x8825
 
 
-def _rational(value: object) -> float | None:
+def rational(value: object) -> float | None:
+    """An EXIF rational (or number) as a finite float, None when it is not one."""
     try:
         f = float(value)  # type: ignore[arg-type]
     except (TypeError, ValueError, ZeroDivisionError):
@@ -38,7 +39,7 @@ def exif_gps(exif: Image.Exif) -> GeoPoint | None:
 
     def deg(dms: Any) -> float | None:
         try:
-            d, m, s = (_rational(x) for x in dms)
+            d, m, s = (rational(x) for x in dms)
         except (TypeError, ValueError):
             return None
         if d is None or m is None or s is None:
@@ -54,7 +55,7 @@ def exif_gps(exif: Image.Exif) -> GeoPoint | None:
         lon = -lon
     if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
         return None
-    alt = _rational(gps.get(6)) if 6 in gps else None
+    alt = rational(gps.get(6)) if 6 in gps else None
     if alt is not None and gps.get(5) in (1, b"\x01"):
         alt = -alt
     return GeoPoint(lat_deg=lat, lon_deg=lon, alt_m=alt)

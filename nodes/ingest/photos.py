@@ -25,6 +25,7 @@ from PIL import Image, ImageOps, UnidentifiedImageError
 
 from constructaide import camera as cam
 from constructaide.geo import exif_gps
+from constructaide.geo import rational as _rational
 from schemas.messages import Photo
 
 MAX_PIXELS = 120_000_000
@@ -173,14 +174,6 @@ def exif_capture_time_ns(exif: Image.Exif, tz: str | None) -> int | None:
         raise PhotoError("EXIF time has no OffsetTimeOriginal and no site time zone is configured (set tz)")
     delta = aware - dt.datetime(1970, 1, 1, tzinfo=dt.UTC)
     return (delta.days * 86_400 + delta.seconds) * 1_000_000_000 + delta.microseconds * 1_000
-
-
-def _rational(value: object) -> float | None:
-    try:
-        f = float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError, ZeroDivisionError):
-        return None
-    return f if math.isfinite(f) else None
 
 
 def exif_focal(exif: Image.Exif, width_px: int, height_px: int) -> tuple[float | None, float | None]:

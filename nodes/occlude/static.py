@@ -274,24 +274,9 @@ def propagate_labels(
     """Give superpixels without points (state 0) the state (+1 occluded, -1 clear) of their most
     similar adjacent labelled superpixel when their mean Lab colours are closer than ``max_dist``;
     repeated ``rounds`` times so labels spread along uniform surfaces (a fence panel, the ground)."""
-    n = len(state)
-    counts = np.maximum(np.bincount(labels.ravel(), minlength=n), 1).astype(np.float64)
-    mean = np.stack(
-        [
-            np.bincount(labels.ravel(), weights=lab[..., c].ravel().astype(np.float64), minlength=n) / counts
-            for c in range(3)
-        ],
-        axis=1,
-    )
-    pairs = np.concatenate(
-        [
-            np.stack([labels[:, :-1].ravel(), labels[:, 1:].ravel()], axis=1),
-            np.stack([labels[:-1, :].ravel(), labels[1:, :].ravel()], axis=1),
-        ]
-    )
-    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
-    pairs = np.unique(np.concatenate([pairs, pairs[:, ::-1]]), axis=0)  # (E, 2): (unknown candidate, neighbour)
-    dist = np.linalg.norm(mean[pairs[:, 0]] - mean[pairs[:, 1]], axis=1)
+    _, once, dist_once = _superpixel_graph(labels, lab)
+    pairs = np.concatenate([once, once[:, ::-1]])  # (E, 2): (unknown candidate, neighbour), both directions
+    dist = np.concatenate([dist_once, dist_once])
     state = state.copy()
     for _ in range(rounds):
         ok = (state[pairs[:, 0]] == 0) & (state[pairs[:, 1]] != 0) & (dist < max_dist)
