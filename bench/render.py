@@ -22,7 +22,7 @@ sys.path.insert(0, str(ROOT))
 
 import constructaide  # noqa: E402,F401  (EGL platform)
 from bench._report import median, table, write_section  # noqa: E402
-from constructaide.camera import centered_intrinsics, look_at  # noqa: E402
+from constructaide.camera import centered_intrinsics, focal_xy, look_at  # noqa: E402
 from constructaide.gl import offscreen_renderer  # noqa: E402
 from nodes.render.engine import encode_png  # noqa: E402
 from nodes.render.overlays import MODES, ScheduleView, composite, render_overlay  # noqa: E402
@@ -58,7 +58,8 @@ def _pyrender_baseline(scene, intr, wfc, runs: int) -> float:
         m = trimesh.Trimesh(vertices=v, faces=np.arange(len(v)).reshape(-1, 3), process=False)
         node = pr.add(pyrender.Mesh.from_trimesh(m))
         seg[node] = (i & 255, (i >> 8) & 255, (i >> 16) & 255)
-    cam = pyrender.IntrinsicsCamera(intr.f_px, intr.f_px, intr.cx_px + 0.5, intr.cy_px + 0.5, znear=0.05, zfar=2000)
+    fx, fy = focal_xy(intr)
+    cam = pyrender.IntrinsicsCamera(fx, fy, intr.cx_px + 0.5, intr.cy_px + 0.5, znear=0.05, zfar=2000)
     pr.add(cam, pose=wfc @ np.diag([1.0, -1.0, -1.0, 1.0]))
     # Not deleted: pyrender's delete() terminates the process-wide EGL display (and our rasterizer's context).
     r = offscreen_renderer(intr.width_px, intr.height_px)

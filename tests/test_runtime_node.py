@@ -97,6 +97,45 @@ def test_close_unblocks_a_publisher_stuck_on_a_full_queue() -> None:
         assert k + node.dropped_after_close <= 5
 
 
+class Chunked:
+    """Each message leaves three units of deferred work; ``on_idle`` does one per call and says whether more is
+    pending. Its first call blocks until released."""
+
+    def __init__(self, config: Cfg, ctx) -> None:
+        self.log: list[str] = []
+        self.pending: list[str] = []
+        self.in_idle = threading.Event()
+        self.release = threading.Event()
+
+    def on_photo(self, msg: Photo, key: str) -> None:
+        self.log.append(msg.photo_id)
+        self.pending += [f"{msg.photo_id}.{k}" for k in range(3)]
+
+    def on_idle(self) -> bool:
+        self.in_idle.set()
+        assert self.release.wait(30)
+        if self.pending:
+            self.log.append(self.pending.pop(0))
+        return bool(self.pending)
+
+
+CHUNKED = NodeSpec(
+    name="chunked", description="test", config_type=Cfg, factory=Chunked, inputs=(Input(keys.PHOTO, Photo, "on_photo"),)
+)
+
+
+def test_on_idle_returning_true_is_called_again_but_a_waiting_message_goes_first() -> None:
+    with LocalBus() as bus, start_node(CHUNKED, Cfg(site="t"), bus) as node:
+        bus.publish(keys.key(keys.PHOTO, site="t", camera="c"), _photo(0))
+        assert node.obj.in_idle.wait(30)  # the first idle call runs (blocked) ...
+        bus.publish(keys.key(keys.PHOTO, site="t", camera="c"), _photo(1))  # ... while this message waits
+        node.obj.release.set()
+        assert node.wait_idle(30.0)
+        # one unit, then the waiting message, then the rest (the idle calls go on while nothing waits)
+        assert node.obj.log == ["p0", "p0.0", "p1", "p0.1", "p0.2", "p1.0", "p1.1", "p1.2"]
+        assert node.errors == 0
+
+
 def test_load_config_toml_section_and_overrides(tmp_path: Path) -> None:
     cfg = tmp_path / "site.toml"
     cfg.write_text('[nodes.slow]\nsite = "north"\nthreshold = 0.25\n')

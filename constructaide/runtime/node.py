@@ -5,7 +5,8 @@ A node declares its inputs (key template, message type, handler method), outputs
 Structs, and calls handlers sequentially on one worker thread fed by a bounded queue (a full
 queue blocks zenoh's delivery, which with congestion control BLOCK slows the publishers: no
 data is dropped). A node object may define ``on_idle()``: it runs after a message when the queue is empty (and at
-least every ``IDLE_EVERY`` messages), so handlers can mark work dirty and coalesce it. A
+least every ``IDLE_EVERY`` messages), so handlers can mark work dirty and coalesce it. An ``on_idle`` that does a
+bounded share of its work returns True while more is pending: it is called again as long as no message waits. A
 payload that fails to decode, or a handler that raises, becomes a
 :class:`~schemas.messages.NodeError` on ``constructaide/{site}/errors``; the node keeps running.
 Readiness: after subscribing, the node declares the liveliness token
@@ -175,18 +176,22 @@ class RunningNode:
                 # IDLE_EVERY messages under a continuous stream, so it never starves).
                 if callable(on_idle) and (self._queue.empty() or since_idle >= IDLE_EVERY):
                     since_idle = 0
-                    self._call_idle(on_idle)
+                    # more pending (True): go on while nothing waits, else the next message comes first
+                    while self._call_idle(on_idle) and self._queue.empty():
+                        pass
             finally:
                 if self._queue.empty():
                     self.idle.set()
 
-    def _call_idle(self, on_idle: Callable[[], None]) -> None:
+    def _call_idle(self, on_idle: Callable[[], object]) -> bool:
+        """Run the hook; True when it says more work is pending (False after a failure: no retry loop)."""
         try:
-            on_idle()
+            return on_idle() is True
         except Exception as e:
             self.errors += 1
             self.ctx.log.debug("on_idle failed", exc_info=True)
             self.ctx.error("on_idle", f"{type(e).__name__}: {e}")
+            return False
 
     def _handle(self, inp: Input, key: str, payload: bytes) -> None:
         try:

@@ -31,6 +31,7 @@ import cv2
 import numpy as np
 
 from constructaide import bimgeom, schedule4d
+from constructaide.camera import K_matrix
 from schemas import keys
 from schemas import messages as m
 
@@ -140,9 +141,9 @@ def pose_matrix(world_from_camera: tuple[float, ...]) -> np.ndarray:
 
 def image_from_camera(intr: m.Intrinsics) -> np.ndarray:
     """3x3 pinhole matrix in rerun's pixel convention (pixel (0,0) spans [0,1]^2: OpenCV + 0.5)."""
-    return np.array(
-        [[intr.f_px, 0.0, intr.cx_px + 0.5], [0.0, intr.f_px, intr.cy_px + 0.5], [0.0, 0.0, 1.0]], dtype=np.float64
-    )
+    K = K_matrix(intr)
+    K[:2, 2] += 0.5
+    return K
 
 
 @dataclass

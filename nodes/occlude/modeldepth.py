@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 import constructaide  # noqa: F401  (sets PYOPENGL_PLATFORM=egl before pyrender is imported)
-from constructaide.camera import pixels_to_normalized
+from constructaide.camera import focal_xy, pixels_to_normalized
 from constructaide.gl import offscreen_renderer
 from schemas.messages import Intrinsics
 
@@ -51,20 +51,21 @@ class ModelMaps:
 
 
 def scaled_intrinsics(intr: Intrinsics, width_px: int, height_px: int) -> Intrinsics:
-    """Intrinsics of the same camera for an image resized to (width_px, height_px)."""
+    """Intrinsics of the same camera for an image resized to (width_px, height_px): fx scales with the width, fy
+    with the height (so a resize that changes the aspect changes ``fy_over_fx``)."""
     if intr.width_px <= 0 or intr.height_px <= 0 or intr.f_px <= 0:
         raise ValueError(f"intrinsics need a positive image size and focal length, got {intr}")
     sx = width_px / intr.width_px
     sy = height_px / intr.height_px
-    s = 0.5 * (sx + sy)
     return Intrinsics(
         width_px=width_px,
         height_px=height_px,
-        f_px=intr.f_px * s,
+        f_px=intr.f_px * sx,
         cx_px=sx * (intr.cx_px + 0.5) - 0.5,
         cy_px=sy * (intr.cy_px + 0.5) - 0.5,
         k1=intr.k1,
         k2=intr.k2,
+        fy_over_fx=intr.fy_over_fx * sy / sx,
     )
 
 
@@ -74,11 +75,12 @@ def normals_from_depth(depth_m: F32, intr: Intrinsics) -> tuple[F32, F32]:
     Normals face the camera; pixels without depth get NaN points and zero normals.
     """
     h, w = depth_m.shape
+    fx, fy = focal_xy(intr)
     u = np.arange(w, dtype=np.float32)[None, :]
     v = np.arange(h, dtype=np.float32)[:, None]
     z = depth_m.astype(np.float32)
-    x = (u - intr.cx_px) / intr.f_px * z
-    y = (v - intr.cy_px) / intr.f_px * z
+    x = (u - intr.cx_px) / fx * z
+    y = (v - intr.cy_px) / fy * z
     pts = np.stack([x, y, z], axis=-1)
     pts[~np.isfinite(z)] = np.nan
 
@@ -156,8 +158,9 @@ class ModelRenderer:
         else:
             self._renderer.viewport_width, self._renderer.viewport_height = w, h
         # pyrender's cx is measured from the left edge of the image; ours from the first pixel centre.
+        fx, fy = focal_xy(intr)
         cam = pyrender.IntrinsicsCamera(
-            intr.f_px, intr.f_px, intr.cx_px + 0.5, intr.cy_px + 0.5, znear=self.z_near_m, zfar=self.z_far_m
+            fx, fy, intr.cx_px + 0.5, intr.cy_px + 0.5, znear=self.z_near_m, zfar=self.z_far_m
         )
         if self._cam_node is not None:
             self._scene.remove_node(self._cam_node)
@@ -185,28 +188,35 @@ class ModelRenderer:
             xy = pixels_to_normalized(target, np.stack([uu.ravel(), vv.ravel()], axis=1))
             # strong distortion can fold the undistortion outwards: keep the canvas within three times the
             # pinhole field of view (pixels beyond it show no model)
-            half = np.array([width_px, height_px], np.float64) / target.f_px
-            centre = np.array([target.cx_px, target.cy_px]) / target.f_px
+            fxy = np.array(focal_xy(target))
+            half = np.array([width_px, height_px], np.float64) / fxy
+            centre = np.array([target.cx_px, target.cy_px]) / fxy
             lo, hi = -centre - half, -centre + 2.0 * half
             xy = np.where(np.isfinite(xy), xy, 1e9)
             x_min, y_min = np.maximum(xy.min(axis=0), lo)
             x_max, y_max = np.minimum(xy.max(axis=0), hi)
-            f = target.f_px
+            fx, fy = fxy
             pad = 2.0
-            cx = -x_min * f + pad
-            cy = -y_min * f + pad
-            cw = int(np.ceil((x_max - x_min) * f + 2 * pad)) + 1
-            ch = int(np.ceil((y_max - y_min) * f + 2 * pad)) + 1
-            pin = Intrinsics(width_px=cw, height_px=ch, f_px=f, cx_px=cx, cy_px=cy)
+            cx = -x_min * fx + pad
+            cy = -y_min * fy + pad
+            cw = int(np.ceil((x_max - x_min) * fx + 2 * pad)) + 1
+            ch = int(np.ceil((y_max - y_min) * fy + 2 * pad)) + 1
+            pin = Intrinsics(width_px=cw, height_px=ch, f_px=fx, cx_px=cx, cy_px=cy, fy_over_fx=target.fy_over_fx)
         else:
             pin = Intrinsics(
-                width_px=width_px, height_px=height_px, f_px=target.f_px, cx_px=target.cx_px, cy_px=target.cy_px
+                width_px=width_px,
+                height_px=height_px,
+                f_px=target.f_px,
+                cx_px=target.cx_px,
+                cy_px=target.cy_px,
+                fy_over_fx=target.fy_over_fx,
             )
         depth_pin = self._render_pinhole(pin)
         pts_cam, n_cam = normals_from_depth(depth_pin, pin)
         if distorted:
-            map_x = (xy[:, 0] * pin.f_px + pin.cx_px).reshape(height_px, width_px).astype(np.float32)
-            map_y = (xy[:, 1] * pin.f_px + pin.cy_px).reshape(height_px, width_px).astype(np.float32)
+            pfx, pfy = focal_xy(pin)
+            map_x = (xy[:, 0] * pfx + pin.cx_px).reshape(height_px, width_px).astype(np.float32)
+            map_y = (xy[:, 1] * pfy + pin.cy_px).reshape(height_px, width_px).astype(np.float32)
             stacked = np.concatenate([pts_cam, n_cam], axis=-1)
             remapped = cv2.remap(
                 stacked, map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan

@@ -6,9 +6,10 @@ for kinds ``dynamic`` (with the clean background plate), ``static``, ``user`` an
 (union of the ``ok`` masks of the other kinds; what the render node should use).
 
 Incremental: a new photo gets its masks from its own stack; older photos are recomputed only when
-they had no usable stack yet (``not_enough_views``, or a mask from the colour model alone, which is
-also redone as that model learns) or when their inputs changed (their viewpoint group, a
-registration, a sparse cloud with markedly more observations of them, a new model).
+they had no usable stack yet (``not_enough_views``, or a mask from the colour model alone) or when
+their inputs changed (their viewpoint group, a registration, a sparse cloud with markedly more
+observations of them, a new model). As the colour model learns, the dynamic masks it shaped are redone
+from ``on_idle``, a few per call, newest first (see ``OccludeNode.on_idle``).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from numpy.typing import NDArray
 
 from constructaide.bimgeom import glb_to_meshes, load_bim_model_glb
 from constructaide.runtime import Input, NodeContext, NodeSpec, Output, run_node_cli
-from nodes.occlude.dynamic import ColourModel, DynamicParams, dynamic_mask
+from nodes.occlude.dynamic import ColourModel, DynamicParams, dynamic_mask, recombine
 from nodes.occlude.modeldepth import ModelMaps, ModelRenderer
 from nodes.occlude.stacks import TimelapseStore, scale_matrix, working_size
 from nodes.occlude.static import StaticParams, estimate_point_normals, estimate_terrain_height, static_mask
@@ -67,7 +68,10 @@ class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=Tr
     dynamic_appearance: str = "all"
     appearance_veto: float = 0.2  # time-lapse blobs whose mean P(dynamic | colour) is below this are dropped
     appearance_pixel_veto: float = 0.2  # ... and time-lapse pixels whose smoothed P is below this
-    appearance_refresh_growth: float = 0.25  # redo stack-less photos once the colour model saw this many more masks
+    # redo a dynamic mask once the colour model has seen this fraction more time-lapse masks than when it was made
+    # (photos without a stack: in full; time-lapse masks: the colour step only, with "all")
+    appearance_refresh_growth: float = 0.25
+    appearance_refresh_per_idle: int = 2  # such redos per idle call (the runtime calls again while nothing waits)
     depth_margin_m: float = 0.3  # static: point closer than the model by more than this occludes
     normal_angle_deg: float = 30.0  # static: normal disagreement that occludes
     terrain_height_m: float | None = None  # site ground level; else BimModel's, else estimated from the cloud
@@ -214,7 +218,15 @@ class OccludeNode:
         self.dynamic_used_region: dict[str, bool] = {}
         self.dynamic_had_later: dict[str, bool] = {}  # the stack held a later frame when last computed
         self.colour = ColourModel()  # learns from every time-lapse dynamic mask
-        self.dynamic_no_stack: dict[str, int] = {}  # photo without a stack -> colour-model masks seen when computed
+        self.dynamic_no_stack: set[str] = set()  # photos whose dynamic mask had no stack (colour model alone)
+        self.dynamic_colour_seen: dict[str, int] = {}  # photo -> colour-model masks seen when its mask was made
+        # photo -> (clean plate JPEG, stack size) last published: kept when only the colour step is redone
+        self.dynamic_plate: dict[str, tuple[bytes, int]] = {}
+        if config.appearance_refresh_growth < 0 or config.appearance_refresh_per_idle < 1:
+            raise ValueError(
+                "appearance_refresh_growth must be >= 0 and appearance_refresh_per_idle >= 1, got "
+                f"{config.appearance_refresh_growth} and {config.appearance_refresh_per_idle}"
+            )
 
     # ----------------------------------------------------------------- handlers
 
@@ -346,11 +358,13 @@ class OccludeNode:
             self.model_region,
             self.dynamic_used_region,
             self.dynamic_had_later,
-            self.dynamic_no_stack,
+            self.dynamic_colour_seen,
+            self.dynamic_plate,
             self.static_judged,
             self.static_borrowed,
         ):
             d.pop(photo_id, None)
+        self.dynamic_no_stack.discard(photo_id)
         self.colour.forget(photo_id)
         for other, donor in list(self.static_borrowed.items()):
             if donor == photo_id:
@@ -401,39 +415,87 @@ class OccludeNode:
         self.dynamic_used_region[photo_id] = region is not None
         self.dynamic_had_later[photo_id] = any(t > stack.photo_time_ns for t in stack.times_ns)
         small = self.store.frames[photo_id].image_small
+        self.dynamic_colour_seen[photo_id] = self.colour.num_frames
         res = dynamic_mask(img, small, stack, self.dyn_params, region, self.colour)
         if self.config.two_pass and res.status == "ok":
             self.store.set_occluder_mask(photo_id, res.mask)
-        learnt = res.num_views > 0 and res.timelapse_small is not None
-        if learnt and res.timelapse_small is not None:
+        if res.num_views > 0 and res.timelapse_small is not None:
             camera = self.photos[photo_id].camera_id if photo_id in self.photos else None
             self.colour.add(photo_id, small, res.timelapse_small, camera, self._working_image)
-            self.dynamic_no_stack.pop(photo_id, None)
+            self.dynamic_no_stack.discard(photo_id)
         else:
-            self.dynamic_no_stack[photo_id] = self.colour.num_frames
+            self.dynamic_no_stack.add(photo_id)
         bg = b""
         if res.background is not None:
             ok, buf = cv2.imencode(".jpg", res.background, [cv2.IMWRITE_JPEG_QUALITY, self.config.jpeg_quality])
             bg = buf.tobytes() if ok else b""
+        self.dynamic_plate[photo_id] = (bg, res.num_views)
         self._publish(photo_id, "dynamic", res.status, res.mask, started, background_jpeg=bg, num_views=res.num_views)
-        if learnt:
-            self._refresh_appearance()
 
     def _working_image(self, photo_id: str) -> U8 | None:
         frame = self.store.frames.get(photo_id)
         return None if frame is None else frame.image_small
 
-    def _refresh_appearance(self) -> None:
-        """Recompute the dynamic masks of photos without a stack (labelled by the colour model alone) once the
-        model has become usable or has seen ``appearance_refresh_growth`` more time-lapse masks since."""
-        if self.config.dynamic_appearance == "off":
-            return
+    def on_idle(self) -> bool:
+        """Deferred work: redo up to ``appearance_refresh_per_idle`` of the dynamic masks the colour model has
+        outgrown (:meth:`_appearance_due`, in that order); True while more are due (the runtime calls again as
+        long as no message waits, so a handler never waits for more than one share)."""
+        due = self._appearance_due()
+        budget = self.config.appearance_refresh_per_idle
+        try:
+            for pid in due[:budget]:
+                self._refresh_colour(pid)
+        finally:
+            self._flush()
+        return len(due) > budget
+
+    def _appearance_due(self) -> list[str]:
+        """Photos whose dynamic mask was made before the colour model was ready (``appearance_min_frames``) or
+        before it had seen ``appearance_refresh_growth`` more time-lapse masks than now: with
+        ``dynamic_appearance="all"`` every such photo, with ``"no_stack"`` those without a stack. Photos without
+        a usable mask first, then newest (capture time) first."""
+        mode = self.config.dynamic_appearance
         n, ready = self.colour.num_frames, self.dyn_params.appearance_min_frames
-        if n < ready:
+        if mode == "off" or n < ready:
+            return []
+        growth = 1.0 + self.config.appearance_refresh_growth
+        due = [
+            pid
+            for pid, seen in self.dynamic_colour_seen.items()
+            if pid in self.photos
+            and n > seen
+            and (seen < ready or n >= seen * growth)
+            and (mode == "all" or pid in self.dynamic_no_stack)
+        ]
+        due.sort(key=lambda p: (self.masks.get((p, "dynamic"), ("",))[0] == "ok", -self.photos[p].capture_time_ns))
+        return due
+
+    def _refresh_colour(self, photo_id: str) -> None:
+        """Redo a dynamic mask for the colour model as it is now: in full for a photo without a stack (it may
+        have one by now); else only the colour step on the time-lapse mask the model learnt from it (its stack
+        did not change: same time-lapse mask and clean plate). Published only when the mask changed."""
+        started = time.perf_counter()
+        self.dynamic_colour_seen[photo_id] = self.colour.num_frames  # first: a photo that fails is not retried
+        frame = self.store.frames.get(photo_id)
+        learnt = self.colour.learnt_mask(photo_id)
+        status, png = self.masks.get((photo_id, "dynamic"), ("", b""))
+        if (
+            photo_id in self.dynamic_no_stack
+            or status != "ok"
+            or frame is None
+            or learnt is None
+            or learnt.shape != frame.image_small.shape[:2]
+        ):
+            self._dynamic(photo_id)
             return
-        for pid, seen in list(self.dynamic_no_stack.items()):
-            if pid in self.photos and (seen < ready or n >= seen * (1.0 + self.config.appearance_refresh_growth)):
-                self._dynamic(pid)
+        timelapse = np.where(learnt, 255, 0).astype(np.uint8)
+        mask, _ = recombine(timelapse, self._image(photo_id), frame.image_small, self.colour, self.dyn_params)
+        if encode_png(mask) == png:
+            return
+        if self.config.two_pass:
+            self.store.set_occluder_mask(photo_id, mask)
+        plate, views = self.dynamic_plate.get(photo_id, (b"", 0))
+        self._publish(photo_id, "dynamic", "ok", mask, started, background_jpeg=plate, num_views=views)
 
     def _region(self, photo_id: str) -> NDArray[np.bool_] | None:
         """Projected model (working size) of a photo: its own, else, for a fixed camera, that of the

@@ -7,6 +7,9 @@ Writes a COLMAP text model (cameras.txt, images.txt, points3D.txt) in the model 
      "focal_px": 1520.0}
 
 ``image`` is the posix path relative to ``--images``; ``pixel`` is OpenCV convention; ``world`` in model units.
+An anchor may carry ``"on_request": true``: its clicks are held back until the algorithm asks for that image's
+anchor (a scripted user answering requests, as the benchmarks simulate); the others count as given up front (an
+automatic registration of such an image is checked against them, ``SfmConfig.check_auto_with_clicks``).
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -25,10 +29,12 @@ from tqdm import tqdm
 
 from constructaide import camera as cam
 from constructaide.errors import UserError
+from constructaide.geo import exif_gps
 from nodes.register.colmap_io import ColmapImage, ColmapModel, write_text_model
 from nodes.register.densify import DensifyParams, View, densify
 from nodes.register.features import Features, extract_features
 from nodes.register.sfm import Clicks, Reconstruction, SfmConfig, add_image, reconstruct
+from schemas.messages import GeoPoint
 
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp"}
 DEFAULT_DENSIFY = DensifyParams()
@@ -43,8 +49,18 @@ def find_images(images_dir: Path) -> list[tuple[str, Path]]:
     return [(p.relative_to(root).as_posix(), p) for p in found]
 
 
-def load_anchor_file(path: Path) -> tuple[dict[str, Clicks], float | None]:
-    """Parse the anchor file: clicks by image name (in file order) and the optional focal prior (px)."""
+class AnchorFile(NamedTuple):
+    """Clicks by image name (file order), the optional focal prior (px) and the images whose clicks are held back
+    until asked for (``"on_request": true``)."""
+
+    clicks: dict[str, Clicks]
+    focal_px: float | None
+    on_request: frozenset[str] = frozenset()
+
+
+def load_anchor_file(path: Path) -> AnchorFile:
+    """Parse the anchor file: clicks by image name (in file order), the optional focal prior (px) and the images
+    flagged ``on_request``."""
     path = Path(path)
     try:
         doc = json.loads(path.read_text())
@@ -58,6 +74,7 @@ def load_anchor_file(path: Path) -> tuple[dict[str, Clicks], float | None]:
     if focal is not None and (not isinstance(focal, int | float) or not math.isfinite(focal) or focal <= 0):
         raise UserError(f"anchor file {path}: focal_px must be a positive number, got {focal!r}")
     out: dict[str, Clicks] = {}
+    held: set[str] = set()
     for k, a in enumerate(doc["anchors"]):
         if not isinstance(a, dict) or not isinstance(a.get("image"), str) or not isinstance(a.get("points"), list):
             raise UserError(f"anchor file {path}: anchors[{k}] needs 'image' (string) and 'points' (list)")
@@ -77,7 +94,14 @@ def load_anchor_file(path: Path) -> tuple[dict[str, Clicks], float | None]:
         if a["image"] in out:
             raise UserError(f"anchor file {path}: image {a['image']} is listed twice")
         out[a["image"]] = (np.array(px, float), np.array(world, float))
-    return out, (float(focal) if focal is not None else None)
+        flag = a.get("on_request", False)
+        if not isinstance(flag, bool):
+            raise UserError(f"anchor file {path}: anchors[{k}].on_request must be true or false, got {flag!r}")
+        if flag:
+            held.add(a["image"])
+    if len(held) == len(out):
+        raise UserError(f"anchor file {path}: every anchor is 'on_request'; at least one must be given up front")
+    return AnchorFile(out, (float(focal) if focal is not None else None), frozenset(held))
 
 
 def _png_exif_chunk(path: Path) -> bytes | None:
@@ -149,6 +173,23 @@ def extract_all(
             return list(bar)
     finally:
         cv2.setNumThreads(before)
+
+
+def exif_gps_position(path: Path) -> GeoPoint | None:
+    """EXIF GPS position of an image (``constructaide.geo.exif_gps``), None when absent or unreadable."""
+    try:
+        from PIL import Image
+
+        with Image.open(path) as img:
+            raw = img.info.get("exif") or (_png_exif_chunk(Path(path)) if img.format == "PNG" else None)
+            if raw:
+                exif_all = Image.Exif()
+                exif_all.load(raw)
+            else:
+                exif_all = img.getexif()
+            return exif_gps(exif_all)
+    except Exception:
+        return None
 
 
 def exif_capture_time_ns(path: Path) -> int:
@@ -293,6 +334,8 @@ def image_report(recon: Reconstruction) -> list[dict]:
                 d["anchor_flagged_clicks"] = [int(k) for k in np.nonzero(im.anchor.outlier_mask)[0]]
         else:
             d["num_matched_tracks"] = im.num_matched_tracks
+        if math.isfinite(im.gps_residual_m):
+            d["gps_residual_m"] = im.gps_residual_m
         out.append(d)
     return out
 
@@ -315,7 +358,7 @@ def run_batch(
     (:func:`densify_reconstruction`; ``None`` skips it); its time is reported separately (``timings_secs``)."""
     t0 = time.perf_counter()
     cfg = cfg or SfmConfig()
-    anchors, file_focal = load_anchor_file(anchors_path)
+    anchors, file_focal, on_request = load_anchor_file(anchors_path)
     for b in bim_paths:
         if not Path(b).exists():
             raise UserError(f"--bim {b} does not exist")
@@ -333,7 +376,7 @@ def run_batch(
     feats = extract_all([p for _, p in named], max_features, max_side_px, cfg.workers, show_progress)
     recon = Reconstruction()
     for (name, path), (f, c) in zip(named, feats, strict=True):
-        add_image(recon, name, f, c, exif_focal_px(path, f.width_px))
+        add_image(recon, name, f, c, exif_focal_px(path, f.width_px), exif_gps_position(path))
     features_secs = time.perf_counter() - t_feat
     n_pairs = len(named) * (len(named) - 1) // 2
     bar_m = tqdm(total=n_pairs, desc="matching", unit="pair", disable=not show_progress, file=sys.stderr)
@@ -344,7 +387,16 @@ def run_batch(
         bar_r.set_postfix_str(stage[-40:])
         bar_r.refresh()
 
-    reconstruct(recon, anchors, cfg, progress=prog, match_progress=lambda: bar_m.update())
+    given = {n: c for n, c in anchors.items() if n not in on_request}
+    answers = {n: c for n, c in anchors.items() if n in on_request}
+    reconstruct(
+        recon,
+        given,
+        cfg,
+        request_anchor=lambda name, reason, n: answers.pop(name, None),
+        progress=prog,
+        match_progress=lambda: bar_m.update(),
+    )
     bar_m.close()
     bar_r.close()
     dense_stats = None

@@ -64,6 +64,7 @@ def _photo_input(msg: Photo) -> PhotoInput:
         focal_px=msg.focal_px,
         width_px=msg.width_px,
         height_px=msg.height_px,
+        gps=msg.gps,
     )
 
 

@@ -35,6 +35,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from constructaide import camera as cam
+from constructaide.geo import EARTH_RADIUS_M, gps_distance_residuals_m, horizontal_distance_m
 from nodes.register.anchors import AnchorSolution, DegenerateAnchors, solve_anchor
 from nodes.register.bundle import BundleOptions, BundleProblem, bundle_adjust, single_thread_blas
 from nodes.register.features import (
@@ -46,7 +47,7 @@ from nodes.register.features import (
     project_pca,
     ransac_iterations,
 )
-from schemas.messages import Intrinsics
+from schemas.messages import GeoPoint, Intrinsics
 
 Clicks = tuple[np.ndarray, np.ndarray]  # pixels (N, 2) OpenCV px, world points (N, 3) model units
 
@@ -142,6 +143,29 @@ class SfmConfig:
     shortlist_size: int = 15
     use_all_anchors: bool = False
     workers: int = 2
+    # GPS safeguards (EXIF positions; phones ~3 m error, sometimes much worse). Distances between registered centres
+    # are horizontal distances in the model frame, taken to be metric and z-up (the BIM's site-local metres).
+    # A homography transfer (the premise: the same viewpoint) is refused when both photos carry GPS more than this
+    # far apart (m; None = off). Two fixes 3 m sigma per axis of one viewpoint lie > 15 m apart with p ~ 2e-3.
+    gps_max_homography_distance_m: float | None = 15.0
+    # An automatic registration (PnP, homography) is refused when the median over the registered photos with GPS
+    # of |distance between registered centres - distance between GPS positions| exceeds this (m; None = off); it
+    # needs at least gps_min_references such photos. The image then stays unregistered (and asks for an anchor).
+    gps_max_residual_m: float | None = 15.0
+    gps_min_references: int = 2
+    # Registered photos within this distance of each other by GPS count as one position in that median (the frames
+    # of one fixed camera; see gps_median_residual_m).
+    gps_same_position_m: float = 1.0
+    # Orientation-aware second test (gps_heading_residual_m): used when the registered photos' GPS positions span at
+    # least this (m); gps_sigma_m is the GPS error assumed for the fit's uncertainty.
+    gps_min_fit_span_m: float = 30.0
+    gps_sigma_m: float = 3.0
+    # When clicks for an image are at hand before it is asked for them (the anchor file's, not answers to requests)
+    # and an automatic registration puts them further than click_check_max_frac of the width (median) from where
+    # they were clicked, the image is re-registered from its clicks (an anchor). Synthetic default site: correct
+    # automatic poses put clicks <= 0.6 % of the width off, the wrong ones (mirrored, repeated print) >= 14 %.
+    check_auto_with_clicks: bool = True
+    click_check_max_frac: float = 0.02
 
 
 @dataclass
@@ -182,6 +206,10 @@ class ImageState:
     focal_prior_rejected: bool = False
     # Image whose camera centre this one shares (a rotation homography to that anchor), or None.
     centre_source: int | None = None
+    # EXIF GPS position, None when absent.
+    gps: GeoPoint | None = None
+    # Median GPS distance residual (m) of the automatic registration (see gps_check), NaN when not checked.
+    gps_residual_m: float = float("nan")
 
     @property
     def width_px(self) -> int:
@@ -298,11 +326,13 @@ def add_image(
     features: Features,
     colors_rgb_u8: np.ndarray | None = None,
     focal_prior_px: float | None = None,
+    gps: GeoPoint | None = None,
 ) -> int:
-    """Append an unregistered image; returns its index. ``colors_rgb_u8`` (N, 3): colour at each keypoint."""
+    """Append an unregistered image; returns its index. ``colors_rgb_u8`` (N, 3): colour at each keypoint;
+    ``gps``: its EXIF position (None when absent)."""
     if any(im.name == name for im in recon.images):
         raise ValueError(f"image {name!r} is already in the reconstruction")
-    recon.images.append(ImageState(name, features, colors_rgb_u8, focal_prior_px))
+    recon.images.append(ImageState(name, features, colors_rgb_u8, focal_prior_px, gps=gps))
     recon.feature_track.append(-np.ones(len(features), dtype=np.int64))
     return len(recon.images) - 1
 
@@ -495,6 +525,184 @@ def register_anchor(recon: Reconstruction, idx: int, clicks: Clicks, cfg: SfmCon
     return sol
 
 
+def _gps_positions(references: list[tuple[np.ndarray, GeoPoint]], same_position_m: float) -> list[list[int]]:
+    """Indices of ``references`` grouped by GPS position (greedy: within ``same_position_m`` of a group's first)."""
+    groups: list[list[int]] = []
+    for k, (_, g) in enumerate(references):
+        for members in groups:
+            if horizontal_distance_m(references[members[0]][1], g) <= same_position_m:
+                members.append(k)
+                break
+        else:
+            groups.append([k])
+    return groups
+
+
+def _enu_m(g: GeoPoint, origin: GeoPoint) -> np.ndarray:
+    """East / north metres (2,) of ``g`` from ``origin`` (local equirectangular, like horizontal_distance_m)."""
+    lat = np.radians(0.5 * (g.lat_deg + origin.lat_deg))
+    return EARTH_RADIUS_M * np.array(
+        [np.radians(g.lon_deg - origin.lon_deg) * np.cos(lat), np.radians(g.lat_deg - origin.lat_deg)]
+    )
+
+
+def gps_median_residual_m(
+    centre_in_world_m: np.ndarray,
+    gps: GeoPoint,
+    references: list[tuple[np.ndarray, GeoPoint]],
+    same_position_m: float = 1.0,
+) -> float:
+    """Median GPS distance residual (m) of a camera at ``centre_in_world_m`` (3,) with ``gps`` against
+    ``references`` (camera centre (3,) world m, GPS): |horizontal distance between the centres - distance between
+    the GPS positions| (:func:`constructaide.geo.gps_distance_residuals_m`, needs no georeference of the model).
+
+    References whose GPS positions lie within ``same_position_m`` of each other (the frames of one fixed camera)
+    count once, with the median of their residuals; the result is the median over those positions (20 frames of
+    one camera would otherwise outvote every other direction). NaN without references."""
+    if not references:
+        return float("nan")
+    centres = np.array([np.asarray(c, np.float64)[:3] for c, _ in references])
+    res = gps_distance_residuals_m(np.asarray(centre_in_world_m, np.float64), gps, centres, [g for _, g in references])
+    return float(np.median([np.median(res[m]) for m in _gps_positions(references, same_position_m)]))
+
+
+def gps_heading_residual_m(
+    centre_in_world_m: np.ndarray,
+    gps: GeoPoint,
+    references: list[tuple[np.ndarray, GeoPoint]],
+    same_position_m: float = 1.0,
+    inlier_m: float = 15.0,
+    min_span_m: float = 30.0,
+    sigma_m: float = 3.0,
+) -> tuple[float, float]:
+    """Orientation-aware GPS check of a camera at ``centre_in_world_m`` (3,) with ``gps``: (horizontal distance (m)
+    between its GPS position and its centre carried into east/north metres by the rigid motion (rotation about z,
+    translation) fitted to ``references``, that fit's own uncertainty at the candidate (3 sigma, m)).
+
+    Distances alone (:func:`gps_median_residual_m`) cannot tell a model from its mirror image: a camera mirrored
+    across the line through two references keeps its distances to both (synthetic site: a west camera placed by PnP
+    on repeated hoarding print 64 m off, at the east camera's place, keeps its distances to the north and south
+    cameras). The z-up model frame is right-handed like east/north/up, so a rigid motion without reflection relates
+    them; it is fitted (least median of squares over pairs of positions, then least squares on the positions within
+    ``inlier_m``) to the reference positions (grouped as in gps_median_residual_m, model centre = median of the
+    group's). Its uncertainty at the candidate is 3 ``sigma_m`` (GPS error) times (1 / sqrt(n) + distance from the
+    positions' centroid / their spread (root sum of squares)). (NaN, NaN) when the inlier positions span less than
+    ``min_span_m`` (the heading is then too uncertain)."""
+    nan = (float("nan"), float("nan"))
+    groups = _gps_positions(references, same_position_m)
+    if len(groups) < 2:
+        return nan
+    origin = references[0][1]
+    enu = np.array([_enu_m(references[m[0]][1], origin) for m in groups])
+    xy = np.array([np.median([np.asarray(references[k][0], np.float64)[:2] for k in m], axis=0) for m in groups])
+    n = len(groups)
+    ii, jj = np.triu_indices(n, 1)
+    sep = np.linalg.norm(enu[jj] - enu[ii], axis=1)
+    keep = sep >= 0.5 * min_span_m
+    ii, jj = ii[keep], jj[keep]
+    if len(ii) == 0:
+        return nan
+    if len(ii) > 2000:
+        pick = np.random.default_rng(0).choice(len(ii), 2000, replace=False)
+        ii, jj = ii[pick], jj[pick]
+    de, dm = enu[jj] - enu[ii], xy[jj] - xy[ii]
+    theta = np.arctan2(de[:, 1], de[:, 0]) - np.arctan2(dm[:, 1], dm[:, 0])
+    c, s = np.cos(theta), np.sin(theta)
+    mid_m, mid_e = 0.5 * (xy[ii] + xy[jj]), 0.5 * (enu[ii] + enu[jj])
+    t = mid_e - np.c_[c * mid_m[:, 0] - s * mid_m[:, 1], s * mid_m[:, 0] + c * mid_m[:, 1]]
+    px = c[:, None] * xy[None, :, 0] - s[:, None] * xy[None, :, 1] + t[:, :1]
+    py = s[:, None] * xy[None, :, 0] + c[:, None] * xy[None, :, 1] + t[:, 1:]
+    err = np.hypot(px - enu[None, :, 0], py - enu[None, :, 1])
+    best = int(np.argmin(np.median(err, axis=1)))
+    inl = err[best] <= inlier_m
+    if inl.sum() < 2:
+        return nan
+    span = np.max(np.linalg.norm(enu[inl][:, None] - enu[inl][None], axis=2))
+    if span < min_span_m:
+        return nan
+    # Least squares rotation + translation (2D Kabsch) on the inlier positions.
+    a, b = xy[inl], enu[inl]
+    ma, mb = a.mean(0), b.mean(0)
+    u, _, vt = np.linalg.svd((b - mb).T @ (a - ma))
+    R = u @ np.diag([1.0, np.linalg.det(u @ vt)]) @ vt
+    tt = mb - R @ ma
+    pred = R @ np.asarray(centre_in_world_m, np.float64)[:2] + tt
+    resid = float(np.linalg.norm(pred - _enu_m(gps, origin)))
+    spread = float(np.sqrt(np.sum((a - ma) ** 2)))
+    dist = float(np.linalg.norm(np.asarray(centre_in_world_m, np.float64)[:2] - ma))
+    allowance = 3.0 * sigma_m * (1.0 / np.sqrt(len(a)) + dist / max(spread, 1e-9))
+    return resid, float(allowance)
+
+
+def gps_refusal(
+    centre_in_world_m: np.ndarray,
+    gps: GeoPoint,
+    references: list[tuple[np.ndarray, GeoPoint]],
+    max_residual_m: float,
+    same_position_m: float = 1.0,
+    min_fit_span_m: float = 30.0,
+    sigma_m: float = 3.0,
+) -> tuple[str, float]:
+    """GPS test of a candidate automatic registration (camera centre (3,) world m, its GPS) against registered
+    ``references`` (centre, GPS): (why it is refused, "" when it is not; its residual, m). Two tests, each refusing
+    above ``max_residual_m``: the median distance residual over the references' positions
+    (:func:`gps_median_residual_m`), and, when those positions span enough to fix the heading, the distance after
+    the fitted rigid motion less that fit's uncertainty (:func:`gps_heading_residual_m`; it also sees mirror
+    images). The residual is the larger of the two."""
+    med = gps_median_residual_m(centre_in_world_m, gps, references, same_position_m)
+    head, allow = gps_heading_residual_m(
+        centre_in_world_m, gps, references, same_position_m, max_residual_m, min_fit_span_m, sigma_m
+    )
+    excess = head - allow if np.isfinite(head) else float("nan")
+    residual = float(np.nanmax([med, excess])) if np.isfinite([med, excess]).any() else float("nan")
+    if med > max_residual_m:
+        why = (
+            f"its distances to {len(references)} registered photos differ from their GPS distances by {med:.1f} m "
+            f"(median over GPS positions > {max_residual_m:g} m)"
+        )
+        return why, residual
+    if excess > max_residual_m:
+        why = (
+            f"its centre lies {head:.1f} m from its GPS position in the frame fitted to {len(references)} registered "
+            f"photos' GPS (> {max_residual_m:g} m + {allow:.1f} m fit uncertainty)"
+        )
+        return why, residual
+    return "", residual
+
+
+def gps_check(recon: Reconstruction, idx: int, world_from_camera: np.ndarray, cfg: SfmConfig) -> str:
+    """Why a candidate automatic pose of image ``idx`` contradicts GPS (:func:`gps_refusal` against the registered
+    images with GPS; "" when it does not, or cannot be told: no GPS, fewer than ``cfg.gps_min_references``
+    registered photos with GPS, or the check is off). Records the residual in ``gps_residual_m``."""
+    im = recon.images[idx]
+    if cfg.gps_max_residual_m is None or im.gps is None:
+        return ""
+    refs = [
+        (o.world_from_camera[:3, 3], o.gps)
+        for j, o in enumerate(recon.images)
+        if j != idx and o.registered and o.gps is not None and o.world_from_camera is not None
+    ]
+    if len(refs) < max(1, cfg.gps_min_references):
+        return ""
+    why, im.gps_residual_m = gps_refusal(
+        world_from_camera[:3, 3],
+        im.gps,
+        refs,
+        cfg.gps_max_residual_m,
+        cfg.gps_same_position_m,
+        cfg.gps_min_fit_span_m,
+        cfg.gps_sigma_m,
+    )
+    return why
+
+
+def gps_apart_m(a: ImageState, b: ImageState) -> float:
+    """Horizontal distance (m) between the GPS positions of two images, NaN when either has none."""
+    if a.gps is None or b.gps is None:
+        return float("nan")
+    return horizontal_distance_m(a.gps, b.gps)
+
+
 def rotation_homography_deviation(
     H_b_from_a: np.ndarray, intr_a: Intrinsics, width_b: int, height_b: int
 ) -> tuple[float, float]:
@@ -522,6 +730,12 @@ def try_homography_transfer(recon: Reconstruction, anchor_idx: int, idx: int, cf
     a, im = recon.images[anchor_idx], recon.images[idx]
     p = recon.pair(anchor_idx, idx)
     if p is None or a.clicks is None or len(p[0]) < cfg.homography_min_matches:
+        return False
+    # The transfer's premise is the same viewpoint; GPS fixes far apart say otherwise (a repeated print, e.g. site
+    # hoarding, gives one homography for most matches of two photos taken 50 m apart, and no image test can tell).
+    apart = gps_apart_m(a, im)
+    if cfg.gps_max_homography_distance_m is not None and apart > cfg.gps_max_homography_distance_m:
+        im.message = f"homography from {a.name} refused: GPS positions {apart:.0f} m apart"
         return False
     m, _ = p
     thr = max(1.0, cfg.homography_threshold_frac * im.width_px)
@@ -557,6 +771,11 @@ def try_homography_transfer(recon: Reconstruction, anchor_idx: int, idx: int, cf
     except DegenerateAnchors:
         return False
     intr, world_from_camera, rms = sol.intrinsics, sol.world_from_camera, sol.rms_px
+    centre = a.world_from_camera[:3, 3] if cfg.homography_shares_centre else world_from_camera[:3, 3]
+    why = gps_check(recon, idx, cam.rigid(np.eye(3), centre), cfg)
+    if why:
+        im.message = f"homography from {a.name} refused: {why}"
+        return False
     im.focal_prior_rejected = sol.focal_prior_rejected
     if cfg.homography_shares_centre:
         # The homography says: the same viewpoint as the anchor, rotated (and zoomed). Solving a full pose from
@@ -765,8 +984,13 @@ def register_image_pnp(recon: Reconstruction, idx: int, cfg: SfmConfig) -> bool:
             f"(< {cfg.min_pose_pair_agreement:.0%}; repeated texture?)"
         )
         return False
+    world_from_camera = cam.invert_rigid(cam.rigid(R, tv))
+    why = gps_check(recon, idx, world_from_camera, cfg)
+    if why:
+        im.message = f"PnP pose ({int(inliers.sum())}/{len(obj)} inliers) refused: {why}"
+        return False
     im.intrinsics = intr
-    im.world_from_camera = cam.invert_rigid(cam.rigid(R, tv))
+    im.world_from_camera = world_from_camera
     im.status, im.method = "auto", "pnp"
     im.num_inliers = int(inliers.sum())
     im.rms_px = float(np.sqrt(np.mean(err[inliers] ** 2)))
@@ -1152,6 +1376,16 @@ def release_anchors_if_significant(recon: Reconstruction, cfg: SfmConfig) -> flo
     return float(score)
 
 
+def click_disagreement_px(im: ImageState, clicks: Clicks) -> float:
+    """Median distance (px) between clicked pixels and their model points projected under image ``im``'s current
+    pose and intrinsics (points behind the camera count as infinitely far)."""
+    px, world = np.asarray(clicks[0], np.float64), np.asarray(clicks[1], np.float64)
+    proj, _ = cam.project_points(im.intrinsics, cam.invert_rigid(im.world_from_camera), world)
+    e = np.linalg.norm(proj - px, axis=1)
+    e[~np.isfinite(e)] = np.inf
+    return float(np.median(e)) if len(e) else float("nan")
+
+
 def _snapshot(recon: Reconstruction) -> tuple:
     ims = []
     for im in recon.images:
@@ -1258,6 +1492,29 @@ def reconstruct(
         if progress is not None:
             progress(stage, len(recon.registered_indices()))
 
+    def recheck_with_clicks(u: int) -> bool:
+        """Image ``u`` was just registered automatically: when clicks for it are at hand (given up front, not
+        answers to requests) and the pose puts them further than ``click_check_max_frac`` of the width (median)
+        from where they were clicked, re-register it from them (an anchor). Returns True when it was."""
+        im = recon.images[u]
+        if not cfg.check_auto_with_clicks or im.name not in pending:
+            return False
+        err = click_disagreement_px(im, pending[im.name])
+        if not err > cfg.click_check_max_frac * im.width_px:
+            return False
+        was = f"{im.method} pose ({im.message}) put its clicks {err:.0f} px off (median)"
+        clicks = pending.pop(im.name)
+        im.centre_source = None
+        try:
+            register_anchor(recon, u, clicks, cfg)
+        except DegenerateAnchors as e:
+            im.status, im.method, im.world_from_camera = "failed", "", None
+            im.message = f"{was}; its anchor clicks were rejected: {e}"
+            return True
+        im.message += f"; re-registered from its clicks: the automatic {was}"
+        note(f"anchor {im.name} (automatic pose disagreed with its clicks)")
+        return True
+
     # Initial anchors.
     first = list(pending)[: (len(pending) if cfg.use_all_anchors else 1)]
     for name in first:
@@ -1285,7 +1542,8 @@ def reconstruct(
                     checked_h.add((a, u))
                     if try_homography_transfer(recon, a, u, cfg):
                         added = dirty = True
-                        note(f"homography {recon.images[u].name}")
+                        if not recheck_with_clicks(u):
+                            note(f"homography {recon.images[u].name}")
         if dirty:
             triangulate_tracks(recon, cfg)
             bundle(recon, cfg)
@@ -1309,6 +1567,9 @@ def reconstruct(
         if u >= 0:
             if register_image_pnp(recon, u, cfg):
                 failed_pnp.clear()
+                if recheck_with_clicks(u):
+                    dirty = True
+                    continue
                 # Only tracks through the new image can have become triangulable.
                 triangulate_tracks(recon, cfg, only=_image_tracks(recon, [u]))
                 since_full += 1
@@ -1330,6 +1591,8 @@ def reconstruct(
         for u in sorted(unreg, key=lambda i: counts[i]):
             name = recon.images[u].name
             reason = f"only {counts[u]} matches to triangulated tracks (< {cfg.min_track_matches})"
+            if u in failed_pnp and recon.images[u].message:
+                reason = recon.images[u].message.removeprefix("needs anchor clicks: ")
             recon.needs_anchor = [r for r in recon.needs_anchor if r[0] != name] + [(name, reason, counts[u])]
             clicks = pending.pop(name, None)
             if clicks is None and request_anchor is not None:

@@ -30,6 +30,12 @@ Paths, tried in this order for a photo:
   re-solved from them (paper Sec. 6).
 * otherwise the photo is ``failed`` and an anchor is requested (``Outcome.needs_anchor``).
 
+GPS (``PhotoInput.gps``, EXIF) guards the full path's automatic registrations like the batch
+(:func:`nodes.register.sfm.gps_refusal`): a homography transfer from a key image whose GPS position is more than
+``gps_max_homography_distance_m`` away is not tried (same viewpoint premise), and a PnP or homography pose whose
+distances to the registered photos with GPS contradict theirs (or that lies off its GPS position in the frame
+fitted to them) is refused. The fast path keeps a fixed camera's centre, so it is not checked.
+
 Anchor clicks for an already registered photo correct it in place (re-anchoring).
 """
 
@@ -46,13 +52,15 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from constructaide import camera as cam
+from constructaide.geo import horizontal_distance_m
 from constructaide.gl import offscreen_renderer
 from nodes.register import anchors, bundle, features
 from nodes.register.densify import DensifyParams, View, densify
+from nodes.register.sfm import gps_refusal
 from nodes.register.viewpoints import ViewpointGraph, rotation_deviation, rotation_homography
 from schemas.messages import SPARSE_POINT_FROM_MODEL as POINT_FROM_MODEL
 from schemas.messages import SPARSE_POINT_VERIFIED as POINT_VERIFIED
-from schemas.messages import Intrinsics, Registration
+from schemas.messages import GeoPoint, Intrinsics, Registration
 
 DepthLookup = Callable[[np.ndarray, Intrinsics, np.ndarray, int], np.ndarray]
 """``depth_lookup(world_from_camera (4, 4), intrinsics, pixels_px (N, 2), capture_time_ns) -> depth_m (N,)``:
@@ -117,6 +125,16 @@ class StreamConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     # ones, for the points the static-occlusion test needs
     densify: bool = True
     densify_pairs: int = 3
+    # GPS safeguards (as SfmConfig's): no homography transfer between photos whose GPS positions are further apart
+    # than this (m; None = off) ...
+    gps_max_homography_distance_m: float | None = 15.0
+    # ... and no automatic pose whose GPS residual against >= gps_min_references registered photos with GPS exceeds
+    # this (m; None = off); see nodes.register.sfm.gps_refusal.
+    gps_max_residual_m: float | None = 15.0
+    gps_min_references: int = 2
+    gps_same_position_m: float = 1.0
+    gps_min_fit_span_m: float = 30.0
+    gps_sigma_m: float = 3.0
 
 
 # ---------------------------------------------------------------------------
@@ -175,7 +193,8 @@ class FrameImage:
 
 @dataclass
 class PhotoInput:
-    """One photo handed to the registrar. ``focal_px`` is an EXIF prior (full-resolution pixels) or None."""
+    """One photo handed to the registrar. ``focal_px`` is an EXIF prior (full-resolution pixels) or None; ``gps``
+    its EXIF position or None."""
 
     photo_id: str
     image: FrameImage
@@ -184,6 +203,7 @@ class PhotoInput:
     focal_px: float | None = None
     width_px: int = 0
     height_px: int = 0
+    gps: GeoPoint | None = None
 
 
 # ---------------------------------------------------------------------------
@@ -240,6 +260,7 @@ class PoseRecord:
     intrinsics: Intrinsics
     world_from_camera: np.ndarray
     method: str
+    gps: GeoPoint | None = None
 
 
 @dataclass
@@ -1044,8 +1065,13 @@ class StreamingRegistrar:
             result = self._pnp(feats, kp_to_point, intr0, photo.focal_px is None)
             result, why = self._check_pnp(result, feats, matches)
             rejected += why
+            if result is not None:
+                why = self._gps_refusal(photo, result[1])
+                if why:
+                    result, rejected = None, rejected + f"; a PnP solution was rejected: {why}"
         if result is None:
-            result = self._homography_transfer(feats, homographies, intr0)
+            result, why = self._homography_transfer(feats, homographies, intr0, photo)
+            rejected += why
             method = "homography"
         if result is None:
             reason = (
@@ -1165,61 +1191,117 @@ class StreamingRegistrar:
         return intr, world_from_camera, len(inl), rms, kps[inl]
 
     def _homography_transfer(
-        self, feats: features.Features, homographies: dict[int, tuple[np.ndarray | None, float, int]], intr0: Intrinsics
+        self,
+        feats: features.Features,
+        homographies: dict[int, tuple[np.ndarray | None, float, int]],
+        intr0: Intrinsics,
+        photo: PhotoInput | None = None,
     ):
+        """First acceptable transfer over the key images ranked by homography support: (result or None, why
+        transfers were refused by GPS or "")."""
         c = self.config
         ranked = sorted(homographies.items(), key=lambda kv: -kv[1][1] * kv[1][2])
+        refused = ""
         for ki, (H, ratio, n) in ranked:
             if H is None or ratio < c.homography_min_inlier_ratio or n < c.min_matches:
                 continue
             key = self.keys[ki]
-            _, dev = rotation_deviation(H, key.intrinsics, intr0.cx_px, intr0.cy_px)
-            if dev > c.homography_max_rotation_deviation:
-                continue  # a plane seen from another centre, not the same viewpoint
-            # Rotation + focal about the key image's centre, from the key's keypoint rays and H-consistent matches.
-            m = features.match_features(feats, key.feats, c.match_ratio)
-            pk = key.feats.keypoints_px[m[:, 1]].astype(np.float64)
-            pn = feats.keypoints_px[m[:, 0]].astype(np.float64)
-            proj = cv2.perspectiveTransform(pk.reshape(-1, 1, 2), H).reshape(-1, 2)
-            good = np.linalg.norm(proj - pn, axis=1) < c.homography_px
-            if good.sum() >= c.min_matches:
-                rays = rays_from_pixels(key.intrinsics, key.world_from_camera, pk[good])
-                K_key = cam.K_matrix(key.intrinsics)
-                intr_init = _with_focal(intr0, key.intrinsics.f_px * intr0.width_px / key.intrinsics.width_px)
-                M = np.linalg.inv(cam.K_matrix(intr_init)) @ H @ K_key
-                U, _, Vt = np.linalg.svd(M / np.cbrt(np.linalg.det(M)))
-                R_rel = U @ Vt
-                if np.linalg.det(R_rel) < 0:
-                    R_rel = -R_rel
-                R0 = R_rel @ key.world_from_camera[:3, :3].T
-                R, intr, res = fit_rotation_focal(rays, pn[good], intr_init, R0, True)
-                inl = res < c.homography_px
-                if inl.sum() >= c.min_matches:
-                    R, intr, res = fit_rotation_focal(rays[inl], pn[good][inl], intr, R, True)
-                    rms = float(np.sqrt(np.mean(res**2)))
-                    if rms <= c.homography_max_rms_px:
-                        return intr, cam.rigid(R.T, key.world_from_camera[:3, 3]), int(inl.sum()), rms, np.zeros(0, int)
-            # Paper's transfer: warp the anchor clicks by H and solve from them.
-            if key.is_anchor and len(key.clicks_px) >= anchors.MIN_CLICKS:
-                warped = cv2.perspectiveTransform(key.clicks_px.reshape(-1, 1, 2).astype(np.float64), H).reshape(-1, 2)
-                inside = (
-                    (warped[:, 0] >= 0)
-                    & (warped[:, 1] >= 0)
-                    & (warped[:, 0] <= intr0.width_px - 1)
-                    & (warped[:, 1] <= intr0.height_px - 1)
-                )
-                if inside.sum() >= anchors.MIN_CLICKS:
-                    try:
-                        sol = anchors.solve_anchor(
-                            warped[inside],
-                            key.clicks_world[inside],
-                            intr0.width_px,
-                            intr0.height_px,
-                            focal_px=intr0.f_px,
-                        )
-                    except anchors.DegenerateAnchors:
-                        continue
-                    return sol.intrinsics, sol.world_from_camera, int(inside.sum()), sol.rms_px, np.zeros(0, int)
+            apart = self._gps_apart_m(photo, key.photo_id)
+            if c.gps_max_homography_distance_m is not None and apart > c.gps_max_homography_distance_m:
+                refused += f"; homography from {key.photo_id} refused: GPS positions {apart:.0f} m apart"
+                continue
+            result = self._homography_from_key(feats, key, H, intr0)
+            if result is None:
+                continue
+            why = self._gps_refusal(photo, result[1])
+            if why:
+                refused += f"; homography from {key.photo_id} refused: {why}"
+                continue
+            return result, refused
+        return None, refused
+
+    def _gps_apart_m(self, photo: PhotoInput | None, other_id: str) -> float:
+        """Horizontal distance (m) between a photo's GPS position and a registered photo's, NaN when unknown."""
+        rec = self.poses.get(other_id)
+        if photo is None or photo.gps is None or rec is None or rec.gps is None:
+            return float("nan")
+        return horizontal_distance_m(photo.gps, rec.gps)
+
+    def _gps_refusal(self, photo: PhotoInput | None, world_from_camera: np.ndarray) -> str:
+        """Why an automatic pose contradicts GPS ("" when it does not or cannot be told; sfm.gps_refusal against
+        the registered photos with GPS)."""
+        c = self.config
+        if photo is None or photo.gps is None or c.gps_max_residual_m is None:
+            return ""
+        refs = [
+            (rec.world_from_camera[:3, 3], rec.gps)
+            for pid, rec in self.poses.items()
+            if pid != photo.photo_id and rec.gps is not None
+        ]
+        if len(refs) < max(1, c.gps_min_references):
+            return ""
+        why, _ = gps_refusal(
+            np.asarray(world_from_camera)[:3, 3],
+            photo.gps,
+            refs,
+            c.gps_max_residual_m,
+            c.gps_same_position_m,
+            c.gps_min_fit_span_m,
+            c.gps_sigma_m,
+        )
+        return why
+
+    def _homography_from_key(self, feats: features.Features, key: KeyImage, H: np.ndarray, intr0: Intrinsics):
+        """Transfer from one key image whose matches fit one homography ``H`` (key -> new): rotation + focal about
+        the key's centre, else the key's warped anchor clicks; None when neither fits."""
+        c = self.config
+        _, dev = rotation_deviation(H, key.intrinsics, intr0.cx_px, intr0.cy_px)
+        if dev > c.homography_max_rotation_deviation:
+            return None  # a plane seen from another centre, not the same viewpoint
+        # Rotation + focal about the key image's centre, from the key's keypoint rays and H-consistent matches.
+        m = features.match_features(feats, key.feats, c.match_ratio)
+        pk = key.feats.keypoints_px[m[:, 1]].astype(np.float64)
+        pn = feats.keypoints_px[m[:, 0]].astype(np.float64)
+        proj = cv2.perspectiveTransform(pk.reshape(-1, 1, 2), H).reshape(-1, 2)
+        good = np.linalg.norm(proj - pn, axis=1) < c.homography_px
+        if good.sum() >= c.min_matches:
+            rays = rays_from_pixels(key.intrinsics, key.world_from_camera, pk[good])
+            K_key = cam.K_matrix(key.intrinsics)
+            intr_init = _with_focal(intr0, key.intrinsics.f_px * intr0.width_px / key.intrinsics.width_px)
+            M = np.linalg.inv(cam.K_matrix(intr_init)) @ H @ K_key
+            U, _, Vt = np.linalg.svd(M / np.cbrt(np.linalg.det(M)))
+            R_rel = U @ Vt
+            if np.linalg.det(R_rel) < 0:
+                R_rel = -R_rel
+            R0 = R_rel @ key.world_from_camera[:3, :3].T
+            R, intr, res = fit_rotation_focal(rays, pn[good], intr_init, R0, True)
+            inl = res < c.homography_px
+            if inl.sum() >= c.min_matches:
+                R, intr, res = fit_rotation_focal(rays[inl], pn[good][inl], intr, R, True)
+                rms = float(np.sqrt(np.mean(res**2)))
+                if rms <= c.homography_max_rms_px:
+                    return intr, cam.rigid(R.T, key.world_from_camera[:3, 3]), int(inl.sum()), rms, np.zeros(0, int)
+        # Paper's transfer: warp the anchor clicks by H and solve from them.
+        if key.is_anchor and len(key.clicks_px) >= anchors.MIN_CLICKS:
+            warped = cv2.perspectiveTransform(key.clicks_px.reshape(-1, 1, 2).astype(np.float64), H).reshape(-1, 2)
+            inside = (
+                (warped[:, 0] >= 0)
+                & (warped[:, 1] >= 0)
+                & (warped[:, 0] <= intr0.width_px - 1)
+                & (warped[:, 1] <= intr0.height_px - 1)
+            )
+            if inside.sum() >= anchors.MIN_CLICKS:
+                try:
+                    sol = anchors.solve_anchor(
+                        warped[inside],
+                        key.clicks_world[inside],
+                        intr0.width_px,
+                        intr0.height_px,
+                        focal_px=intr0.f_px,
+                    )
+                except anchors.DegenerateAnchors:
+                    return None
+                return sol.intrinsics, sol.world_from_camera, int(inside.sum()), sol.rms_px, np.zeros(0, int)
         return None
 
     # -- map maintenance -----------------------------------------------------
@@ -1524,7 +1606,13 @@ class StreamingRegistrar:
         """Remember a registered pose; for a fixed camera add same-camera viewpoint edges from the poses."""
         c = self.config
         self.poses[photo.photo_id] = PoseRecord(
-            photo.photo_id, photo.camera_id, photo.capture_time_ns, intr, np.asarray(world_from_camera).copy(), method
+            photo.photo_id,
+            photo.camera_id,
+            photo.capture_time_ns,
+            intr,
+            np.asarray(world_from_camera).copy(),
+            method,
+            photo.gps,
         )
         changed: list[str] = []
         self.viewpoints.add_photo(photo.photo_id)

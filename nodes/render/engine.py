@@ -67,7 +67,8 @@ def decode_mask(mask: OcclusionMask, shape: tuple[int, int]) -> NDArray[np.bool_
 
 
 def scale_intrinsics(intr: Intrinsics, width_px: int, height_px: int) -> Intrinsics:
-    """Intrinsics of the same camera for an image resized to ``width_px`` x ``height_px``."""
+    """Intrinsics of the same camera for an image resized to ``width_px`` x ``height_px`` (fx scales with the width,
+    fy with the height)."""
     sx = width_px / intr.width_px
     sy = height_px / intr.height_px
     return Intrinsics(
@@ -78,6 +79,7 @@ def scale_intrinsics(intr: Intrinsics, width_px: int, height_px: int) -> Intrins
         cy_px=(intr.cy_px + 0.5) * sy - 0.5,
         k1=intr.k1,
         k2=intr.k2,
+        fy_over_fx=intr.fy_over_fx * sy / sx,
     )
 
 

@@ -33,6 +33,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from constructaide.camera import focal_xy
 from nodes.render.raster import GLRasterizer, render_geometry
 from nodes.render.scene import BimScene
 from schemas.messages import BimElement, Intrinsics
@@ -235,9 +236,10 @@ class PhotorealRenderer:
         with_bim, without = self._build(scene, visible, ground_z_m)
         geo = render_geometry(intr)
         ri = geo.render_intrinsics
+        fx, fy = focal_xy(ri)
         cam = pyrender.IntrinsicsCamera(
-            ri.f_px,
-            ri.f_px,
+            fx,
+            fy,
             ri.cx_px + 0.5,
             ri.cy_px + 0.5,
             znear=0.05,
@@ -256,7 +258,7 @@ class PhotorealRenderer:
         flags = pyrender.RenderFlags.SHADOWS_DIRECTIONAL if self.library.lighting.shadows else pyrender.RenderFlags.NONE
         # The background-only render (ground proxy + its own shadows: smooth) is made at half resolution.
         half = pyrender.IntrinsicsCamera(
-            ri.f_px / 2, ri.f_px / 2, (ri.cx_px + 0.5) / 2, (ri.cy_px + 0.5) / 2, znear=cam.znear, zfar=cam.zfar
+            fx / 2, fy / 2, (ri.cx_px + 0.5) / 2, (ri.cy_px + 0.5) / 2, znear=cam.znear, zfar=cam.zfar
         )
         full_size = (ri.width_px, ri.height_px)
         half_size = ((ri.width_px + 1) // 2, (ri.height_px + 1) // 2)

@@ -23,7 +23,7 @@ from functools import lru_cache
 import numpy as np
 from numpy.typing import NDArray
 
-from constructaide.camera import invert_rigid, pixels_to_normalized
+from constructaide.camera import focal_xy, invert_rigid, pixels_to_normalized
 from constructaide.gl import offscreen_renderer
 from nodes.render.scene import GROUND_INDEX, BimScene
 from schemas.messages import Intrinsics
@@ -98,11 +98,12 @@ def projection_from_intrinsics(intr: Intrinsics, near_m: float, far_m: float) ->
 
     So ``glReadPixels`` rows come out in image order without a flip.
     """
-    w, h, f = intr.width_px, intr.height_px, intr.f_px
+    w, h = intr.width_px, intr.height_px
+    fx, fy = focal_xy(intr)
     P = np.zeros((4, 4))
-    P[0, 0] = 2.0 * f / w
+    P[0, 0] = 2.0 * fx / w
     P[0, 2] = (2.0 * intr.cx_px + 1.0) / w - 1.0
-    P[1, 1] = 2.0 * f / h
+    P[1, 1] = 2.0 * fy / h
     P[1, 2] = (2.0 * intr.cy_px + 1.0) / h - 1.0
     P[2, 2] = (far_m + near_m) / (far_m - near_m)
     P[2, 3] = -2.0 * far_m * near_m / (far_m - near_m)
@@ -121,21 +122,21 @@ def render_geometry(intr: Intrinsics, margin_px: int = 4) -> RenderGeometry:
     xy = _undistorted_grid(intr).reshape(-1, 2)
     if not np.all(np.isfinite(xy)):
         raise ValueError(f"distortion k1={intr.k1}, k2={intr.k2} is not invertible over the image")
-    f = intr.f_px
+    fx, fy = focal_xy(intr)
     xmin, ymin = xy.min(0)
     xmax, ymax = xy.max(0)
     # Principal point on an integer pixel of the render grid.
-    cx = float(np.floor(-xmin * f) + margin_px)
-    cy = float(np.floor(-ymin * f) + margin_px)
-    rw = int(np.ceil((xmax - xmin) * f)) + 2 * margin_px + 2
-    rh = int(np.ceil((ymax - ymin) * f)) + 2 * margin_px + 2
+    cx = float(np.floor(-xmin * fx) + margin_px)
+    cy = float(np.floor(-ymin * fy) + margin_px)
+    rw = int(np.ceil((xmax - xmin) * fx)) + 2 * margin_px + 2
+    rh = int(np.ceil((ymax - ymin) * fy)) + 2 * margin_px + 2
     if rw * rh > 16 * w * h:
         raise ValueError(f"distortion k1={intr.k1}, k2={intr.k2} needs an unreasonably wide undistorted render")
-    ru = np.clip(np.rint(xy[:, 0] * f + cx).astype(np.int64), 0, rw - 1)
-    rv = np.clip(np.rint(xy[:, 1] * f + cy).astype(np.int64), 0, rh - 1)
-    r_intr = Intrinsics(width_px=rw, height_px=rh, f_px=f, cx_px=cx, cy_px=cy)
-    map_x = (xy[:, 0] * f + cx).astype(np.float32).reshape(h, w)
-    map_y = (xy[:, 1] * f + cy).astype(np.float32).reshape(h, w)
+    ru = np.clip(np.rint(xy[:, 0] * fx + cx).astype(np.int64), 0, rw - 1)
+    rv = np.clip(np.rint(xy[:, 1] * fy + cy).astype(np.int64), 0, rh - 1)
+    r_intr = Intrinsics(width_px=rw, height_px=rh, f_px=fx, cx_px=cx, cy_px=cy, fy_over_fx=intr.fy_over_fx)
+    map_x = (xy[:, 0] * fx + cx).astype(np.float32).reshape(h, w)
+    map_y = (xy[:, 1] * fy + cy).astype(np.float32).reshape(h, w)
     return RenderGeometry(render_intrinsics=r_intr, lookup_flat=rv * rw + ru, map_x=map_x, map_y=map_y)
 
 
