@@ -111,6 +111,11 @@ def test_analytic_jacobian_matches_finite_differences(monkeypatch):
         (prob, pp_prior),
         (centre_fixed, BundleOptions()),
         (BundleProblem(**{**prob.__dict__, "pp_group": np.array([0, 0, 1, -1])}), pp_prior),
+        (BundleProblem(**{**prob.__dict__, "intr_group": np.array([0, 0, 0, -1])}), BundleOptions()),
+        (
+            BundleProblem(**{**prob.__dict__, "intr_group": np.array([0, 1, 0, 1])}),
+            BundleOptions(focal_prior_px=np.full(4, F), focal_prior_sigma_px=np.full(4, 7.0)),
+        ),
     ]
     for pr, opts in cases:
         try:
@@ -216,3 +221,30 @@ def test_shared_principal_point_found_with_exact_steps():
     assert np.ptp(res.cx_px) == 0 and np.ptp(res.cy_px) == 0  # one shared principal point
     assert res.cx_px[0] - (W - 1) / 2 == pytest.approx(9.0, abs=1.5)
     assert res.cy_px[0] - (H - 1) / 2 == pytest.approx(-6.0, abs=1.5)
+
+
+def test_shared_intrinsics_one_focal_per_group_and_priors_counted_once():
+    """Cameras of one group share one focal and k1, k2 (recovered from a start spread by 1 %); the focal prior of a
+    group is counted once: a group of three under a 1 px prior 5 % off lands where a single camera under the same
+    prior would, not three times closer to it."""
+    prob, poses, X = problem(seed=9)
+    shared = BundleProblem(**{**prob.__dict__, "intr_group": np.zeros(4, int)})
+    res = bundle_adjust(shared, BundleOptions(max_nfev=100))
+    assert np.ptp(res.f_px) == 0 and np.ptp(res.k1) == 0 and np.ptp(res.k2) == 0
+    assert res.f_px[0] == pytest.approx(F, rel=0.005)
+    assert res.k1[0] == pytest.approx(0.03, abs=0.01)
+    free = bundle_adjust(prob, BundleOptions(max_nfev=100))
+    assert np.ptp(free.f_px) > 0
+    # prior counting: a group's focal prior acts once (the same as when only its first member had one)
+    group = BundleProblem(
+        **{**prob.__dict__, "intrinsics_fixed": np.array([True, False, False, False]), "intr_group": np.r_[-1, 0, 0, 0]}
+    )
+    fits = [
+        bundle_adjust(
+            group,
+            BundleOptions(max_nfev=100, loss="linear", focal_prior_px=np.full(4, F * 1.05), focal_prior_sigma_px=sig),
+        ).f_px[1]
+        for sig in (np.ones(4), np.r_[1.0, 1.0, np.inf, np.inf])
+    ]
+    assert fits[0] == pytest.approx(fits[1], abs=1e-6)
+    assert F < fits[0] < 1.05 * F  # between the data and the prior

@@ -124,6 +124,9 @@ class BundleProblem:
     centre_fixed: np.ndarray | None = None
     # (C,) pixel aspect ratios fy / fx (v = f * fy_over_fx * y_d + cy), or None: square pixels (1.0).
     fy_over_fx: np.ndarray | None = None
+    # (C,) int or None: cameras with free intrinsics and the same non-negative id share one focal and one k1, k2
+    # (one physical camera at one zoom setting); -1 or None: each camera its own.
+    intr_group: np.ndarray | None = None
 
 
 @dataclass
@@ -203,10 +206,19 @@ class _Layout:
                 self.pose_col[c] = idx
                 idx += 3 if self.rot_only[c] else 6
         self.intr_col = np.full(C, -1)
+        ig = np.full(C, -1) if prob.intr_group is None else np.asarray(prob.intr_group, int)
+        intr_key = np.where(ig >= 0, ig, -1 - np.arange(C))
+        col_of_key: dict[int, int] = {}
         for c in range(C):
             if not prob.intrinsics_fixed[c]:
-                self.intr_col[c] = idx
-                idx += self.n_intr
+                k = int(intr_key[c])
+                if k not in col_of_key:
+                    col_of_key[k] = idx
+                    idx += self.n_intr
+                self.intr_col[c] = col_of_key[k]
+        # One camera per intrinsics column (its first member): priors on shared intrinsics are counted once.
+        _, lead = np.unique(np.where(self.intr_col >= 0, self.intr_col, -1), return_index=True)
+        self.intr_lead = np.sort(lead[self.intr_col[lead] >= 0])
         # Principal points (two columns) and aspect ratios (one column) per group of cameras with free intrinsics
         # (a camera alone is its own group); pp_col[c] / asp_col[c] = the columns of camera c's group, -1 when not
         # refined.
@@ -375,9 +387,9 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
     t0 = prob.camera_from_world[:, :3, 3].copy()
     obs_cam, obs_point, obs_px = prob.obs_cam, prob.obs_point, prob.obs_px
     n_obs, n_clk = len(obs_cam), len(prob.click_cam)
-    distortion_cams = np.nonzero(lay.intr_col >= 0)[0] if opts.refine_distortion else np.zeros(0, int)
+    distortion_cams = lay.intr_lead if opts.refine_distortion else np.zeros(0, int)
     if opts.focal_prior_px is not None and opts.focal_prior_sigma_px is not None:
-        focal_cams = np.nonzero((lay.intr_col >= 0) & np.isfinite(opts.focal_prior_sigma_px))[0]
+        focal_cams = lay.intr_lead[np.isfinite(np.asarray(opts.focal_prior_sigma_px, float)[lay.intr_lead])]
         f_prior = np.asarray(opts.focal_prior_px, float)[focal_cams]
         f_sigma = np.asarray(opts.focal_prior_sigma_px, float)[focal_cams]
     else:
@@ -421,13 +433,13 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
         ray_origin[depth_pts] = -np.einsum("nij,nj->ni", Rw, t0[rc])
         pc = _cam_from_world(prob.camera_from_world[rc], prob.points_in_world[depth_pts])
         x0[lay.point_col[depth_pts]] = np.maximum(pc[:, 2], 1e-9)
+    for c in lay.intr_lead:
+        members = lay.intr_col == lay.intr_col[c]  # the cameras sharing these intrinsics start from their mean
+        vals = [float(np.mean(prob.f_px[members]))]
+        if opts.refine_distortion:
+            vals += [float(np.mean(prob.k1[members])), float(np.mean(prob.k2[members]))]
+        x0[lay.intr_col[c] : lay.intr_col[c] + lay.n_intr] = vals
     for c in range(C):
-        if lay.intr_col[c] >= 0:
-            j = lay.intr_col[c]
-            vals = [prob.f_px[c]]
-            if opts.refine_distortion:
-                vals += [prob.k1[c], prob.k2[c]]
-            x0[j : j + lay.n_intr] = vals
         if lay.pose_col[c] >= 0 and not lay.rot_only[c]:
             x0[lay.pose_col[c] + 3 : lay.pose_col[c] + 6] = t0[c]
     for members in lay.pp_groups:
