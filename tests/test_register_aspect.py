@@ -57,8 +57,7 @@ def centre_errors(recon: sfm.Reconstruction, poses: list[np.ndarray]) -> np.ndar
 
 def test_non_square_pixels_found_in_the_release():
     """fy / fx = 1.01: the release keeps one shared aspect (significant) near the truth, and the camera centres
-    improve over the square-pixel model (seed 17, focal and k1, k2 shared in the release: mean error 2.0 cm vs
-    3.3 cm)."""
+    improve over the square-pixel model (seed 17: 1.0091, mean error 1.7 cm vs 6.1 cm)."""
     recon, poses = run_stretched(1.01, sfm.SfmConfig(focal_px=F))
     assert recon.anchors_released and recon.aspect_wald > 9.0
     aspects = {recon.images[i].intrinsics.fy_over_fx for i in recon.registered_indices()}
@@ -67,7 +66,7 @@ def test_non_square_pixels_found_in_the_release():
     square, _ = run_stretched(1.01, sfm.SfmConfig(focal_px=F, release_aspect=False))
     assert all(square.images[i].intrinsics.fy_over_fx == 1.0 for i in square.registered_indices())
     assert np.isnan(square.aspect_wald)
-    assert np.mean(centre_errors(recon, poses)) < 0.7 * np.mean(centre_errors(square, poses))
+    assert np.mean(centre_errors(recon, poses)) < 0.5 * np.mean(centre_errors(square, poses))
     assert np.max(centre_errors(recon, poses)) < 0.03
 
 

@@ -121,25 +121,29 @@ def _png_exif_chunk(path: Path) -> bytes | None:
             fh.seek(length + 4, 1)
 
 
+def _read_exif(path: Path):
+    """The image's EXIF (a PIL ``Image.Exif``) and stored size (w, h), read without decoding the pixels (Pillow's
+    PNG getexif() decodes the whole image to reach an eXIf chunk after the pixels; the chunk headers are walked
+    instead)."""
+    from PIL import Image
+
+    with Image.open(path) as img:
+        size = img.size
+        raw = img.info.get("exif") or (_png_exif_chunk(Path(path)) if img.format == "PNG" else None)
+        if raw:
+            exif_all = Image.Exif()
+            exif_all.load(raw)
+        else:
+            exif_all = Image.Exif() if img.format == "PNG" else img.getexif()
+    return exif_all, size
+
+
 def exif_focal_px(path: Path, width_px: int) -> float | None:
     """Focal in pixels of an image ``width_px`` wide from EXIF FocalLengthIn35mmFilm (diagonal crop factor, like
     the ingest node), None when absent or unreadable."""
     try:
-        from PIL import Image
-
-        with Image.open(path) as img:
-            stored_w, stored_h = img.size
-            if img.format == "PNG":
-                # Pillow's PNG getexif() decodes the whole image to reach an eXIf chunk after the pixels; walk the
-                # chunk headers instead.
-                raw = img.info.get("exif") or _png_exif_chunk(Path(path))
-                if not raw:
-                    return None
-                exif_all = Image.Exif()
-                exif_all.load(raw)
-            else:
-                exif_all = img.getexif()
-            f35 = exif_all.get_ifd(0x8769).get(0xA405)
+        exif_all, (stored_w, stored_h) = _read_exif(path)
+        f35 = exif_all.get_ifd(0x8769).get(0xA405)
     except Exception:
         return None
     if not f35 or stored_w <= 0:
@@ -178,16 +182,7 @@ def extract_all(
 def exif_gps_position(path: Path) -> GeoPoint | None:
     """EXIF GPS position of an image (``constructaide.geo.exif_gps``), None when absent or unreadable."""
     try:
-        from PIL import Image
-
-        with Image.open(path) as img:
-            raw = img.info.get("exif") or (_png_exif_chunk(Path(path)) if img.format == "PNG" else None)
-            if raw:
-                exif_all = Image.Exif()
-                exif_all.load(raw)
-            else:
-                exif_all = img.getexif()
-            return exif_gps(exif_all)
+        return exif_gps(_read_exif(path)[0])
     except Exception:
         return None
 
@@ -198,17 +193,8 @@ def exif_capture_time_ns(path: Path) -> int:
     import datetime as dt
 
     try:
-        from PIL import Image
-
-        with Image.open(path) as img:
-            raw = img.info.get("exif") or (_png_exif_chunk(Path(path)) if img.format == "PNG" else None)
-            if raw:
-                exif_all = Image.Exif()
-                exif_all.load(raw)
-            else:
-                exif_all = img.getexif()
-            ifd = exif_all.get_ifd(0x8769)
-            text, offset = ifd.get(0x9003), ifd.get(0x9011)
+        ifd = _read_exif(path)[0].get_ifd(0x8769)
+        text, offset = ifd.get(0x9003), ifd.get(0x9011)
         when = dt.datetime.strptime(str(text).strip(), "%Y:%m:%d %H:%M:%S")
         tz = dt.UTC
         if offset:
