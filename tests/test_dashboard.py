@@ -104,6 +104,14 @@ def test_dashboard_scene_pairs_photos_and_registrations_in_any_order() -> None:
         small.on_photo(photo(pid))
     assert small.cached_photo_ids() == ["b", "c"]
     assert not [op for op in scene.on_registration(registration("p0")) if op.kind == "image"]
+    # a photo still waiting for its registration outlives photos already shown
+    waiting = Scene(photo_cache_size=2)
+    waiting.on_photo(photo("x"))
+    waiting.on_photo(photo("y"))
+    waiting.on_registration(registration("y"))
+    waiting.on_photo(photo("z"))
+    assert waiting.cached_photo_ids() == ["x", "z"]
+    assert [op.kind for op in waiting.on_registration(registration("x")) if op.kind == "image"] == ["image"]
 
     # phone photos share the "phone" camera; failures are text only
     scene.on_photo(photo("q", cam=None))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import cv2
+import msgspec
 import numpy as np
 import pytest
 from render_scenes import AT, camera, four_box_model
@@ -83,6 +84,47 @@ def test_render_node_publishes_overlays_for_registered_photos():
         ((_, again),) = got2.wait(count=1, timeout=60.0)
         blue = _png(again.image_png)  # BGR
         assert ((blue[..., 0].astype(int) - blue[..., 2]) > 40).mean() > 0.05
+
+
+def test_render_cache_keeps_unrendered_photos_and_reports_a_dropped_one():
+    """A camera backlog: six photos arrive before any registration (cache of four). Rendered photos leave the cache
+    first, so once registrations arrive every photo still cached is drawn; a photo that had to go unrendered is
+    reported as a NodeError instead of silently getting no overlay."""
+    from schemas.messages import NodeError
+
+    model = four_box_model()
+    photo, reg = _photo_and_reg()
+    ids = [f"p{k:016d}" for k in range(6)]
+    cfg = Config(site="t", modes=("state4d",), photo_cache=4)
+    with LocalBus() as bus, start_node(SPEC, cfg, bus) as node:
+        got = bus.collect(keys.pattern(keys.OVERLAY, site="t"))
+        errors = bus.collect(keys.key(keys.ERRORS, site="t"))
+        bus.publish(keys.key(keys.BIM_MODEL, site="t"), model)
+        # two photos registered and drawn first, then four more arrive: the drawn ones make room
+        for pid in ids[:2]:
+            bus.publish(keys.key(keys.PHOTO, site="t", camera="cam-a"), msgspec.structs.replace(photo, photo_id=pid))
+            bus.publish(
+                keys.key(keys.REGISTRATION, site="t", camera="cam-a", photo=pid),
+                msgspec.structs.replace(reg, photo_id=pid),
+            )
+        got.wait(count=2, timeout=60.0)
+        assert node.wait_idle(30.0)
+        for pid in ids[2:]:
+            bus.publish(keys.key(keys.PHOTO, site="t", camera="cam-a"), msgspec.structs.replace(photo, photo_id=pid))
+        assert node.wait_idle(30.0)
+        assert list(node.obj.photos) == ids[2:] and errors.items == []
+        # a fifth unrendered photo: the oldest unrendered one has to go, and that is reported
+        extra = "p0000000000000099"
+        bus.publish(keys.key(keys.PHOTO, site="t", camera="cam-a"), msgspec.structs.replace(photo, photo_id=extra))
+        ((_, err),) = errors.wait(count=1, timeout=30.0)
+        assert isinstance(err, NodeError) and ids[2] in err.reason and "before it was rendered" in err.reason
+        for pid in [*ids[3:], extra]:
+            bus.publish(
+                keys.key(keys.REGISTRATION, site="t", camera="cam-a", photo=pid),
+                msgspec.structs.replace(reg, photo_id=pid),
+            )
+        items = got.wait(count=6, timeout=60.0)
+        assert {m.photo_id for _, m in items} == {*ids[:2], *ids[3:], extra}
 
 
 def test_render_cli_from_recording(tmp_path, capsys):

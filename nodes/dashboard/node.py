@@ -30,8 +30,8 @@ class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=Tr
     site: str = "demo"
     rerun: str = "save:recordings/dashboard.rrd"
     """Sink: ``save:PATH.rrd`` | ``serve`` | ``serve:PORT`` | ``connect`` | ``connect:URL``."""
-    photo_cache: int = 64
-    """Photos kept (by photo_id) to pair with registrations arriving later."""
+    photo_cache: int = 512
+    """Photos kept (by photo_id) to pair with registrations arriving later (photos already shown leave first)."""
     photo_cache_mib: float = 512.0
     """... and at most this many MiB of photo bytes (the newest photo is always kept)."""
     image_plane_distance_m: float = 1.0

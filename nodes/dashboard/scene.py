@@ -154,12 +154,13 @@ class _PhotoInfo:
 
 @dataclass
 class Scene:
-    """State of the dashboard: caches photos (bounded) to pair them with later registrations.
+    """State of the dashboard: caches photos (bounded; photos already shown leave first) to pair them with later
+    registrations.
 
     Each ``on_*`` method returns the ops to log, in order. Raises ValueError on malformed input.
     """
 
-    photo_cache_size: int = 64
+    photo_cache_size: int = 512
     photo_cache_bytes: int = 512 * 2**20
     info_cache_size: int = 10_000
     image_plane_distance_m: float = 1.0
@@ -293,14 +294,22 @@ class Scene:
         """Cache the photo; log it now if its registration came first."""
         ops = self._begin()
         camera = camera_label(photo.camera_id)
-        self._remember(self._photos, photo.photo_id, photo, self.photo_cache_size)
-        while len(self._photos) > 1 and sum(len(p.data) for p in self._photos.values()) > self.photo_cache_bytes:
-            self._photos.popitem(last=False)
+        self._photos[photo.photo_id] = photo
+        self._photos.move_to_end(photo.photo_id)
+        self._evict_photos()
         self._remember(self._info, photo.photo_id, _PhotoInfo(camera, photo.capture_time_ns), self.info_cache_size)
         reg = self._registered.get(photo.photo_id)
         if reg is not None:
             ops.append(self._image_op(image_path(camera_label(reg.camera_id or photo.camera_id)), photo))
         return ops
+
+    def _evict_photos(self) -> None:
+        """Keep the photo cache within its count and byte limits (the newest photo always stays): photos already
+        logged with their registration go first, oldest first; then the oldest still waiting for one."""
+        size = sum(len(p.data) for p in self._photos.values())
+        while len(self._photos) > 1 and (len(self._photos) > self.photo_cache_size or size > self.photo_cache_bytes):
+            victim = next((pid for pid in self._photos if pid in self._registered), next(iter(self._photos)))
+            size -= len(self._photos.pop(victim).data)
 
     def _image_op(self, path: EntityPath, photo: m.Photo) -> LogOp:
         return self._op(path, "image", time_ns=photo.capture_time_ns, contents=photo.data, media_type=photo.media_type)

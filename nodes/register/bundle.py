@@ -690,7 +690,10 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
             except np.linalg.LinAlgError:
                 pass
     elif lay.n > 0 and n_res >= lay.n:
-        with single_thread_blas():
+        # x_scale="jac" gives a parameter whose Jacobian column is nearly zero (a camera's k2 with every point near
+        # the image centre) a huge scale; a trial step along it can overflow the step norm. The trust region then
+        # rejects that step and shrinks, so the overflow is harmless and not reported.
+        with single_thread_blas(), np.errstate(over="ignore"):
             sol = least_squares(
                 residuals,
                 x0,

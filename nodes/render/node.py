@@ -29,7 +29,11 @@ class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=Tr
     """TOML file with material / lighting presets for photoreal (see nodes/render/photoreal.py)."""
     true_north_deg: float = 0.0
     """True north, degrees counter-clockwise from the site's +y axis (sun direction in photoreal)."""
-    photo_cache: int = 64
+    photo_cache: int = 512
+    """Photos kept for (re-)rendering, at most this many and ``photo_cache_mib`` of JPEG bytes; photos already
+    rendered are dropped first (oldest first). A photo dropped before its first render is reported as a
+    NodeError (it will get no overlay)."""
+    photo_cache_mib: float = 1024.0
     composite: bool = False
     """Publish the photo with the overlay blended in (RGB) instead of the RGBA layer alone (the layer is
     several times smaller on the bus and in recordings; dashboards draw it over the photo)."""
@@ -51,6 +55,8 @@ class RenderNode:
         self.registrations: dict[str, Registration] = {}
         self.masks: dict[str, OcclusionMask] = {}
         self.dirty: OrderedDict[str, tuple[str, ...]] = OrderedDict()  # photo_id -> modes to (re-)render
+        self.rendered: set[str] = set()  # photos drawn at least once
+        self._photo_bytes = 0
 
     # -- inputs ---------------------------------------------------------------------------------------
 
@@ -64,12 +70,27 @@ class RenderNode:
         self._render_all()
 
     def on_photo(self, msg: Photo, key: str) -> None:
+        old = self.photos.pop(msg.photo_id, None)
+        self._photo_bytes += len(msg.data) - (len(old.data) if old is not None else 0)
         self.photos[msg.photo_id] = msg
-        self.photos.move_to_end(msg.photo_id)
-        while len(self.photos) > self.config.photo_cache:
-            self.photos.popitem(last=False)
+        self._evict()
         if msg.photo_id in self.registrations:
             self._mark(msg.photo_id)
+
+    def _evict(self) -> None:
+        """Keep the photo cache within its count and byte limits: rendered photos go first (oldest first), then
+        the oldest unrendered one, reported as a NodeError since it will get no overlay."""
+        limit_bytes = self.config.photo_cache_mib * 2**20
+        while len(self.photos) > 1 and (len(self.photos) > self.config.photo_cache or self._photo_bytes > limit_bytes):
+            victim = next((pid for pid in self.photos if pid in self.rendered and pid not in self.dirty), None)
+            if victim is None:
+                victim = next(iter(self.photos))
+                self.ctx.error(
+                    "photo",
+                    f"photo {victim} dropped from the render cache before it was rendered "
+                    f"(photo_cache={self.config.photo_cache}, photo_cache_mib={self.config.photo_cache_mib})",
+                )
+            self._photo_bytes -= len(self.photos.pop(victim).data)
 
     def on_registration(self, msg: Registration, key: str) -> None:
         if msg.status == "failed":
@@ -118,6 +139,7 @@ class RenderNode:
                 photo, reg, mode, occlusion=self.masks.get(photo_id), composite_photo=self.config.composite
             )
             self.ctx.publish(keys.key(keys.OVERLAY, site=self.ctx.site, mode=mode, photo=photo_id), ov)
+        self.rendered.add(photo_id)
 
     def close(self) -> None:
         self.engine.close()
