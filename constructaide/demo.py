@@ -31,6 +31,7 @@ from schemas.messages import AnchorClicks, AnchorPoint, OcclusionMask, Overlay, 
 
 PROCESSING_NODES = tuple(os.environ.get("CONSTRUCTAIDE_DEMO_NODES", "register,occlude,render").split(","))
 SETTLE_QUIET_SECS = 4.0  # no new mask or overlay for this long (and overlays newer than masks): settled
+STALL_SECS = 60.0  # no new mask or overlay for this long while overlays are behind their masks: stalled
 
 
 class _Arrivals:
@@ -60,18 +61,23 @@ class _Arrivals:
         with self._cond:
             return {p for p in photo_ids if self.last_overlay.get(p, 0) <= self.last_mask.get(p, 0)}
 
-    def wait_settled(self, photo_ids: set[str], quiet_secs: float, deadline: float) -> bool:
-        """Block until no photo is stale and nothing arrived for ``quiet_secs``; False at the deadline."""
+    def wait_settled(self, photo_ids: set[str], quiet_secs: float, stall_secs: float, deadline: float) -> str:
+        """Block until no photo is stale and nothing arrived for ``quiet_secs`` ("settled"), or nothing arrived
+        for ``stall_secs`` although photos are stale ("stalled": the pipeline went idle without redrawing them),
+        or the deadline passed ("timed out")."""
         with self._cond:
             while True:
                 now = time.monotonic()
                 quiet = now - self._last_secs
                 caught_up = all(self.last_overlay.get(p, 0) > self.last_mask.get(p, 0) for p in photo_ids)
                 if caught_up and quiet >= quiet_secs:
-                    return True
+                    return "settled"
+                if quiet >= stall_secs:
+                    return "stalled"
                 if now >= deadline:
-                    return False
-                self._cond.wait(min(deadline - now, max(0.05, quiet_secs - quiet)))
+                    return "timed out"
+                wake = quiet_secs - quiet if caught_up else stall_secs - quiet
+                self._cond.wait(min(deadline - now, max(0.05, wake)))
 
 
 def _anchor_messages(site: str, site_dir: Path, photos: dict[str, Photo]) -> list[AnchorClicks]:
@@ -184,9 +190,9 @@ def main(argv: list[str]) -> int:
         registered = {m.photo_id for _, m in regs.items if m.status != "failed"}
         _drain(overlays, lambda: {m.photo_id for _, m in overlays.items} >= registered, deadline)
         # Masks keep improving after a photo's first overlay (a later frame, more sparse points): wait until the
-        # render node has redrawn every photo with its latest mask and the pipeline has gone quiet.
-        settle_deadline = min(deadline, time.monotonic() + 120.0 + 2.0 * len(registered))
-        settled = arrivals.wait_settled(registered, SETTLE_QUIET_SECS, settle_deadline)
+        # render node has redrawn every photo with its latest mask and the pipeline has gone quiet (as long as
+        # masks or overlays keep arriving, up to --timeout).
+        settled = arrivals.wait_settled(registered, SETTLE_QUIET_SECS, STALL_SECS, deadline)
         stale = arrivals.stale(registered)
         for sub in arrival_subs:
             sub.close()
@@ -207,7 +213,7 @@ def main(argv: list[str]) -> int:
         ("needs anchor requests", len(needs.items)),
         ("occlusion masks", len(masks.items)),
         ("overlays", len(overlays.items)),
-        ("overlays behind latest mask", f"{len(stale)}" + ("" if settled else " (timed out)")),
+        ("overlays behind latest mask", f"{len(stale)}" + ("" if settled == "settled" else f" ({settled})")),
         ("node errors", len(errors.items)),
         ("wall time", f"{time.monotonic() - t_start:.0f} s"),
         ("MCAP recording", str(mcap_path)),

@@ -150,6 +150,25 @@ def test_node_fixed_camera_static_user_combined(scene) -> None:
         assert c[60, 100] == 255  # user
         assert np.count_nonzero(c[scene.truth > 0]) > 0.7 * np.count_nonzero(scene.truth)  # static
         assert np.count_nonzero(c[truths[2] > 0]) > 0.8 * np.count_nonzero(truths[2])  # dynamic
+        # the same registration again: the masks are recomputed to the same pixels, and an unchanged combined
+        # mask is not republished (the render node would redraw every mode for nothing)
+        before = len(got.items)
+        reg2 = Registration(
+            site=SITE,
+            photo_id=photos[2].photo_id,
+            camera_id="cam-a",
+            intrinsics=scene.intrinsics,
+            world_from_camera=pose_to_tuple(scene.world_from_camera),
+            status="auto",
+        )
+        bus.publish(keys.key(keys.REGISTRATION, site=SITE, camera="cam-a", photo=photos[2].photo_id), reg2)
+        got.wait(
+            where=_is("static", photos[2].photo_id),
+            count=len([1 for _, m in got.items if m.kind == "static" and m.photo_id == photos[2].photo_id]) + 1,
+        )
+        assert node.wait_idle(30.0)
+        again = [m for _, m in got.items[before:]]
+        assert any(m.kind == "static" for m in again) and not any(m.kind == "combined" for m in again)
         assert errors.items == []
 
 

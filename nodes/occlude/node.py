@@ -387,6 +387,8 @@ class OccludeNode:
 
     def _publish(self, photo_id: str, kind: str, status: str, mask: U8 | None, started: float, **extra: object) -> None:
         png = encode_png(mask) if mask is not None and status == "ok" else b""
+        if kind == "combined" and self.masks.get((photo_id, kind)) == (status, png):
+            return  # unchanged: consumers (the render node redraws on every combined mask) have it already
         self.masks[(photo_id, kind)] = (status, png)
         msg = OcclusionMask(
             site=self.ctx.site,

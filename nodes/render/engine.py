@@ -163,18 +163,23 @@ class RenderEngine:
             raise ValueError(f"photo {reg.photo_id} has no usable registration (status {reg.status})")
         if reg.photo_id != photo.photo_id:
             raise ValueError(f"registration is for {reg.photo_id}, photo is {photo.photo_id}")
-        img = decode_image(photo.data)
-        h, w = img.shape[:2]
+        # The pixels are needed only to composite (an RGBA layer needs the size alone, which the message carries).
+        img: NDArray[np.uint8] | None = None
+        if composite_photo or mode == "photoreal" or photo.width_px <= 0 or photo.height_px <= 0:
+            img = decode_image(photo.data)
+            h, w = img.shape[:2]
+        else:
+            h, w = photo.height_px, photo.width_px
         intr = reg.intrinsics
         if (intr.width_px, intr.height_px) != (w, h):
             intr = scale_intrinsics(intr, w, h)
         if w > self.max_width_px:
-            nw, nh = self.max_width_px, round(h * self.max_width_px / w)
-            img = cv2.resize(img, (nw, nh), interpolation=cv2.INTER_AREA)
-            intr = scale_intrinsics(intr, nw, nh)
+            w, h = self.max_width_px, round(h * self.max_width_px / w)
+            img = None if img is None else cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
+            intr = scale_intrinsics(intr, w, h)
         wfc = pose_from_tuple(reg.world_from_camera)
         at = photo.capture_time_ns if at_ns is None else at_ns
-        occ = decode_mask(occlusion, img.shape[:2]) if occlusion is not None else None
+        occ = decode_mask(occlusion, (h, w)) if occlusion is not None else None
         ground_z = self.model.terrain_height_m if self.model.terrain_height_m is not None else 0.0
         legend: tuple[LegendEntry, ...]
         if mode == "photoreal":
@@ -194,13 +199,14 @@ class RenderEngine:
                 from nodes.render.scene import filter_mask
 
                 visible &= filter_mask(self.scene, flt, self.schedule.task_elements)
+            assert img is not None
             out = self._photoreal.render(
                 self.scene, visible, intr, wfc, img, sun_dir, occlusion=occ, ground_z_m=ground_z
             )
             legend = (LegendEntry(label=label, rgba=(255, 220, 120, 255)),)
         else:
             res = render_overlay(self.rasterizer, self.scene, self.schedule, intr, wfc, mode, at, flt, occ, ground_z)
-            out = composite(img, res.layer_rgba) if composite_photo else res.layer_rgba
+            out = composite(img, res.layer_rgba) if img is not None and composite_photo else res.layer_rgba
             legend = res.legend
         return Overlay(
             site=photo.site,

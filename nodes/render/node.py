@@ -120,10 +120,15 @@ class RenderNode:
         wanted = self.dirty.get(photo_id, ())
         self.dirty[photo_id] = tuple(self.config.modes) if modes is None else tuple(dict.fromkeys(wanted + modes))
 
-    def on_idle(self) -> None:
-        while self.dirty:
-            photo_id, modes = self.dirty.popitem(last=False)
-            self._render(photo_id, modes)
+    def on_idle(self) -> bool:
+        """Draw one photo marked dirty and say whether more are (the runtime calls again while no message waits,
+        so a newer mask for a queued photo is merged into its pending render instead of drawing it twice).
+        Photos never drawn come first (a backlog of re-renders must not keep a newly registered photo without
+        any overlay), then the order they were marked in."""
+        if self.dirty:
+            photo_id = next((pid for pid in self.dirty if pid not in self.rendered), next(iter(self.dirty)))
+            self._render(photo_id, self.dirty.pop(photo_id))
+        return bool(self.dirty)
 
     def _render_all(self) -> None:
         for pid in list(self.registrations):
