@@ -53,6 +53,18 @@ def _photo(img: np.ndarray, camera: str | None, t_ns: int) -> Photo:
     return Photo(site=SITE, photo_id=pid, camera_id=camera, capture_time_ns=t_ns, data=data)
 
 
+def _registration(scene, photo_id: str, camera: str | None) -> Registration:
+    """The scene's true camera as an automatic registration of ``photo_id``."""
+    return Registration(
+        site=SITE,
+        photo_id=photo_id,
+        camera_id=camera,
+        intrinsics=scene.intrinsics,
+        world_from_camera=pose_to_tuple(scene.world_from_camera),
+        status="auto",
+    )
+
+
 def _is(kind: str, photo_id: str, status: str | None = None):
     def where(key: str, msg: OcclusionMask) -> bool:
         return msg.kind == kind and msg.photo_id == photo_id and (status is None or msg.status == status)
@@ -111,14 +123,7 @@ def test_node_fixed_camera_static_user_combined(scene) -> None:
             assert np.count_nonzero(occ & small_truth) > 0.8 * np.count_nonzero(small_truth)
 
         for p in photos:
-            reg = Registration(
-                site=SITE,
-                photo_id=p.photo_id,
-                camera_id="cam-a",
-                intrinsics=scene.intrinsics,
-                world_from_camera=pose_to_tuple(scene.world_from_camera),
-                status="auto",
-            )
+            reg = _registration(scene, p.photo_id, "cam-a")
             bus.publish(keys.key(keys.REGISTRATION, site=SITE, camera="cam-a", photo=p.photo_id), reg)
         bus.publish(keys.key(keys.SPARSE, site=SITE), cloud)
         for p in photos:
@@ -153,14 +158,7 @@ def test_node_fixed_camera_static_user_combined(scene) -> None:
         # the same registration again: the masks are recomputed to the same pixels, and an unchanged combined
         # mask is not republished (the render node would redraw every mode for nothing)
         before = len(got.items)
-        reg2 = Registration(
-            site=SITE,
-            photo_id=photos[2].photo_id,
-            camera_id="cam-a",
-            intrinsics=scene.intrinsics,
-            world_from_camera=pose_to_tuple(scene.world_from_camera),
-            status="auto",
-        )
+        reg2 = _registration(scene, photos[2].photo_id, "cam-a")
         bus.publish(keys.key(keys.REGISTRATION, site=SITE, camera="cam-a", photo=photos[2].photo_id), reg2)
         got.wait(
             where=_is("static", photos[2].photo_id),
@@ -246,14 +244,7 @@ def test_node_fixed_camera_frames_borrow_the_registered_frames_model_region(scen
         assert node.wait_idle(30.0)
         assert not any(node.obj.dynamic_used_region.values())
         # only the middle frame is registered: the others use its projected model (same fixed view)
-        reg = Registration(
-            site=SITE,
-            photo_id=photos[1].photo_id,
-            camera_id="cam-b",
-            intrinsics=scene.intrinsics,
-            world_from_camera=pose_to_tuple(scene.world_from_camera),
-            status="auto",
-        )
+        reg = _registration(scene, photos[1].photo_id, "cam-b")
         bus.publish(keys.key(keys.REGISTRATION, site=SITE, camera="cam-b", photo=photos[1].photo_id), reg)
         assert node.wait_idle(30.0)
         obj = node.obj
@@ -316,14 +307,7 @@ def test_node_fast_path_frames_take_their_cameras_static_mask(scene) -> None:
         bus.publish(keys.key(keys.SPARSE, site=SITE), cloud, latched=True)
         for p in photos:
             bus.publish(keys.key(keys.PHOTO, site=SITE, camera="cam-a"), p)
-            reg = Registration(
-                site=SITE,
-                photo_id=p.photo_id,
-                camera_id="cam-a",
-                intrinsics=scene.intrinsics,
-                world_from_camera=pose_to_tuple(scene.world_from_camera),
-                status="auto",
-            )
+            reg = _registration(scene, p.photo_id, "cam-a")
             bus.publish(keys.key(keys.REGISTRATION, site=SITE, camera="cam-a", photo=p.photo_id), reg)
         assert node.wait_idle(60.0)
         last = {}
