@@ -156,6 +156,37 @@ def test_no_triangulation_from_narrow_rays():
     assert sfm.triangulate_tracks(recon, sfm.SfmConfig(focal_px=F, min_triangulation_angle_deg=0.5)) > 100
 
 
+def test_points_run_off_to_infinity_are_untriangulated_after_adjustment():
+    """Wide-baseline views triangulate a scene; a point then pushed 1e141 along its first view's ray (what a
+    trust-region step does to a depth the other views no longer constrain) is dropped,
+    as is a non-finite one; the others stay."""
+    rng = np.random.default_rng(5)
+    pts = scene_points(rng, 600)
+    desc = rng.normal(size=(len(pts), 128))
+    poses = (cam.look_at([-6, -20, 3], [0, 0, 3]), cam.look_at([6, -20, 3], [0, 0, 3]))
+    recon = sfm.Reconstruction()
+    for k, T in enumerate(poses):
+        sfm.add_image(recon, f"v{k}", make_features(rng, pts, desc, T)[0])
+    cfg = sfm.SfmConfig(focal_px=F)
+    recon.pairs[(0, 1)] = sfm.verify_pair(recon.images[0].features, recon.images[1].features, cfg)
+    sfm.build_tracks(recon)
+    for k, T in enumerate(poses):
+        recon.images[k].status = "anchor"
+        recon.images[k].intrinsics = cam.centered_intrinsics(W, H, F)
+        recon.images[k].world_from_camera = T
+    made = sfm.triangulate_tracks(recon, cfg)
+    assert made > 100
+    tri = np.nonzero(np.all(np.isfinite(recon.points), axis=1))[0]
+    far, odd = int(tri[0]), int(tri[1])
+    c0 = poses[0][:3, 3]
+    ray = recon.points[far] - c0
+    recon.points[far] = c0 + 1e141 * ray / np.linalg.norm(ray)
+    recon.points[odd] = [np.inf, 0.0, 0.0]
+    assert sfm.drop_runaway_points(recon, tri) == 2
+    assert np.all(np.isnan(recon.points[[far, odd]]))
+    assert int(np.sum(np.all(np.isfinite(recon.points), axis=1))) == made - 2
+
+
 def test_epipolar_term_pulls_pose_to_the_lines():
     """The paper's constrained PnP: with wrong 2D-3D tracks the epipolar lines of anchor clicks correct the pose."""
     rng = np.random.default_rng(5)

@@ -1134,6 +1134,36 @@ def triangulate_tracks(
     return new
 
 
+def drop_runaway_points(recon: Reconstruction, tracks: np.ndarray, factor: float = 1e3) -> int:
+    """Untriangulate (NaN) those of ``tracks`` whose point is not finite or lies more than ``factor`` times the
+    median point-to-camera distance of ``tracks`` from every registered camera that observes it. A point carried on
+    an anchor's ray whose other views hardly constrain its depth can run off towards infinity, where it still
+    reprojects (its rays are then nearly parallel) and a trust-region step no longer moves it; seen on the default
+    synthetic site (a depth of 1e141). Its track stays and can be triangulated again. Returns the number dropped."""
+    tracks = np.asarray(tracks, np.int64)
+    if len(tracks) == 0:
+        return 0
+    reg = np.array([im.registered for im in recon.images], dtype=bool)
+    t_ids, i_ids, _ = _flat_obs(recon, tracks)
+    on = reg[i_ids] if len(i_ids) else np.zeros(0, bool)
+    t_ids, i_ids = t_ids[on], i_ids[on]
+    centres = np.array([im.world_from_camera[:3, 3] if im.registered else np.zeros(3) for im in recon.images])
+    with np.errstate(over="ignore", invalid="ignore"):
+        dist_m = np.linalg.norm(recon.points[t_ids] - centres[i_ids], axis=1)
+    dist_m = np.where(np.isfinite(dist_m), dist_m, np.inf)
+    nearest_m = np.full(len(recon.points), np.inf)
+    np.minimum.at(nearest_m, t_ids, dist_m)
+    nearest_m = nearest_m[tracks]
+    finite = np.isfinite(nearest_m)
+    if not np.any(finite):
+        return 0
+    scale_m = float(np.median(nearest_m[finite]))
+    observed = np.isin(tracks, t_ids)
+    bad = tracks[observed & ~(nearest_m <= factor * scale_m)]
+    recon.points[bad] = np.nan
+    return len(bad)
+
+
 def bundle(
     recon: Reconstruction, cfg: SfmConfig, window: list[int] | None = None, fixed_anchors: set[int] | None = None
 ) -> dict[str, float]:
@@ -1295,6 +1325,7 @@ def bundle(
     if len(pt_arr):
         remaining = views_per_track[pt_arr] - np.bincount(obs_p_a[drop], minlength=len(pt_arr))
         recon.points[pt_arr[remaining < 2]] = np.nan
+        drop_runaway_points(recon, pt_arr)
     if left_out:
         triangulate_tracks(recon, cfg, retriangulate=True, only=left_out)
     keep = ~drop
