@@ -25,6 +25,7 @@ import cv2
 import numpy as np
 
 from constructaide import camera as cam
+from constructaide.synth.clicker import spread_sample as farthest_point_sample
 from nodes.register.features import extract_features, filter_matches_fundamental, match_features
 
 DATA_ROOT = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -134,17 +135,6 @@ def nearest_view(cams: list[GtCamera], i: int) -> int:
     return max(ok, key=lambda j: float(d[i] @ d[j]))
 
 
-def farthest_point_sample(px: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
-    """Indices of n points of (M, 2) spread by farthest-point sampling."""
-    idx = [int(rng.integers(len(px)))]
-    dist = np.linalg.norm(px - px[idx[0]], axis=1)
-    for _ in range(min(n, len(px)) - 1):
-        k = int(np.argmax(dist))
-        idx.append(k)
-        dist = np.minimum(dist, np.linalg.norm(px - px[k], axis=1))
-    return np.array(idx)
-
-
 def simulate_anchor_clicks(
     cams: list[GtCamera], i: int, n_clicks: int = 12, noise_px: float = 1.0, seed: int = 0
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -217,31 +207,9 @@ def synth_checkpoints(site_dir: Path, cams: list[GtCamera], per_photo: int = 60,
 def simulate_synth_clicks(
     site_dir: Path, c: GtCamera, n_clicks: int = 12, noise_px: float = 1.0, seed: int = 0
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Simulated user clicks (pixels (N, 2), world (N, 3)) for one synthetic-site photo (evaluation code: reads
-    truth/). Candidate pixels show a BIM element (ground-truth ID image > 0) away from ID edges (the 5x5
-    neighbourhood shows the same element, so a click is not on a silhouette); N of them are spread over the
-    image by farthest-point sampling; world = ground-truth depth back-projected through the true camera (lens
-    distortion included); pixel = the true pixel + N(0, noise_px) noise."""
-    from constructaide.synth.truth import load_depth, load_ids
+    """Simulated user clicks (pixels (N, 2), world (N, 3)) for one synthetic-site photo (reads truth/; see
+    :func:`constructaide.synth.clicker.simulated_clicks`, the same simulated user the demo answers requests
+    with)."""
+    from constructaide.synth.clicker import simulated_clicks
 
-    rng = np.random.default_rng(seed + sum(map(ord, c.name)))
-    depth = load_depth(site_dir, c.name).astype(np.float64)
-    ids = load_ids(site_dir, c.name)
-    same = (ids > 0) & (depth > 0)
-    for dv in (-2, 2):
-        same &= np.roll(ids, dv, axis=0) == ids
-    for du in (-2, 2):
-        same &= np.roll(ids, du, axis=1) == ids
-    same[:3], same[-3:], same[:, :3], same[:, -3:] = False, False, False, False
-    vv, uu = np.nonzero(same)
-    if len(uu) < n_clicks:
-        raise ValueError(f"{c.name}: only {len(uu)} clickable BIM pixels")
-    sub = rng.choice(len(uu), min(len(uu), 20000), replace=False)
-    px_all = np.c_[uu[sub], vv[sub]].astype(np.float64)
-    pick = farthest_point_sample(px_all, n_clicks, rng)
-    px = px_all[pick]
-    xy = cam.undistort_normalized((px - c.K[:2, 2]) / [c.K[0, 0], c.K[1, 1]], c.k1, c.k2)
-    z = depth[px[:, 1].astype(int), px[:, 0].astype(int)]
-    T = c.world_from_camera
-    world = np.c_[xy * z[:, None], z] @ T[:3, :3].T + T[:3, 3]
-    return px + rng.normal(0.0, noise_px, px.shape), world
+    return simulated_clicks(site_dir, c.name, n_clicks, noise_px, seed)

@@ -48,10 +48,12 @@ from schemas.codec import decode  # noqa: E402
 from schemas.messages import OcclusionMask, Overlay, Registration  # noqa: E402
 
 
-def run_demo(size: str, out: Path) -> tuple[Path, float]:
-    """Run `constructaide demo` as a user would; returns the MCAP path and the wall time in seconds."""
+def run_demo(size: str, out: Path, answer: bool = False) -> tuple[Path, float]:
+    """Run `constructaide demo` as a user would (``answer``: with --answer-anchor-requests); returns the MCAP path
+    and the wall time in seconds."""
     t0 = time.perf_counter()
     cmd = [sys.executable, "-m", "constructaide.cli", "demo", "--size", size, "--out", str(out)]
+    cmd += ["--answer-anchor-requests"] if answer else []
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
     secs = time.perf_counter() - t0
     if proc.returncode != 0:
@@ -179,13 +181,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--recording", type=Path, help="score this demo recording instead of running the demo")
     ap.add_argument("--cache", type=Path, default=ROOT / ".cache" / "synth")
+    ap.add_argument(
+        "--answer-anchor-requests",
+        action="store_true",
+        help="run the demo with its simulated user answering NeedsAnchor requests (a section of its own)",
+    )
     ap.add_argument("--no-write", action="store_true")
     args = ap.parse_args(argv)
     site = ensure_site(args.size, args.seed, args.cache)
     with tempfile.TemporaryDirectory() as tmp:
         if args.recording is None:
-            recording, secs = run_demo(args.size, Path(tmp))
-            ran = f"`constructaide demo --size {args.size}` ({secs:.0f} s wall time including start-up)"
+            recording, secs = run_demo(args.size, Path(tmp), args.answer_anchor_requests)
+            flag = " --answer-anchor-requests" if args.answer_anchor_requests else ""
+            ran = f"`constructaide demo --size {args.size}{flag}` ({secs:.0f} s wall time including start-up)"
         else:
             recording, secs, ran = args.recording, float("nan"), f"the recording `{args.recording.name}`"
         acc = score(site, recording)
@@ -219,17 +227,24 @@ def main(argv: list[str] | None = None) -> int:
     tab = table(headers, rows)
     print(tab)
     if not args.no_write:
+        anchors = (
+            "anchors from the site's anchors.json, and every NeedsAnchor request answered by the demo's simulated "
+            "user with 12 clicks simulated from truth (1 px noise), as a person at the browser page would"
+            if args.answer_anchor_requests
+            else "anchors from the site's anchors.json only; photos that asked for an anchor stay unregistered"
+        )
         body = f"""Synthetic site `{site.name}`, scored from {ran}. What the nodes published over the bus and the
-recorder stored, as a user sees it: streaming registrations (anchors from the site's anchors.json only; photos that
-asked for an anchor stay unregistered), the last dynamic / static mask published per photo (masks of a camera's
-newest frame are provisional until the next frame arrives), the last state4d overlay. IoUs are pooled over the
-group's photos; a photo without a mask counts as an empty mask. The footprint compares the overlay's drawn pixels
-with the truly visible built elements (planned vs as-built differences count as error). Figures of the algorithms
-on batch inputs are in the `occlusion`, `registration` and `register-stream` sections.
+recorder stored, as a user sees it: streaming registrations ({anchors}), the last dynamic / static mask
+published per photo (masks of a camera's newest frame are provisional until the next frame arrives), the last
+state4d overlay. IoUs are pooled over the group's photos; a photo without a mask counts as an empty mask. The
+footprint compares the overlay's drawn pixels with the truly visible built elements (planned vs as-built
+differences count as error). Figures of the algorithms on batch inputs are in the `occlusion`, `registration` and
+`register-stream` sections.
 
 {tab}
 """
-        write_section(f"pipeline ({args.size} site)", body)
+        answered = ", anchor requests answered" if args.answer_anchor_requests else ""
+        write_section(f"pipeline ({args.size} site{answered})", body)
     return 0
 
 

@@ -2,18 +2,21 @@
 
 Generates (once, cached) the synthetic construction site, starts every node in its own process on
 a loopback zenoh bus, publishes the site's BIM (through the ingest node), the simulated anchor clicks
-and every photo in capture order as the cameras would, waits until the nodes have processed them and
-settled (every registered photo's latest overlay is newer than its latest combined occlusion mask, and no mask
-or overlay for a few seconds), stops the nodes cleanly and prints a summary with the paths of the MCAP recording
-and the rerun file.
+and every photo in capture order as the cameras would (with ``--answer-anchor-requests`` a simulated user
+also answers each NeedsAnchor request with clicks, as a person at the browser page would), waits until the
+nodes have processed them and settled (every registered photo's latest overlay is newer than its latest
+combined occlusion mask, and no mask or overlay for a few seconds), stops the nodes cleanly and prints a
+summary with the paths of the MCAP recording and the rerun file.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime as dt
 import json
 import os
+import queue
 import sys
 import threading
 import time
@@ -27,10 +30,11 @@ from constructaide.errors import UserError
 from constructaide.launch import Launcher
 from constructaide.runtime import BusConfig, free_port, open_bus
 from schemas import codec, keys
-from schemas.messages import AnchorClicks, AnchorPoint, OcclusionMask, Overlay, Photo
+from schemas.messages import AnchorClicks, AnchorPoint, NeedsAnchor, OcclusionMask, Overlay, Photo
 
 PROCESSING_NODES = tuple(os.environ.get("CONSTRUCTAIDE_DEMO_NODES", "register,occlude,render").split(","))
 SETTLE_QUIET_SECS = 4.0  # no new mask or overlay for this long (and overlays newer than masks): settled
+REQUEST_GRACE_SECS = 2.0  # with the simulated user: quiet on NeedsAnchor before registration counts as done
 STALL_SECS = 60.0  # no new mask or overlay for this long while overlays are behind their masks: stalled
 
 
@@ -97,6 +101,80 @@ def _anchor_messages(site: str, site_dir: Path, photos: dict[str, Photo]) -> lis
     return out
 
 
+class _SimulatedUser:
+    """Answers NeedsAnchor requests on the bus with clicks simulated from the synthetic site's truth
+    (:func:`constructaide.synth.clicker.simulated_clicks`: 12 BIM-element pixels, 1 px noise), once per photo, on
+    its own thread (the bus callback only queues); a photo registered meanwhile is not clicked. ``requested``,
+    ``answered`` and ``unanswerable`` (too few clickable pixels) are sets of photo ids."""
+
+    def __init__(self, bus, site: str, site_dir: Path, photos: dict[str, Photo], registrations) -> None:
+        from constructaide.synth.truth import load_cameras
+
+        self._bus, self._site, self._site_dir = bus, site, site_dir
+        self._rel = {p.photo_id: rel for rel, p in photos.items()}
+        self._cameras = load_cameras(site_dir)
+        self._regs = registrations
+        self._queue: queue.Queue[str | None] = queue.Queue()
+        self._lock = threading.Lock()
+        self.requested: set[str] = set()
+        self.answered: set[str] = set()
+        self.unanswerable: set[str] = set()
+        self._thread = threading.Thread(target=self._run, name="simulated-user", daemon=True)
+
+    def __enter__(self) -> _SimulatedUser:
+        self._thread.start()
+        self._sub = self._bus.subscribe(keys.pattern(keys.NEEDS_ANCHOR, site=self._site), self._on_request)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._sub.close()
+        self._queue.put(None)
+        self._thread.join(timeout=30)
+
+    def _on_request(self, key: str, payload: bytes) -> None:
+        msg = codec.decode(payload)
+        if isinstance(msg, NeedsAnchor):
+            with self._lock:
+                self.requested.add(msg.photo_id)
+            self._queue.put(msg.photo_id)
+
+    def _run(self) -> None:
+        from constructaide.synth.clicker import simulated_clicks
+
+        while (photo_id := self._queue.get()) is not None:
+            rel = self._rel.get(photo_id)
+            with self._lock:
+                if rel is None or photo_id in self.answered or photo_id in self.unanswerable:
+                    continue
+            if _latest_status(self._regs.items).get(photo_id, "failed") != "failed":
+                continue  # registered meanwhile (a later photo brought enough tracks): nothing to click
+            try:
+                px, world = simulated_clicks(self._site_dir, rel, cameras=self._cameras)
+            except ValueError:
+                with self._lock:
+                    self.unanswerable.add(photo_id)
+                continue
+            pts = tuple(
+                AnchorPoint(pixel_px=(float(u), float(v)), point_in_world_m=(float(x), float(y), float(z)))
+                for (u, v), (x, y, z) in zip(px, world, strict=True)
+            )
+            with self._lock:
+                self.answered.add(photo_id)
+            msg = AnchorClicks(site=self._site, photo_id=photo_id, image_name=rel, points=pts)
+            self._bus.publish(keys.key(keys.ANCHORS, site=self._site, photo=photo_id), msg)
+
+    def settled(self, photo_id: str, latest_status: str) -> bool:
+        """Whether a photo whose latest registration has ``latest_status`` needs nothing more from this user:
+        registered, never asked for (a failure without a request), or no clicks possible."""
+        with self._lock:
+            return latest_status != "failed" or photo_id not in self.requested or photo_id in self.unanswerable
+
+
+def _latest_status(items: list) -> dict[str, str]:
+    """photo_id -> status of its latest Registration among collected (key, Registration) items."""
+    return {m.photo_id: m.status for _, m in items}
+
+
 def main(argv: list[str]) -> int:
     from constructaide.cli import cache_dir
     from constructaide.synth import ensure_site
@@ -109,6 +187,11 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--out", type=Path, default=Path("recordings"), help="folder for .mcap, .rrd and logs")
     ap.add_argument("--max-photos", type=int, default=0, help="push only the first N photos (0: all)")
     ap.add_argument("--timeout", type=float, default=1800.0, help="seconds to wait for processing")
+    ap.add_argument(
+        "--answer-anchor-requests",
+        action="store_true",
+        help="a simulated user answers every NeedsAnchor request with clicks simulated from the site's truth",
+    )
     args = ap.parse_args(argv)
     keys.check_chunk(args.site, "site")
 
@@ -140,7 +223,11 @@ def main(argv: list[str]) -> int:
 
     bus_cfg = BusConfig(hub_port=free_port())
     counts: Counter[str] = Counter()
-    with Launcher(site=args.site, bus=bus_cfg, log_dir=log_dir) as launcher, open_bus(bus_cfg) as bus:
+    with (
+        Launcher(site=args.site, bus=bus_cfg, log_dir=log_dir) as launcher,
+        open_bus(bus_cfg) as bus,
+        contextlib.ExitStack() as stack,
+    ):
         print("[2/5] starting nodes", file=sys.stderr)
         regs = bus.collect(keys.pattern(keys.REGISTRATION, site=args.site))
         overlays = bus.collect(keys.pattern(keys.OVERLAY, site=args.site))
@@ -165,6 +252,9 @@ def main(argv: list[str]) -> int:
         launcher.wait_live(bus, ["ingest"])
         bim.wait(1, timeout=300)
 
+        user = None
+        if args.answer_anchor_requests:
+            user = stack.enter_context(_SimulatedUser(bus, args.site, site_dir, photos, regs))
         print(f"[3/5] publishing {len(anchors)} anchor click sets and {len(order)} photos", file=sys.stderr)
         for a in anchors:
             bus.publish(keys.key(keys.ANCHORS, site=args.site, photo=a.photo_id), a)
@@ -176,16 +266,28 @@ def main(argv: list[str]) -> int:
         expected = {photos[r].photo_id for r in order}
         deadline = time.monotonic() + args.timeout
         with tqdm(total=len(expected), desc="registered", unit="photo", file=sys.stderr) as bar:
-            done: set[str] = set()
-            while len(done) < len(expected) and time.monotonic() < deadline:
+            last_new = time.monotonic()
+            while time.monotonic() < deadline:
+                done = _finished(regs.items, expected, user)
+                bar.n = len(done)
+                bar.refresh()
+                if len(done) == len(expected):
+                    if user is None:
+                        break
+                    try:  # a request published just after the last failed registration: keep waiting for it
+                        needs.wait(len(needs.items) + 1, timeout=REQUEST_GRACE_SECS)
+                        continue
+                    except TimeoutError:
+                        if len(_finished(regs.items, expected, user)) == len(expected):
+                            break
                 try:
                     regs.wait(len(regs.items) + 1, timeout=min(10.0, max(0.1, deadline - time.monotonic())))
+                    last_new = time.monotonic()
                 except TimeoutError:
                     if all(p.proc is not None and p.proc.poll() is not None for p in launcher.procs):
                         break
-                now = {m.photo_id for _, m in regs.items} & expected
-                bar.update(len(now - done))
-                done |= now
+                    if time.monotonic() - last_new >= STALL_SECS:  # e.g. clicks the register node refused
+                        break
         # Overlays follow registrations; give the render and occlude queues the time to drain.
         registered = {m.photo_id for _, m in regs.items if m.status != "failed"}
         _drain(overlays, lambda: {m.photo_id for _, m in overlays.items} >= registered, deadline)
@@ -211,6 +313,7 @@ def main(argv: list[str]) -> int:
         ("registration failed", counts["registration failed"]),
         ("no registration yet", unanswered),
         ("needs anchor requests", len(needs.items)),
+        ("requests answered (simulated user)", len(user.answered) if user is not None else "off"),
         ("occlusion masks", len(masks.items)),
         ("overlays", len(overlays.items)),
         ("overlays behind latest mask", f"{len(stale)}" + ("" if settled == "settled" else f" ({settled})")),
@@ -232,6 +335,16 @@ def main(argv: list[str]) -> int:
     if not mcap_path.exists():
         raise UserError(f"recorder wrote no file at {mcap_path}; see {log_dir}")
     return 0
+
+
+def _finished(items: list, expected: set[str], user: _SimulatedUser | None) -> set[str]:
+    """Photos of ``expected`` whose registration is final: any registration without a simulated user; with one,
+    those it has nothing more to answer for."""
+    latest = _latest_status(items)
+    have = latest.keys() & expected
+    if user is None:
+        return have
+    return {p for p in have if user.settled(p, latest[p])}
 
 
 def _drain(collector, done, deadline: float) -> None:

@@ -47,7 +47,8 @@ class NodeProcess:
             stdout = self._log  # type: ignore[assignment]
         self.proc = subprocess.Popen(self.argv, env=env, stdout=stdout, stderr=subprocess.STDOUT)
 
-    def stop(self, timeout: float = 30.0) -> int | None:
+    def stop(self, timeout: float = 90.0) -> int | None:
+        """SIGINT, then up to ``timeout`` s for the node to drain its queue (its worker gets 60 s), then SIGKILL."""
         if self.proc is None:
             return None
         if self.proc.poll() is None:
