@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 from pathlib import Path
 
 import msgspec
@@ -68,6 +69,47 @@ def test_back_pressure_then_clean_close_processes_everything_accepted() -> None:
         assert not t.is_alive()
         assert node.obj.seen == [f"p{i}" for i in range(6)]  # in order, none lost
         assert node.obj.idle_calls >= 1
+
+
+def test_inbox_waits_for_room_at_most_its_bound_then_keeps_order() -> None:
+    from constructaide.runtime.node import Inbox
+
+    box = Inbox(2, max_block_secs=0.3)
+    t0 = time.monotonic()
+    for i in range(4):
+        assert box.put(i)
+    waited = time.monotonic() - t0
+    assert 0.5 < waited < 3.0  # the two beyond the bound each waited ~0.3 s for room
+    assert box.overflows == 2 and box.peak == 4
+    assert [box.get() for _ in range(4)] == [0, 1, 2, 3]
+    stop = threading.Event()
+    stop.set()
+    box2 = Inbox(1, max_block_secs=30.0)
+    assert box2.put("a") and not box2.put("b", stop)  # close() ends a wait without taking the item
+
+
+def test_a_stalled_handler_holds_a_delivery_only_briefly(monkeypatch) -> None:
+    """zenoh delivers on its link threads; one held past the link's lease loses the link. A node whose handler
+    is stuck takes messages beyond its bound after MAX_BLOCK_SECS each, in order, and loses none."""
+    import constructaide.runtime.node as node_mod
+
+    monkeypatch.setattr(node_mod, "MAX_BLOCK_SECS", 0.2)
+    with LocalBus() as bus:
+        with start_node(SPEC, Cfg(site="t"), bus, queue_size=2) as node:
+            sent = threading.Event()
+
+            def publisher() -> None:
+                for i in range(8):
+                    bus.publish(keys.key(keys.PHOTO, site="t", camera="c"), _photo(i))
+                sent.set()
+
+            t = threading.Thread(target=publisher)
+            t.start()
+            assert sent.wait(30)  # the handler is still blocked: deliveries did not wait for it
+            assert node.obj.seen == []
+            node.obj.release.set()
+            t.join(10)
+        assert node.obj.seen == [f"p{i}" for i in range(8)]
 
 
 def test_close_unblocks_a_publisher_stuck_on_a_full_queue() -> None:

@@ -138,3 +138,14 @@ def test_router_joins_nodes_across_sessions_and_status_lists_them(hub_port: int)
     finally:
         stop(echo)
         stop(router)
+
+
+def test_blocked_publishers_wait_instead_of_dropping_the_peer() -> None:
+    """zenoh's default takes a transport down after a BLOCK message waited 5 s for room, losing every later message
+    to that peer (seen: the occlude node stopped getting registrations while it worked through a burst)."""
+    import json
+
+    from constructaide.runtime.bus import BLOCK_WAIT_BEFORE_CLOSE_US
+
+    block = json.loads(BusConfig(hub_port=7447).zenoh_config().get_json("transport/link/tx/queue/congestion_control"))
+    assert block["block"]["wait_before_close"] == BLOCK_WAIT_BEFORE_CLOSE_US >= 60_000_000

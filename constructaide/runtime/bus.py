@@ -26,6 +26,7 @@ from schemas.messages import Message
 log = logging.getLogger("constructaide.bus")
 
 DEFAULT_HUB_PORT = 7447
+BLOCK_WAIT_BEFORE_CLOSE_US = 120_000_000  # 2 min: see BusConfig.zenoh_config
 Callback = Callable[[str, bytes], None]
 
 
@@ -199,6 +200,12 @@ class BusConfig:
         c = zenoh.Config()
         c.insert_json5("mode", json.dumps(self.mode))
         c.insert_json5("scouting/multicast/enabled", "false")
+        # With congestion control BLOCK zenoh takes the whole transport to a peer down when a message waits longer
+        # than this for room (default 5 s) - and every later message to that peer is lost. A node busy for a while
+        # (a bundle adjustment, a burst of masks) must slow its publishers, not cut them off.
+        c.insert_json5(
+            "transport/link/tx/queue/congestion_control/block/wait_before_close", json.dumps(BLOCK_WAIT_BEFORE_CLOSE_US)
+        )
         if listen:
             c.insert_json5("listen/endpoints", json.dumps(listen))
         if connect:

@@ -2,13 +2,17 @@
 
 A node declares its inputs (key template, message type, handler method), outputs and config
 (a msgspec Struct with ``forbid_unknown_fields``). The runner subscribes, decodes payloads into
-Structs, and calls handlers sequentially on one worker thread fed by a bounded queue (a full
-queue blocks zenoh's delivery, which with congestion control BLOCK slows the publishers: no
-data is dropped). A node object may define ``on_idle()``: it runs after a message when the queue is empty (and at
-least every ``IDLE_EVERY`` messages), so handlers can mark work dirty and coalesce it. An ``on_idle`` that does a
-bounded share of its work returns True while more is pending: it is called again as long as no message waits. A
-payload that fails to decode, or a handler that raises, becomes a
-:class:`~schemas.messages.NodeError` on ``constructaide/{site}/errors``; the node keeps running.
+Structs, and calls handlers sequentially on one worker thread fed by an inbox (:class:`Inbox`): while it holds
+``queue_size`` messages a delivery waits (back-pressure: with congestion control BLOCK the publishers slow down),
+but never longer than ``MAX_BLOCK_SECS``; then the message is taken beyond the bound. zenoh delivers on its link
+threads: while one waits the whole link stalls, and a publisher blocked long enough takes the transport down
+(``wait_before_close``, raised in :meth:`BusConfig.zenoh_config`), losing every later message; short waits keep
+the links flowing. Nothing accepted is dropped. A node object may
+define ``on_idle()``: it runs after a message when the queue is empty (and at least every ``IDLE_EVERY``
+messages), so handlers can mark work dirty and coalesce it. An ``on_idle`` that does a bounded share of its work
+returns True while more is pending: it is called again as long as no message waits. A payload that fails to
+decode, or a handler that raises, becomes a :class:`~schemas.messages.NodeError` on
+``constructaide/{site}/errors``; the node keeps running.
 Readiness: after subscribing, the node declares the liveliness token
 ``constructaide/{site}/@live/{node}/{instance}``.
 """
@@ -16,10 +20,10 @@ Readiness: after subscribing, the node declares the liveliness token
 from __future__ import annotations
 
 import argparse
+import collections
 import contextlib
 import logging
 import os
-import queue
 import signal
 import sys
 import threading
@@ -106,6 +110,63 @@ _STOP = object()
 IDLE_EVERY = 16
 
 
+MAX_BLOCK_SECS = 0.5  # longest a zenoh delivery thread waits for room (its link stalls meanwhile)
+
+
+class Inbox:
+    """FIFO of a node's pending messages with a soft bound: :meth:`put` waits while ``maxsize`` items are held,
+    at most ``max_block_secs``, then appends anyway (``overflows`` counts those). Order is kept."""
+
+    def __init__(self, maxsize: int, max_block_secs: float = MAX_BLOCK_SECS) -> None:
+        self.maxsize = max(1, maxsize)
+        self.max_block_secs = max_block_secs
+        self._items: collections.deque[Any] = collections.deque()
+        self._cond = threading.Condition()
+        self.overflows = 0
+        self.peak = 0
+
+    def put(self, item: Any, stop: threading.Event | None = None) -> bool:
+        """Append ``item``, waiting for room up to ``max_block_secs``; False (not appended) when ``stop`` is set
+        while waiting."""
+        deadline = time.monotonic() + self.max_block_secs
+        with self._cond:
+            while len(self._items) >= self.maxsize:
+                if stop is not None and stop.is_set():
+                    return False
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    self.overflows += 1
+                    break
+                self._cond.wait(min(left, 0.2))
+            self._items.append(item)
+            self.peak = max(self.peak, len(self._items))
+            self._cond.notify_all()
+            return True
+
+    def put_last(self, item: Any) -> None:
+        """Append without waiting (the stop marker: after everything already accepted)."""
+        with self._cond:
+            self._items.append(item)
+            self._cond.notify_all()
+
+    def get(self) -> Any:
+        """Oldest item, waiting for one."""
+        with self._cond:
+            while not self._items:
+                self._cond.wait()
+            item = self._items.popleft()
+            self._cond.notify_all()
+            return item
+
+    def empty(self) -> bool:
+        with self._cond:
+            return not self._items
+
+    def __len__(self) -> int:
+        with self._cond:
+            return len(self._items)
+
+
 class RunningNode:
     """A started node: subscriptions, worker thread, liveliness token. Use :func:`start_node`."""
 
@@ -119,7 +180,7 @@ class RunningNode:
         self.site: str = site
         self.ctx = NodeContext(bus, self.site, spec.name, tuple(o.key for o in spec.outputs if o.latched))
         self.obj = spec.factory(config, self.ctx)
-        self._queue: queue.Queue[Any] = queue.Queue(maxsize=queue_size)
+        self._queue = Inbox(queue_size, MAX_BLOCK_SECS)
         self._subs: list[Any] = []
         self._topics: dict[str, str] = {}
         self._token: Any = None
@@ -151,15 +212,10 @@ class RunningNode:
 
     def _enqueue(self, inp: Input, key: str, payload: bytes) -> None:
         self.idle.clear()
-        # Blocks while the queue is full (back-pressure), but never past close(): a zenoh callback
-        # thread stuck here would keep the process from exiting.
-        while not self._closed.is_set():
-            try:
-                self._queue.put((inp, key, payload), timeout=0.2)
-                return
-            except queue.Full:
-                continue
-        self.dropped_after_close += 1
+        # Waits while the inbox is full (back-pressure), at most MAX_BLOCK_SECS, and never past close(): a zenoh
+        # callback thread stuck here would keep the process from exiting.
+        if not self._queue.put((inp, key, payload), self._closed):
+            self.dropped_after_close += 1
 
     def _run(self) -> None:
         on_idle = getattr(self.obj, "on_idle", None)
@@ -223,7 +279,7 @@ class RunningNode:
             s.close()
         self._subs.clear()
         if self._worker.is_alive():
-            self._queue.put(_STOP)  # after everything already queued: nothing accepted is dropped
+            self._queue.put_last(_STOP)  # after everything already queued: nothing accepted is dropped
             self._worker.join(timeout=60)
         self._closed.set()
         closer = getattr(self.obj, "close", None)
