@@ -47,19 +47,25 @@ def _photo(i: int) -> Photo:
     return Photo(site="t", photo_id=f"p{i}", camera_id="c", capture_time_ns=i, data=b"")
 
 
+def _publish_in_background(bus: LocalBus, n: int) -> tuple[threading.Thread, threading.Event]:
+    """Start a daemon thread publishing photos p0..p{n-1}; the event is set once every publish returned."""
+    sent = threading.Event()
+
+    def publisher() -> None:
+        for i in range(n):
+            bus.publish(keys.key(keys.PHOTO, site="t", camera="c"), _photo(i))
+        sent.set()
+
+    t = threading.Thread(target=publisher, daemon=True)
+    t.start()
+    return t, sent
+
+
 def test_back_pressure_then_clean_close_processes_everything_accepted() -> None:
     with LocalBus() as bus:
         node_cm = start_node(SPEC, Cfg(site="t"), bus, queue_size=2)
         node = node_cm.__enter__()
-        sent = threading.Event()
-
-        def publisher() -> None:
-            for i in range(6):
-                bus.publish(keys.key(keys.PHOTO, site="t", camera="c"), _photo(i))
-            sent.set()
-
-        t = threading.Thread(target=publisher)
-        t.start()
+        t, sent = _publish_in_background(bus, 6)
         # The handler is blocked and the queue holds 2: the publisher must be held back (BLOCK semantics).
         assert not sent.wait(0.5)
         node.obj.release.set()
@@ -89,22 +95,15 @@ def test_inbox_waits_for_room_at_most_its_bound_then_keeps_order() -> None:
 
 
 def test_a_stalled_handler_holds_a_delivery_only_briefly(monkeypatch) -> None:
-    """zenoh delivers on its link threads; one held past the link's lease loses the link. A node whose handler
-    is stuck takes messages beyond its bound after MAX_BLOCK_SECS each, in order, and loses none."""
+    """zenoh delivers on its link threads and a link whose thread waits stalls its publishers (zenoh then closes
+    it after wait_before_close). A node whose handler is stuck takes messages beyond its bound after
+    MAX_BLOCK_SECS each, in order, and loses none."""
     import constructaide.runtime.node as node_mod
 
     monkeypatch.setattr(node_mod, "MAX_BLOCK_SECS", 0.2)
     with LocalBus() as bus:
         with start_node(SPEC, Cfg(site="t"), bus, queue_size=2) as node:
-            sent = threading.Event()
-
-            def publisher() -> None:
-                for i in range(8):
-                    bus.publish(keys.key(keys.PHOTO, site="t", camera="c"), _photo(i))
-                sent.set()
-
-            t = threading.Thread(target=publisher)
-            t.start()
+            t, sent = _publish_in_background(bus, 8)
             assert sent.wait(30)  # the handler is still blocked: deliveries did not wait for it
             assert node.obj.seen == []
             node.obj.release.set()
@@ -117,15 +116,7 @@ def test_close_unblocks_a_publisher_stuck_on_a_full_queue() -> None:
     with LocalBus() as bus:
         node_cm = start_node(SPEC, Cfg(site="t"), bus, queue_size=1)
         node = node_cm.__enter__()
-        done = threading.Event()
-
-        def publisher() -> None:
-            for i in range(5):
-                bus.publish(keys.key(keys.PHOTO, site="t", camera="c"), _photo(i))
-            done.set()
-
-        t = threading.Thread(target=publisher, daemon=True)
-        t.start()
+        _, done = _publish_in_background(bus, 5)
         assert not done.wait(0.3)
         closer = threading.Thread(target=node_cm.__exit__, args=(None, None, None))
         closer.start()

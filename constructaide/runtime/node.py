@@ -162,10 +162,6 @@ class Inbox:
         with self._cond:
             return not self._items
 
-    def __len__(self) -> int:
-        with self._cond:
-            return len(self._items)
-
 
 class RunningNode:
     """A started node: subscriptions, worker thread, liveliness token. Use :func:`start_node`."""
