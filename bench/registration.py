@@ -519,6 +519,19 @@ def base_notes() -> list[str]:
         "temple 4.0 vs 4.6 s with the same errors, but on the default synthetic site the west camera's photos "
         "drifted 5 deg (mean 1.05 vs 0.24 deg), so the incremental adjustments keep the trust-region solver. "
         "Temple over 5 interleaved runs (--quick --runs 5): ours 3.96 s vs pycolmap 4.73 s (0.84).",
+        "Tried on fountain-P11, not adopted: (1) carrying each anchor click into the other registered photos (local "
+        "affine fit to the matches around it, then ECC patch alignment) so the clicked points are triangulated from a"
+        " wide baseline: temple improves (centre 0.39 -> 0.33 %, angle 0.294 -> 0.276 deg), the synthetic site is "
+        "unchanged (its anchors are not released), fountain gets worse (mean over the six draws 7.8 -> 8.2 mm, the "
+        "table's draw 10.1 -> 14.0 mm): on the sculpted fountain the carried pixels are 2-5 px off at wide baselines,"
+        " above the clicks' 1 px. With carried pixels taken from the truth instead (a diagnosis only: true projection"
+        " + N(0, 1 px)), the mean would be 4.6 mm. (2) OpenCV SIFT without precise upscaling puts every keypoint "
+        "+0.25 px (detection pixels) off in both axes (measured: a point-mirrored image's keypoints disagree by 0.5 "
+        "px; 0.00 px with enable_precise_upscale); removing that bias changed fountain to angle 0.061 -> 0.055 deg "
+        "and reprojection 0.044 -> 0.039 % (six-draw means) but centre 7.8 -> 8.6 mm, temple 0.39 -> 0.45 %, the "
+        "synthetic site 1.17 -> 1.54 %: within the click noise or worse, so the default detector stays. (3) Down-"
+        "weighting clicks against features (0.5, 0.25, 0.05): centre mean 7.5, 7.4, 7.35 mm but the angle doubles "
+        "(0.17 deg at 0.05).",
         "Both methods detect SIFT at 1600 px longest side on fountain (pycolmap max_image_size=1600); ours keeps "
         "the 4000 strongest features per image (SIFT contrast threshold 0.01), pycolmap its default 8192.",
     ]

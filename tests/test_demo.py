@@ -91,11 +91,10 @@ def test_demo_with_the_simulated_user_registers_every_photo(small_site: Path, tm
     drawn, the phone photos' static masks included."""
     summary, stdout = _run_demo(tmp_path, "--answer-anchor-requests", with_stdout=True)
     assert summary["overlays behind latest mask"] == "0"
-    # The one error allowed: clicks that crossed the photo's automatic registration on the bus (the register
-    # node says it no longer keeps the photo's pixels); the summary lists up to five errors.
+    # No node errors: clicks that cross a photo's automatic registration on the bus confirm it (the summary lists
+    # up to five errors).
     errors = re.findall(r"^  error from (\S+): (.*)$", stdout, re.M)
-    assert int(summary["node errors"]) == len(errors) <= 5
-    assert all(node == "register" and "is already registered" in why for node, why in errors)
+    assert summary["node errors"] == "0", errors
     asked = int(summary["needs anchor requests"])
     assert asked > 0 and int(summary["requests answered (simulated user)"]) > 0
     assert int(summary["registered (anchor)"]) + int(summary["registered (auto)"]) == 23

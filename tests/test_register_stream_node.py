@@ -149,3 +149,47 @@ def test_node_uses_bim_depth_and_bim_updates_do_not_reregister() -> None:
         )
         assert node.wait_idle(30)
         assert len(regs.items) == 1 and errors.items == []
+
+
+def test_late_clicks_for_a_photo_whose_pixels_are_gone_check_its_registration() -> None:
+    """Clicks answering a request after the photo registered on its own, its pixels no longer kept: clicks that
+    agree confirm the registration (no error); clicks that disagree give an error and re-anchor the photo when it
+    is pushed again."""
+    scene = PlaneScene(0)
+    intr, T = mast_camera(W, H)
+    rng = np.random.default_rng(7)
+    frames = [(intr, T)] + [jitter(T, intr, rng, 0.3, 0.005) for _ in range(3)]
+    photos = [make_photo(encode_jpeg(scene.render(i, t)), "cam-a", k) for k, (i, t) in enumerate(frames)]
+    topic = keys.key(keys.PHOTO, site=SITE, camera="cam-a")
+    with LocalBus() as bus, start_node(SPEC, Config(site=SITE, keep_recent_photos=1), bus) as node:
+        regs = bus.collect(keys.pattern(keys.REGISTRATION, site=SITE))
+        errors = bus.collect(keys.key(keys.ERRORS, site=SITE))
+        bus.publish(topic, photos[0])
+        px, pts = anchor_clicks(intr, T, noise_px=0.2)
+        bus.publish(
+            keys.key(keys.ANCHORS, site=SITE, photo=photos[0].photo_id), clicks_msg(photos[0].photo_id, px, pts)
+        )
+        for p in photos[1:]:
+            bus.publish(topic, p)
+        regs.wait(4, timeout=60)
+        assert node.wait_idle(30)
+        # Photo 1 registered automatically and only the last photo's pixels are kept.
+        i1, T1 = frames[1]
+        px1, pts1 = anchor_clicks(i1, T1, noise_px=0.5, seed=4)
+        bus.publish(
+            keys.key(keys.ANCHORS, site=SITE, photo=photos[1].photo_id), clicks_msg(photos[1].photo_id, px1, pts1)
+        )
+        assert node.wait_idle(30)
+        assert errors.items == [] and len(regs.items) == 4
+        # Clicks 30 px away from where photo 1's registration puts their points: an error that says what to do.
+        bus.publish(
+            keys.key(keys.ANCHORS, site=SITE, photo=photos[1].photo_id),
+            clicks_msg(photos[1].photo_id, px1 + np.array([30.0, 0.0]), pts1),
+        )
+        ((_, err),) = errors.wait(1, timeout=30)
+        assert isinstance(err, NodeError) and "disagree with its registration" in err.reason
+        assert "push the photo again" in err.reason
+        # Pushed again, the photo is re-anchored with the kept clicks.
+        bus.publish(topic, photos[1])
+        fixed = regs.wait(5, timeout=60)[-1][1]
+        assert fixed.photo_id == photos[1].photo_id and fixed.status == "anchor" and "replaces" in fixed.message

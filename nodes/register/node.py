@@ -50,6 +50,10 @@ class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=Tr
     """Publish the SparseCloud after this many map changes (0: never)."""
     keep_recent_photos: int = 32
     """Registered photos kept (bytes) so late anchor clicks can correct their registration."""
+    late_click_max_frac: float = 0.02
+    """Clicks arriving for a registered photo whose pixels are gone confirm its registration when their median
+    distance to the projected model points is at most this fraction of the width (else an error asks for the photo
+    again; correct automatic poses on the synthetic default site put clicks <= 0.6 % of the width off)."""
     stream: StreamConfig = StreamConfig()
 
 
@@ -114,10 +118,8 @@ class RegisterNode:
         photo = self.pending.pop(msg.photo_id, None) or self.recent.get(msg.photo_id)
         if photo is None:
             if msg.photo_id in self.registrar.poses:
-                raise ValueError(
-                    f"photo {msg.photo_id} is already registered and its pixels are no longer kept "
-                    f"(only the last {self.config.keep_recent_photos} photos are)"
-                )
+                self._check_late_clicks(msg)
+                return
             self.pending_anchors[msg.photo_id] = msg
             while len(self.pending_anchors) > self.config.max_pending_anchors:
                 self.pending_anchors.popitem(last=False)
@@ -171,6 +173,31 @@ class RegisterNode:
         except ValueError as e:
             self.registrar.depth_lookup = None
             self.ctx.log.warning("no depth lookup: %s", e)
+
+    def _check_late_clicks(self, clicks: AnchorClicks) -> None:
+        """Clicks for a photo registered meanwhile whose pixels are no longer kept (a request answered after the
+        photo registered on its own): they check that registration. Within ``late_click_max_frac`` of the width
+        (median) they confirm it (logged); otherwise they are kept for the photo's next push (which re-anchors it)
+        and the error says so."""
+        px = np.array([p.pixel_px for p in clicks.points], np.float64)
+        pts = np.array([p.point_in_world_m for p in clicks.points], np.float64)
+        off_px = self.registrar.click_disagreement_px(clicks.photo_id, px, pts)
+        width_px = self.registrar.poses[clicks.photo_id].intrinsics.width_px
+        if off_px <= self.config.late_click_max_frac * width_px:
+            self.ctx.log.info(
+                "clicks for %s confirm its registration (median %.1f px off); it registered before they came",
+                clicks.photo_id,
+                off_px,
+            )
+            return
+        self.pending_anchors[clicks.photo_id] = clicks
+        while len(self.pending_anchors) > self.config.max_pending_anchors:
+            self.pending_anchors.popitem(last=False)
+        raise ValueError(
+            f"clicks for {clicks.photo_id} disagree with its registration (median {off_px:.1f} px off) and its pixels "
+            f"are no longer kept (only the last {self.config.keep_recent_photos} photos are): the clicks are kept; "
+            "push the photo again to re-anchor it with them"
+        )
 
     def _register_anchor(self, photo: Photo, clicks: AnchorClicks) -> None:
         px = np.array([p.pixel_px for p in clicks.points], np.float64)
