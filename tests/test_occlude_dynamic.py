@@ -555,6 +555,40 @@ def test_colour_model_leaves_a_cameras_moved_places_out_of_the_background() -> N
     assert plain.per_photo["f1"].other.sum() == 60 * 80 and not plain.moved
 
 
+def test_colour_model_is_exact_and_independent_of_the_order_masks_came_in() -> None:
+    """Every frame's background counts leave out exactly the camera's current moved-place map, whatever the
+    order of the (re)computed masks: a small place flagged only by a provisional mask (a tenth of the map) is
+    background again in every frame once that mask is replaced."""
+    from nodes.occlude.dynamic import ColourModel
+
+    rng = np.random.default_rng(3)
+    images = {f"f{i}": textured_background(rng, 60, 80) for i in range(4)}
+    big = np.zeros((60, 80), np.uint8)
+    big[30:60, 0:60] = 255  # a large place where things move (1800 px)
+    small = big.copy()
+    small[5:15, 65:75] = 255  # + a provisional false alarm (100 px)
+    final = {"f0": big, "f1": big, "f2": np.zeros_like(big), "f3": big}
+    orders = [
+        [("f0", small), ("f1", big), ("f2", final["f2"]), ("f3", big), ("f0", big)],
+        [("f3", big), ("f2", final["f2"]), ("f0", small), ("f1", big), ("f0", big)],
+        [("f0", big), ("f1", big), ("f2", final["f2"]), ("f3", big)],
+    ]
+    totals = []
+    for order in orders:
+        model = ColourModel(moved_dilation_px=1)
+        for pid, mask in order:
+            model.add(pid, images[pid], mask, "cam", images.get)
+        moved = model._moved_place("cam", (60, 80))
+        assert moved is not None and not moved[5:15, 65:75].any()
+        for pid, entry in model.per_photo.items():
+            dyn = final[pid] > 0
+            expect = model._hist(model._bin_index(images[pid]), ~dyn & ~moved)
+            assert np.array_equal(entry.other, expect), pid
+        totals.append(model.totals())
+    for dyn, other in totals[1:]:
+        assert np.array_equal(dyn, totals[0][0]) and np.array_equal(other, totals[0][1])
+
+
 def test_colour_pixel_veto_drops_a_shadow_and_needs_a_model_that_recognises_its_masks(trained_colour_model) -> None:
     from nodes.occlude.dynamic import ColourModel, DynamicParams
 

@@ -129,7 +129,8 @@ class _ColourEntry:
     camera_id: str | None
     mask_bits: U8  # np.packbits of the time-lapse mask (for recounting)
     shape: tuple[int, int]
-    moved_px: int  # size of the camera's moved-place map when ``other`` was counted
+    # np.packbits of the camera's dilated moved-place map that ``other`` leaves out (None: nothing left out)
+    moved_bits: U8 | None = None
 
 
 @dataclass
@@ -150,9 +151,13 @@ class ColourModel:
     background. So a fixed camera's "other" pixels leave out its moved-place map: the union of its
     frames' current time-lapse masks (a recomputed mask replaces the frame's earlier one, so a place
     that only a provisional mask flagged leaves the map again; a forgotten frame's mask stays),
-    dilated by ``moved_dilation_px`` (None: no exclusion). When that map's size has changed by
-    ``recount_growth`` since a frame was counted, :meth:`add` recounts the camera's frames
-    (``image_of`` gives their working images; the masks are kept bit-packed, 1 bit per pixel).
+    dilated by ``moved_dilation_px`` (None: no exclusion). Whenever that map changes, :meth:`add` brings
+    every counted frame of the camera up to date by recounting only the pixels that entered or left the
+    map (``image_of`` gives their working images; masks and maps are kept bit-packed, 1 bit per pixel), so
+    the model depends on the frames' current masks, not on the order they came in (a frame whose image is
+    gone keeps the map it was counted with). Recounting only when the map had grown 10 % left frames
+    counted against places that provisional masks had flagged: the default site's hoarding green was
+    then learnt as a dynamic colour in some runs (phones' dynamic IoU 0.43-0.53 instead of 0.78).
 
     ``add`` replaces a photo's earlier contribution (its mask was recomputed); ``forget`` keeps the
     contribution but drops the per-photo record (bounded memory).
@@ -160,7 +165,6 @@ class ColourModel:
 
     bins: tuple[int, int, int] = (36, 8, 8)  # hue (OpenCV 0-180), saturation, value
     moved_dilation_px: int | None = 2
-    recount_growth: float = 0.1
     per_photo: dict[str, _ColourEntry] = field(default_factory=dict)
     # camera -> per pixel, how many of its frames' time-lapse masks (current ones, and those of forgotten frames)
     # cover it: the moved-place map is where this is > 0
@@ -180,23 +184,49 @@ class ColourModel:
         n = int(np.prod(self.bins))
         return np.bincount(index[mask], minlength=n).astype(np.float32).reshape(self.bins)
 
-    def _moved_place(self, camera_id: str | None, shape: tuple[int, int]) -> tuple[NDArray[np.bool_] | None, int]:
-        """The camera's dilated moved-place map (None when not kept or of another size) and its raw size."""
+    def _moved_place(self, camera_id: str | None, shape: tuple[int, int]) -> NDArray[np.bool_] | None:
+        """The camera's dilated moved-place map (h, w) (None when not kept or of another size)."""
         count = self.moved.get(camera_id) if camera_id is not None else None
         if count is None or count.shape != shape or self.moved_dilation_px is None:
-            return None, 0
+            return None
         union = (count > 0).astype(np.uint8)
         k = 2 * max(0, int(self.moved_dilation_px)) + 1
-        return cv2.dilate(union, np.ones((k, k), np.uint8)) > 0, int(union.sum())
+        return np.asarray(cv2.dilate(union, np.ones((k, k), np.uint8)) > 0)
 
     def _count(self, photo_id: str, photo_small: U8, dyn: NDArray[np.bool_], camera_id: str | None) -> None:
         index = self._bin_index(photo_small)
-        moved, moved_px = self._moved_place(camera_id, dyn.shape)
+        moved = self._moved_place(camera_id, dyn.shape)
         other = ~dyn if moved is None else ~dyn & ~moved
         h, w = dyn.shape
         self.per_photo[photo_id] = _ColourEntry(
-            self._hist(index, dyn), self._hist(index, other), camera_id, np.packbits(dyn), (h, w), moved_px
+            self._hist(index, dyn),
+            self._hist(index, other),
+            camera_id,
+            np.packbits(dyn),
+            (h, w),
+            None if moved is None else np.packbits(moved),
         )
+        self._sum = None
+
+    def _update_other(self, entry: _ColourEntry, img: U8, moved: NDArray[np.bool_]) -> None:
+        """Bring ``entry.other`` from the map it was counted with to ``moved`` (h, w): only the pixels that
+        entered (now left out) or left (background again) the map are recounted."""
+        n = entry.shape[0] * entry.shape[1]
+        old = np.zeros(n, bool) if entry.moved_bits is None else np.unpackbits(entry.moved_bits, count=n).astype(bool)
+        new = moved.ravel()
+        changed = np.flatnonzero(old != new)
+        if len(changed) == 0:
+            return
+        dyn = np.unpackbits(entry.mask_bits, count=n).astype(bool)
+        changed = changed[~dyn[changed]]  # a frame's own dynamic pixels are never in its background
+        if len(changed):
+            pixels = img.reshape(-1, img.shape[-1])[changed].reshape(-1, 1, img.shape[-1])
+            bins = self._bin_index(np.ascontiguousarray(pixels)).ravel()
+            sign = np.where(new[changed], -1.0, 1.0)
+            size = int(np.prod(self.bins))
+            delta = np.bincount(bins, weights=sign, minlength=size).astype(np.float32).reshape(self.bins)
+            entry.other = np.maximum(entry.other + delta, 0.0).astype(np.float32)
+        entry.moved_bits = np.packbits(new)
         self._sum = None
 
     def add(
@@ -225,18 +255,15 @@ class ColourModel:
         self._count(photo_id, photo_small, dyn, camera_id)
         if camera_id is None or image_of is None or self.moved_dilation_px is None:
             return
-        now = int(np.count_nonzero(self.moved[camera_id]))
+        moved = self._moved_place(camera_id, dyn.shape)
+        if moved is None:
+            return
         for pid, entry in list(self.per_photo.items()):
-            if (
-                pid == photo_id
-                or entry.camera_id != camera_id
-                or abs(now - entry.moved_px) <= entry.moved_px * self.recount_growth
-            ):
+            if pid == photo_id or entry.camera_id != camera_id or entry.shape != dyn.shape:
                 continue
             img = image_of(pid)
             if img is not None and img.shape[:2] == entry.shape:
-                bits = np.unpackbits(entry.mask_bits, count=entry.shape[0] * entry.shape[1])
-                self._count(pid, img, bits.reshape(entry.shape).astype(bool), camera_id)
+                self._update_other(entry, img, moved)
 
     def forget(self, photo_id: str) -> None:
         """Drop the per-photo record; its pixels stay in the model."""
