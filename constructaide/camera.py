@@ -134,6 +134,18 @@ def project_points(intr: Intrinsics, camera_from_world: F64, points_in_world_m: 
     return normalized_to_pixels(intr, xy), z
 
 
+def median_click_error_px(
+    intr: Intrinsics, world_from_camera: F64, pixels_px: ArrayLike, points_in_world_m: ArrayLike
+) -> float:
+    """Median distance (px) between clicked pixels (N, 2) and their model points (N, 3) projected through the camera
+    (points behind it count as infinitely far); NaN without clicks."""
+    px = np.asarray(pixels_px, dtype=np.float64).reshape(-1, 2)
+    proj, _ = project_points(intr, invert_rigid(np.asarray(world_from_camera, dtype=np.float64)), points_in_world_m)
+    e = np.linalg.norm(proj - px, axis=1)
+    e[~np.isfinite(e)] = np.inf
+    return float(np.median(e)) if len(e) else float("nan")
+
+
 def invert_rigid(T: F64) -> F64:
     """Inverse of a (4, 4) rigid transform."""
     R = T[:3, :3]

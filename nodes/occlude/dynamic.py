@@ -193,9 +193,15 @@ class ColourModel:
         k = 2 * max(0, int(self.moved_dilation_px)) + 1
         return np.asarray(cv2.dilate(union, np.ones((k, k), np.uint8)) > 0)
 
-    def _count(self, photo_id: str, photo_small: U8, dyn: NDArray[np.bool_], camera_id: str | None) -> None:
+    def _count(
+        self,
+        photo_id: str,
+        photo_small: U8,
+        dyn: NDArray[np.bool_],
+        camera_id: str | None,
+        moved: NDArray[np.bool_] | None,
+    ) -> None:
         index = self._bin_index(photo_small)
-        moved = self._moved_place(camera_id, dyn.shape)
         other = ~dyn if moved is None else ~dyn & ~moved
         h, w = dyn.shape
         self.per_photo[photo_id] = _ColourEntry(
@@ -252,11 +258,9 @@ class ColourModel:
                 count -= previous  # the frame's earlier mask is replaced (every counted pixel is >= 1)
             count += dyn
             self.moved[camera_id] = count
-        self._count(photo_id, photo_small, dyn, camera_id)
-        if camera_id is None or image_of is None or self.moved_dilation_px is None:
-            return
         moved = self._moved_place(camera_id, dyn.shape)
-        if moved is None:
+        self._count(photo_id, photo_small, dyn, camera_id, moved)
+        if moved is None or image_of is None:
             return
         for pid, entry in list(self.per_photo.items()):
             if pid == photo_id or entry.camera_id != camera_id or entry.shape != dyn.shape:

@@ -120,9 +120,7 @@ class RegisterNode:
             if msg.photo_id in self.registrar.poses:
                 self._check_late_clicks(msg)
                 return
-            self.pending_anchors[msg.photo_id] = msg
-            while len(self.pending_anchors) > self.config.max_pending_anchors:
-                self.pending_anchors.popitem(last=False)
+            self._keep_anchors(msg)
             self.ctx.log.info("anchors for %s wait for the photo", msg.photo_id)
             return
         try:
@@ -174,6 +172,12 @@ class RegisterNode:
             self.registrar.depth_lookup = None
             self.ctx.log.warning("no depth lookup: %s", e)
 
+    def _keep_anchors(self, clicks: AnchorClicks) -> None:
+        """Hold clicks until their photo is pushed (the oldest pushed out beyond ``max_pending_anchors``)."""
+        self.pending_anchors[clicks.photo_id] = clicks
+        while len(self.pending_anchors) > self.config.max_pending_anchors:
+            self.pending_anchors.popitem(last=False)
+
     def _check_late_clicks(self, clicks: AnchorClicks) -> None:
         """Clicks for a photo registered meanwhile whose pixels are no longer kept (a request answered after the
         photo registered on its own): they check that registration. Within ``late_click_max_frac`` of the width
@@ -190,9 +194,7 @@ class RegisterNode:
                 off_px,
             )
             return
-        self.pending_anchors[clicks.photo_id] = clicks
-        while len(self.pending_anchors) > self.config.max_pending_anchors:
-            self.pending_anchors.popitem(last=False)
+        self._keep_anchors(clicks)
         raise ValueError(
             f"clicks for {clicks.photo_id} disagree with its registration (median {off_px:.1f} px off) and its pixels "
             f"are no longer kept (only the last {self.config.keep_recent_photos} photos are): the clicks are kept; "

@@ -1443,11 +1443,7 @@ def release_anchors_if_significant(recon: Reconstruction, cfg: SfmConfig) -> flo
 def click_disagreement_px(im: ImageState, clicks: Clicks) -> float:
     """Median distance (px) between clicked pixels and their model points projected under image ``im``'s current
     pose and intrinsics (points behind the camera count as infinitely far)."""
-    px, world = np.asarray(clicks[0], np.float64), np.asarray(clicks[1], np.float64)
-    proj, _ = cam.project_points(im.intrinsics, cam.invert_rigid(im.world_from_camera), world)
-    e = np.linalg.norm(proj - px, axis=1)
-    e[~np.isfinite(e)] = np.inf
-    return float(np.median(e)) if len(e) else float("nan")
+    return cam.median_click_error_px(im.intrinsics, im.world_from_camera, clicks[0], clicks[1])
 
 
 def _snapshot(recon: Reconstruction) -> tuple:

@@ -694,13 +694,7 @@ class StreamingRegistrar:
         registered pose of ``photo_id`` (inf for points behind the camera). Raises KeyError when it is not
         registered."""
         rec = self.poses[photo_id]
-        px = np.asarray(pixels_px, np.float64).reshape(-1, 2)
-        proj, z = cam.project_points(
-            rec.intrinsics, cam.invert_rigid(rec.world_from_camera), np.asarray(points_in_world, np.float64)
-        )
-        e = np.linalg.norm(proj - px, axis=1)
-        e[~(np.isfinite(e) & (z > 0))] = np.inf
-        return float(np.median(e)) if len(e) else float("nan")
+        return cam.median_click_error_px(rec.intrinsics, rec.world_from_camera, pixels_px, points_in_world)
 
     def sparse_arrays(self) -> dict[str, np.ndarray | list[str]]:
         """Map arrays: ``points_xyz`` (P, 3) f32, ``colors_rgb`` (P, 3) u8, ``point_flags`` (P,) u8 (bits
