@@ -248,3 +248,68 @@ def test_shared_intrinsics_one_focal_per_group_and_priors_counted_once():
     ]
     assert fits[0] == pytest.approx(fits[1], abs=1e-6)
     assert F < fits[0] < 1.05 * F  # between the data and the prior
+
+
+def test_centre_covariance_is_calibrated_over_noise_draws():
+    """Every pose free, held by features (0.3 px noise) and by two anchors' clicks (12 each, 1 px noise) that fix
+    the frame: over 30 noise draws the predicted centre covariances match the actual centre errors (mean of
+    |error|^2 / trace(cov) near 1: neither over- nor under-confident); a fixed pose gets NaN."""
+    base, poses, X = problem(seed=11, perturb=False)
+    intr = cam.centered_intrinsics(W, H, F, 0.03, -0.01)
+    clean = np.vstack([cam.project_points(intr, poses[c], X[base.obs_point[base.obs_cam == c]])[0] for c in range(4)])
+    click_world = np.vstack([X[:12], X[-12:]])
+    click_cam = np.r_[np.zeros(12, int), np.full(12, 3)]
+    click_clean = np.vstack(
+        [cam.project_points(intr, poses[0], X[:12])[0], cam.project_points(intr, poses[3], X[-12:])[0]]
+    )
+    z2 = []
+    for seed in range(30):
+        rng = np.random.default_rng(100 + seed)
+        # The focal priors are measurements too (an EXIF focal 1 % off): drawn like the pixels.
+        opts = BundleOptions(
+            max_nfev=50,
+            ftol=1e-10,
+            solver="schur",
+            covariance=True,
+            refine_distortion=False,
+            focal_prior_px=F * (1 + rng.normal(0, 0.01, 4)),
+            focal_prior_sigma_px=np.full(4, 0.01 * F),
+        )
+        prob = BundleProblem(
+            **{
+                **base.__dict__,
+                "obs_px": clean + rng.normal(0, 0.3, clean.shape),
+                "click_cam": click_cam,
+                "click_world": click_world,
+                "click_px": click_clean + rng.normal(0, 1.0, click_clean.shape),
+                "pose_fixed": np.zeros(4, bool),
+                "point_ref_cam": np.full(len(X), -1),
+                "k1": np.full(4, 0.03),
+                "k2": np.full(4, -0.01),
+                "f_px": np.full(4, F),
+            }
+        )
+        res = bundle_adjust(prob, opts)
+        assert res.centre_cov_m2 is not None and res.centre_cov_m2.shape == (4, 3, 3)
+        for c in range(4):
+            err = cam.invert_rigid(res.camera_from_world[c])[:3, 3] - cam.invert_rigid(poses[c])[:3, 3]
+            z2.append(float(err @ err) / float(np.trace(res.centre_cov_m2[c])))
+    assert 0.6 < np.mean(z2) < 1.6
+    prob = BundleProblem(**{**base.__dict__, "pose_fixed": np.array([True, False, False, True])})
+    res = bundle_adjust(prob, BundleOptions(max_nfev=20, solver="schur", covariance=True))
+    assert res.centre_cov_m2 is not None
+    assert np.isnan(res.centre_cov_m2[[0, 3]]).all()
+    assert np.isfinite(res.centre_cov_m2[[1, 2]]).all()
+
+
+def test_click_noise_is_estimated_apart_from_the_features():
+    """Feature residuals of 0.3 px and click residuals of 1 px: two variances, the clicks' corrected for the 7
+    parameters of the frame they fix and never below the features'."""
+    rng = np.random.default_rng(0)
+    n_obs, n_clk = 5000, 24
+    r = np.r_[rng.normal(0, 0.3, 2 * n_obs), rng.normal(0, 1.0, 2 * n_clk)]
+    s2_obs, s2_clk = bundle_mod._noise_variances(r, np.ones_like(r), n_obs, n_clk, n_params=0, click_weight=1.0)
+    assert s2_obs == pytest.approx(0.09, rel=0.1)
+    assert s2_clk == pytest.approx(1.0 * 48 / 41, rel=0.35)
+    r[2 * n_obs :] *= 0.01
+    assert bundle_mod._noise_variances(r, np.ones_like(r), n_obs, n_clk, 0, 1.0)[1] == s2_obs

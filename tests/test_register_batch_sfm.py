@@ -302,8 +302,13 @@ def test_anchors_released_when_the_data_support_it(synthetic_run):
 
     released = errors(recon)
     assert max(released) < 0.03
+    # Each view's predicted centre standard deviation is finite and the errors are of its size.
+    sigma = np.array([recon.images[recon.index(f"view{k}")].centre_sigma_m for k in range(len(poses))])
+    assert np.isfinite(sigma).all() and (sigma > 0).all()
+    assert 0.2 < np.sqrt(np.mean((np.array(released) / sigma) ** 2)) < 3.0
     fixed, _, _, _ = run_scene(sfm.SfmConfig(focal_px=F, release_anchors=False))
     assert not fixed.anchors_released and np.isnan(fixed.anchor_release_score)
+    assert all(np.isnan(im.centre_sigma_m) for im in fixed.images)
     assert np.mean(released) < np.mean(errors(fixed))
 
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import statistics
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -320,6 +321,8 @@ def image_report(recon: Reconstruction) -> list[dict]:
                 d["anchor_flagged_clicks"] = [int(k) for k in np.nonzero(im.anchor.outlier_mask)[0]]
         else:
             d["num_matched_tracks"] = im.num_matched_tracks
+        if math.isfinite(im.centre_sigma_m):
+            d["centre_sigma"] = im.centre_sigma_m
         if math.isfinite(im.gps_residual_m):
             d["gps_residual_m"] = im.gps_residual_m
         out.append(d)
@@ -469,6 +472,12 @@ def main(argv: list[str] | None = None) -> int:
         f"registered {report['num_registered']}/{report['num_images']} images, {report['num_points']} points "
         f"in {report['timings_secs']['total']:.1f} s -> {args.out}"
     )
+    sigmas = [d["centre_sigma"] for d in report["images"] if "centre_sigma" in d]
+    if sigmas:
+        print(
+            f"  camera centres known to {statistics.median(sigmas):.3g} model units (median standard deviation over "
+            f"{len(sigmas)} images, from the features and clicks)"
+        )
     for u in report["unregistered"]:
         print(f"  unregistered {u['image']}: {u['reason']}")
     return 0

@@ -218,6 +218,10 @@ class ImageState:
     gps: GeoPoint | None = None
     # Median GPS distance residual (m) of the automatic registration (see gps_check), NaN when not checked.
     gps_residual_m: float = float("nan")
+    # Standard deviation of the camera centre (model units; sqrt of the trace of its 3x3 covariance) from the final
+    # adjustment with the anchors released (release_anchors_if_significant): what the features and clicks fix of
+    # where the camera stood. NaN when not estimated (release not run or not kept, or the pose held fixed).
+    centre_sigma_m: float = float("nan")
 
     @property
     def width_px(self) -> int:
@@ -1165,10 +1169,15 @@ def drop_runaway_points(recon: Reconstruction, tracks: np.ndarray, factor: float
 
 
 def bundle(
-    recon: Reconstruction, cfg: SfmConfig, window: list[int] | None = None, fixed_anchors: set[int] | None = None
+    recon: Reconstruction,
+    cfg: SfmConfig,
+    window: list[int] | None = None,
+    fixed_anchors: set[int] | None = None,
+    covariance: bool = False,
 ) -> dict[str, float]:
     """Constrained bundle adjustment over all registered images, or a local one where only images in ``window``
     (and the points they see) move. Then drops observations beyond threshold and points left with < 2 views.
+    ``covariance`` (with ``cfg.ba_solver == "schur"``): set each moved camera's ``centre_sigma_m``.
     Returns stats (initial/final rms px, observations removed, points, observations, initial/final total squared
     error of features and clicks px^2 and the number of those residuals)."""
     reg = recon.registered_indices()
@@ -1292,8 +1301,13 @@ def bundle(
         solver=cfg.ba_solver,
         refine_aspect=cfg.refine_aspect,
         aspect_prior_sigma=cfg.aspect_sigma,
+        covariance=covariance,
     )
     res = bundle_adjust(prob, opts)
+    if res.centre_cov_m2 is not None:
+        sig = np.sqrt(np.einsum("cii->c", res.centre_cov_m2))
+        for c, i in enumerate(reg):
+            recon.images[i].centre_sigma_m = float(sig[c])
     for c, i in enumerate(reg):
         if i not in movable:
             continue
@@ -1392,7 +1406,7 @@ def release_anchors_if_significant(recon: Reconstruction, cfg: SfmConfig) -> flo
             "ba_points_per_image": cfg.release_points_per_image,
             "share_intrinsics": share,
         }
-        return bundle(recon, SfmConfig(**{**cfg.__dict__, **release}), fixed_anchors=held)
+        return bundle(recon, SfmConfig(**{**cfg.__dict__, **release}), fixed_anchors=held, covariance=True)
 
     stats = adjust()
     wald = stats.get("principal_point_wald", float("nan"))
@@ -1450,7 +1464,7 @@ def _snapshot(recon: Reconstruction) -> tuple:
     ims = []
     for im in recon.images:
         T = None if im.world_from_camera is None else im.world_from_camera.copy()
-        ims.append((im.intrinsics, T, im.rms_px, im.num_inliers))
+        ims.append((im.intrinsics, T, im.rms_px, im.num_inliers, im.centre_sigma_m))
     return (
         ims,
         recon.points.copy(),
@@ -1461,8 +1475,8 @@ def _snapshot(recon: Reconstruction) -> tuple:
 
 def _restore(recon: Reconstruction, snap: tuple) -> None:
     ims, points, track_obs, feature_track = snap
-    for im, (intr, T, rms, n_inl) in zip(recon.images, ims, strict=True):
-        im.intrinsics, im.world_from_camera, im.rms_px, im.num_inliers = intr, T, rms, n_inl
+    for im, (intr, T, rms, n_inl, sig) in zip(recon.images, ims, strict=True):
+        im.intrinsics, im.world_from_camera, im.rms_px, im.num_inliers, im.centre_sigma_m = intr, T, rms, n_inl, sig
     recon.points, recon.track_obs, recon.feature_track = points, track_obs, feature_track
 
 
