@@ -98,6 +98,19 @@ def test_bad_anchor_files_are_user_errors(tmp_path):
     anchors = _write(tmp_path, {"anchors": [{"image": "a.jpg", "points": four}]})
     with pytest.raises(UserError, match="not under"):
         batch.main(["--images", str(img_dir), "--anchors", str(anchors), "--out", str(tmp_path / "out"), "--quiet"])
+    with pytest.raises(UserError, match="--target-centre-sigma must be positive"):
+        batch.main(
+            [
+                "--images",
+                str(img_dir),
+                "--anchors",
+                str(anchors),
+                "--out",
+                str(tmp_path / "o"),
+                "--target-centre-sigma",
+                "0",
+            ]
+        )
 
 
 @needs_temple

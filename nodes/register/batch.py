@@ -406,6 +406,7 @@ def run_batch(
         "principal_points_refined": cfg.refine_principal_point,
         "anchors_released": recon.anchors_released,
         "anchor_release_score": (recon.anchor_release_score if math.isfinite(recon.anchor_release_score) else None),
+        "accuracy_anchors": recon.accuracy_anchors,
         "registered": registered,
         "unregistered": [
             {"image": im.name, "status": im.status, "reason": im.message} for im in recon.images if not im.registered
@@ -447,14 +448,25 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="skip densifying the cloud by epipolar-guided matching after registration",
     )
+    ap.add_argument(
+        "--target-centre-sigma",
+        type=float,
+        default=None,
+        help="accuracy target in model units: while a camera centre's standard deviation exceeds it, the anchor "
+        "file's clicks of the least certain image are used too (up to 4 images; the report's needs_anchor names "
+        "the image to click next when the file has none)",
+    )
     ap.add_argument("--quiet", action="store_true", help="no progress bars")
     args = ap.parse_args(argv)
     if args.focal_px is not None and not (args.focal_px > 0):
         raise UserError("--focal-px must be positive")
+    if args.target_centre_sigma is not None and not (args.target_centre_sigma > 0):
+        raise UserError("--target-centre-sigma must be positive")
     cfg = SfmConfig(
         refine_principal_point=args.refine_principal_point,
         fix_anchor_poses=not args.free_anchors,
         release_anchors=not args.fixed_anchors,
+        target_centre_sigma=args.target_centre_sigma,
     )
     _, report = run_batch(
         args.images,
