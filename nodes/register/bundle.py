@@ -313,22 +313,13 @@ def _reduced_system(J: sp.spmatrix, w: np.ndarray, n_cam: int, starts: np.ndarra
     return Jc, Jp, A_cp, Vi, A_cc - ((A_cp @ Vi) @ A_cp.T).toarray()
 
 
-def _camera_information(J: sp.spmatrix, w: np.ndarray, n_cam: int, starts: np.ndarray, sizes: np.ndarray):
-    """Reduced (Schur-complement) normal matrix (n_cam, n_cam) of the first ``n_cam`` unknowns with the point
-    blocks eliminated, for IRLS weights ``w`` (M,): the inverse of the camera unknowns' covariance up to the
-    noise variance."""
-    return _reduced_system(J, w, n_cam, starts, sizes)[-1]
-
-
-def _camera_covariance(
-    J: sp.spmatrix, w: np.ndarray, var: np.ndarray, n_cam: int, starts: np.ndarray, sizes: np.ndarray
-) -> np.ndarray:
-    """(n_cam, n_cam) covariance of the first ``n_cam`` unknowns of the estimate that minimises sum w r^2 (IRLS
-    weights ``w`` (M,)) when the residuals have variances ``var`` (M,): the sandwich S^-1 K diag(w var) K^T S^-1
-    with S the reduced normal matrix and K^T = J_c - J_p V^-1 A_cp^T (weighted columns). Equal to S^-1 when
-    w * var = 1 (weights that are the inverse noise variances); larger otherwise (e.g. 1 px clicks weighted like
-    0.5 px features)."""
-    Jc, Jp, A_cp, Vi, S = _reduced_system(J, w, n_cam, starts, sizes)
+def _camera_covariance(system: tuple, w: np.ndarray, var: np.ndarray) -> np.ndarray:
+    """(n_cam, n_cam) covariance of the camera unknowns of the estimate that minimises sum w r^2 (IRLS weights
+    ``w`` (M,); ``system`` = :func:`_reduced_system` for those weights) when the residuals have variances ``var``
+    (M,): the sandwich S^-1 K diag(w var) K^T S^-1 with S the reduced normal matrix and K^T = J_c - J_p V^-1 A_cp^T
+    (weighted columns). Equal to S^-1 when w * var = 1 (weights that are the inverse noise variances); larger
+    otherwise (e.g. 1 px clicks weighted like 0.5 px features)."""
+    Jc, Jp, A_cp, Vi, S = system
     Kt = Jc if A_cp is None else (Jc - Jp @ (Vi @ A_cp.T)).tocsr()  # sparse: a row touches its point's cameras
     middle = (Kt.T @ sp.diags(w * var) @ Kt).toarray()
     S_inv = np.linalg.pinv(S)
@@ -590,12 +581,9 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
         parts.append(prior_residuals(f, k1, k2, cx, cy, a))
         return np.concatenate(parts)
 
-    def _centre_covariance(x: np.ndarray, n_cam_cols: int, starts: np.ndarray, sizes: np.ndarray) -> np.ndarray:
-        """(C, 3, 3) camera-centre covariances at ``x`` (NaN where the centre does not move)."""
-        r = residuals(x)
-        w = np.ones_like(r)
-        if opts.loss == "soft_l1":
-            w = 1 / np.sqrt(1 + (r / opts.loss_scale_px) ** 2)
+    def _centre_covariance(x: np.ndarray, r: np.ndarray, w: np.ndarray, system: tuple) -> np.ndarray:
+        """(C, 3, 3) camera-centre covariances at the solution ``x`` with residuals ``r``, IRLS weights ``w`` and
+        their reduced system (NaN where the centre does not move)."""
         m = 2 * (n_obs + n_clk)
         s2_obs, s2_clk = _noise_variances(r, w, n_obs, n_clk, lay.n, opts.click_weight)
         # Residual variances: the features' and the (weighted) clicks' as estimated; priors are in sigmas.
@@ -603,7 +591,7 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
         var[: 2 * n_obs] = s2_obs
         var[2 * n_obs : m] = s2_clk * (opts.click_weight or 1.0) ** 2
         with single_thread_blas():
-            cov = _camera_covariance(jacobian(x), w, var, n_cam_cols, starts, sizes)
+            cov = _camera_covariance(system, w, var)
         out = np.full((C, 3, 3), np.nan)
         for c in np.nonzero((lay.pose_col >= 0) & ~lay.rot_only)[0]:
             col = lay.pose_col[c]
@@ -750,15 +738,19 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
                 opts.ftol,
             )
         want_pp = opts.refine_principal_point and opts.principal_point_prior_px is not None
-        if opts.covariance:
-            centre_cov = _centre_covariance(x, n_cam_cols, starts, sizes)
-        if len(lay.pp_groups) and (want_pp or opts.refine_aspect):
+        want_wald = bool(len(lay.pp_groups)) and (want_pp or opts.refine_aspect)
+        if opts.covariance or want_wald:
+            # One reduced system at the solution serves the centre covariances and the Wald statistics.
             r_fin = residuals(x)
             w_fin = np.ones_like(r_fin)
             if opts.loss == "soft_l1":
                 w_fin = 1 / np.sqrt(1 + (r_fin / opts.loss_scale_px) ** 2)
             with single_thread_blas():
-                info = _camera_information(jacobian(x), w_fin, n_cam_cols, starts, sizes)
+                system = _reduced_system(jacobian(x), w_fin, n_cam_cols, starts, sizes)
+        if opts.covariance:
+            centre_cov = _centre_covariance(x, r_fin, w_fin, system)
+        if want_wald:
+            info = system[-1]  # inverse covariance of the camera unknowns up to the noise variance
             m = 2 * (n_obs + n_clk)
             s2 = float(np.sum(w_fin[:m] * r_fin[:m] ** 2)) / max(m - lay.n, 1)
             try:
