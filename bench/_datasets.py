@@ -13,7 +13,8 @@ Both use pixel (0, 0) = centre of the top-left pixel here (OpenCV), as the proje
 Simulated anchor clicks (:func:`simulate_anchor_clicks`): SIFT matches between the anchor image and its nearest
 ground-truth neighbour are triangulated with the ground-truth cameras; points reprojecting within 0.5 px in both
 views are "model points"; N of them, spread over the image by farthest-point sampling, become clicks: pixel =
-ground-truth projection into the anchor image + N(0, 1 px) noise, world = the triangulated point.
+ground-truth projection into the anchor image + N(0, 1 px) noise, world = the triangulated point. Draw ``seed``
+of image i uses the generator seeded with (seed, i), so draws are independent across images and seeds.
 """
 
 from __future__ import annotations
@@ -139,7 +140,7 @@ def simulate_anchor_clicks(
     cams: list[GtCamera], i: int, n_clicks: int = 12, noise_px: float = 1.0, seed: int = 0
 ) -> tuple[np.ndarray, np.ndarray]:
     """Clicks (pixels (N, 2), world (N, 3)) for camera i; see the module docstring for how."""
-    rng = np.random.default_rng(seed + i)
+    rng = np.random.default_rng((seed, i))
     X = gt_points_from_pair(cams[i], cams[nearest_view(cams, i)])
     px, _ = cams[i].project(X)
     pick = farthest_point_sample(px, n_clicks, rng)

@@ -9,7 +9,9 @@ with its nearest ground-truth view are triangulated with the ground-truth camera
 over the image, are clicked at their ground-truth projection + N(0, 1 px) noise. The anchor file holds clicks for
 every image (a user answering every NeedsAnchor request), first the first image and its nearest ground-truth view;
 the algorithm starts from the first and uses the others only when it asks for an anchor ("anchors used" counts
-them). The file's ``focal_px`` is the ground-truth mean focal; pycolmap gets the same focal prior.
+them). The file's ``focal_px`` is the ground-truth mean focal; pycolmap gets the same focal prior. Each run
+draws its own click noise (seed = run number) and the table reports means over the draws: one draw's gauge
+error (the model frame fixed by 24 noisy clicks) varies by a factor 2 between draws on fountain-P11.
 
 Errors, per registered image, averaged (the paper's Table 2): angle between estimated and ground-truth viewing
 directions (deg); camera-centre distance (model units, and % of the ground-truth camera-to-scene distance, scene
@@ -25,7 +27,7 @@ mapping); the densification that ``run_batch`` runs by default afterwards is tim
 reconstruction (``densify_reconstruction`` with the default parameters, as ``run_batch`` calls it) and reported in
 its own column.
 
-Run: ``python bench/registration.py [--quick]`` (--quick: temple only, one run).
+Run: ``python bench/registration.py [--quick] [--runs N]`` (--quick: temple only, one run; default 6 runs).
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -96,15 +99,15 @@ def write_anchor_file(cams: list[GtCamera], anchor_idx: list[int], path: Path, s
     return focal
 
 
-def write_synth_anchor_file(site: Path, cams: list[GtCamera], path: Path) -> int:
+def write_synth_anchor_file(site: Path, cams: list[GtCamera], path: Path, seed: int = 0) -> int:
     """Anchor file for the synthetic site: its anchors.json clicks first (given up front), then simulated clicks
-    (from truth) for every other photo, flagged ``on_request`` (held back until the algorithm asks for them).
-    Returns how many photos the site's own file clicks."""
+    (from truth, click-noise draw ``seed``) for every other photo, flagged ``on_request`` (held back until the
+    algorithm asks for them). Returns how many photos the site's own file clicks."""
     doc = json.loads((site / "anchors.json").read_text())
     have = {a["image"] for a in doc["anchors"]}
     for c in cams:
         if c.name not in have:
-            px, world = simulate_synth_clicks(site, c)
+            px, world = simulate_synth_clicks(site, c, seed=seed)
             points = [{"pixel": p.tolist(), "world": w.tolist()} for p, w in zip(px, world, strict=True)]
             doc["anchors"].append({"image": c.name, "points": points, "on_request": True})
     path.write_text(json.dumps(doc))
@@ -305,6 +308,29 @@ def align_to_gt(est: dict[str, tuple[Intrinsics, np.ndarray]], cams: list[GtCame
     return apply_similarity(est, s, R, t)
 
 
+def mean_over_draws(per_draw: list[dict]) -> dict:
+    """Metrics of several click-noise draws: the mean of each figure (NaN-aware), 'centre_dist_min'/'_max' over the
+    draws, the RMS of 'centre_z_rms' (equal image counts), and 'anchors_used' as 'a' or 'a-b'."""
+    out: dict = {}
+    for key in per_draw[0]:
+        vals = [d[key] for d in per_draw]
+        if key == "anchors_used":
+            lo, hi = min(vals), max(vals)
+            out[key] = f"{lo}" if lo == hi else f"{lo}-{hi}"
+        elif key == "centre_z_rms":
+            v = [x for x in vals if x == x]
+            out[key] = float(np.sqrt(np.mean(np.square(v)))) if v else float("nan")
+        elif key in ("registered", "total"):
+            out[key] = min(vals)
+        else:
+            v = [x for x in vals if x == x]
+            out[key] = float(np.mean(v)) if v else float("nan")
+    dists = [d["centre_dist"] for d in per_draw]
+    out["centre_dist_min"], out["centre_dist_max"] = float(np.min(dists)), float(np.max(dists))
+    out["draws"] = len(per_draw)
+    return out
+
+
 def bench_set(
     name: str,
     cams: list[GtCamera],
@@ -312,67 +338,67 @@ def bench_set(
     max_side: int | None,
     runs: int,
     cfgs: dict,
-    anchor_file: Path | None = None,
+    write_anchors: Callable[[Path, int], float | None],
     X_check: np.ndarray | None = None,
+    pycolmap_runs: int = 3,
 ):
-    """Rows for one set. Without ``anchor_file`` clicks are simulated for every image (first image and its nearest
-    view first)."""
+    """Rows for one set. Run r uses click-noise draw r (``write_anchors(path, r)`` writes that draw's anchor file
+    and returns its focal prior); errors are means over the draws, times medians over the runs. pycolmap (which
+    takes no clicks) runs in the first ``pycolmap_runs`` runs only; its anchor-similarity row uses each draw's
+    anchor poses."""
     if X_check is None:
         X_check = checkpoints(cams, max_side_px=max_side or 1600)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        if anchor_file is None:
-            first = [0, nearest_view(cams, 0)]
-            anchor_idx = first + [i for i in range(len(cams)) if i not in first]
-            anchor_file = tmp / "anchors.json"
-            focal = write_anchor_file(cams, anchor_idx, anchor_file)
-        else:
-            focal = load_anchor_file(anchor_file)[1]
         # Runs interleaved (every variant, then pycolmap, run after run) so that a change of machine load during
         # the benchmark hits every method alike.
         times: dict[str, list[float]] = {label: [] for label in [*cfgs, "pycolmap"]}
         densify_times: list[float] = []
-        metrics: dict[str, dict] = {}
-        reports: dict[str, dict] = {}
-        anchor_poses = anchor_solve_poses(images_dir, anchor_file, cams, SfmConfig())
+        per_draw: dict[str, list[dict]] = {label: [] for label in [*cfgs, "pycolmap", "pycolmap_anchor"]}
+        colmap_est: dict = {}
         for r in range(runs):
+            anchor_file = tmp / f"anchors_{r}.json"
+            focal = write_anchors(anchor_file, r)
+            anchor_poses = anchor_solve_poses(images_dir, anchor_file, cams, SfmConfig())
             for k, (label, cfg) in enumerate(cfgs.items()):
                 out = tmp / f"ours_{label}_{r}"
-                est, secs, reports[label], dsecs = run_ours(images_dir, anchor_file, out, max_side, cfg, densify=k == 0)
+                est, secs, report, dsecs = run_ours(images_dir, anchor_file, out, max_side, cfg, densify=k == 0)
                 times[label].append(secs)
                 if k == 0:
                     densify_times.append(dsecs)
-                metrics[label] = {**evaluate(cams, est, X_check), **predicted_centre(reports[label], est, cams)}
-            work = tmp / f"colmap_{r}"
-            work.mkdir()
-            est, secs = run_pycolmap(images_dir, work, focal, max_side, cams[0].width_px, cams[0].height_px)
-            times["pycolmap"].append(secs)
-            metrics["pycolmap"] = evaluate(cams, align_to_gt(est, cams), X_check)
-            metrics["pycolmap_anchor"] = evaluate(cams, align_to_anchor_poses(est, anchor_poses), X_check)
+                n_anchor = sum(1 for im in report["images"] if im["status"] == "anchor")
+                m = {**evaluate(cams, est, X_check), **predicted_centre(report, est, cams), "anchors_used": n_anchor}
+                per_draw[label].append(m)
+                print(f"  draw {r} {label}: {json.dumps(m)}", flush=True)
+                if report["unregistered"]:
+                    print("  unregistered:", report["unregistered"], flush=True)
+            if r < pycolmap_runs:
+                work = tmp / f"colmap_{r}"
+                work.mkdir()
+                colmap_est, secs = run_pycolmap(images_dir, work, focal, max_side, cams[0].width_px, cams[0].height_px)
+                times["pycolmap"].append(secs)
+                gt_aligned = align_to_gt(colmap_est, cams)
+                per_draw["pycolmap"].append({**evaluate(cams, gt_aligned, X_check), "anchors_used": 0})
+            aligned = align_to_anchor_poses(colmap_est, anchor_poses)
+            per_draw["pycolmap_anchor"].append({**evaluate(cams, aligned, X_check), "anchors_used": len(anchor_poses)})
         for k, label in enumerate(cfgs):
-            report = reports[label]
-            n_anchor = sum(1 for im in report["images"] if im["status"] == "anchor")
             rows.append(
                 {
                     "set": name,
                     "method": f"ours ({label})",
-                    **metrics[label],
-                    "anchors_used": n_anchor,
+                    **mean_over_draws(per_draw[label]),
                     "secs": statistics.median(times[label]),
                     "densify_secs": statistics.median(densify_times) if k == 0 else float("nan"),
                 }
             )
             print(json.dumps(rows[-1]), flush=True)
-            if report["unregistered"]:
-                print("  unregistered:", report["unregistered"], flush=True)
         for method, key in ((PYCOLMAP_GT, "pycolmap"), (PYCOLMAP_ANCHOR, "pycolmap_anchor")):
             rows.append(
                 {
                     "set": name,
                     "method": method,
-                    **metrics[key],
-                    "anchors_used": 0 if key == "pycolmap" else len(anchor_poses),
+                    **mean_over_draws(per_draw[key]),
                     "centre_sigma": float("nan"),
                     "centre_z_rms": float("nan"),
                     "secs": statistics.median(times["pycolmap"]),
@@ -383,6 +409,14 @@ def bench_set(
     return rows
 
 
+def simulated_anchor_writer(cams: list[GtCamera]) -> Callable[[Path, int], float | None]:
+    """Anchor files with clicks simulated for every image (the first image and its nearest view first), one
+    click-noise draw per seed."""
+    first = [0, nearest_view(cams, 0)]
+    order = first + [i for i in range(len(cams)) if i not in first]
+    return lambda path, seed: write_anchor_file(cams, order, path, seed=seed)
+
+
 def synth_rows(runs: int, cfgs: dict) -> tuple[list[dict], str]:
     try:
         from constructaide.synth import ensure_site
@@ -391,12 +425,14 @@ def synth_rows(runs: int, cfgs: dict) -> tuple[list[dict], str]:
     site = ensure_site("small", 0, ROOT / ".cache" / "synth")
     cams = load_synth(site)
     X = synth_checkpoints(site, cams)
-    with tempfile.TemporaryDirectory() as tmp:
-        anchor_file = Path(tmp) / "anchors.json"
-        n_site = write_synth_anchor_file(site, cams, anchor_file)
-        rows = bench_set("synthetic site (small)", cams, site / "photos", None, runs, cfgs, anchor_file, X)
-    note = synth_note(n_site)
-    return rows, note
+    n_site = len(json.loads((site / "anchors.json").read_text())["anchors"])
+
+    def write(path: Path, seed: int) -> float | None:
+        write_synth_anchor_file(site, cams, path, seed=seed)
+        return None
+
+    rows = bench_set("synthetic site (small)", cams, site / "photos", None, runs, cfgs, write, X)
+    return rows, synth_note(n_site)
 
 
 def synth_note(n_site: int) -> str:
@@ -430,7 +466,10 @@ def write_section(rows: list[dict], notes: list[str], command: str, runs: int) -
         "## registration",
         "",
         f"Date: {dt.datetime.now(dt.UTC).strftime('%Y-%m-%d %H:%M UTC')}. Machine: {machine()}. Command: `{command}`. "
-        f"Wall time = median of {runs} run(s), interleaved (each run: every variant of ours, then pycolmap), "
+        f"Each of the {runs} run(s) uses its own click-noise draw (seed = run number); errors are means over the "
+        "draws ('centre dist min-max': the range of the per-draw mean over draws). Wall time = median over the "
+        "runs (pycolmap: its first min(runs, 3) runs; it takes no clicks), interleaved (each run: every variant "
+        "of ours, then pycolmap), "
         "end to end (features + matching + registration, run_batch(densify_params=None); pycolmap: extraction + "
         "exhaustive matching + incremental mapping, CPU). 'densify s': the densification run_batch adds by default "
         "(epipolar-guided matching for the occlusion work), timed on the default variant's reconstruction in the "
@@ -453,10 +492,11 @@ def write_section(rows: list[dict], notes: list[str], command: str, runs: int) -
         "actual centre distance over it (1 = the prediction is right on average; above 1 = errors the noise model "
         "misses).",
         "",
-        "| set | method | registered | anchors used | angle deg | centre dist | centre % | centre dist after sim. "
+        "| set | method | registered | anchors used | angle deg | centre dist | centre dist min-max | centre % "
+        "| centre dist after sim. "
         "| predicted centre sigma | error / sigma (RMS) | reproj % width | reproj median % | time s | time ratio "
         "| densify s |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     base = {r["set"]: r["secs"] for r in rows if r["method"] == PYCOLMAP_GT}
     for r in rows:
@@ -466,7 +506,8 @@ def write_section(rows: list[dict], notes: list[str], command: str, runs: int) -
         lines.append(
             f"| {r['set']} | {r['method']} | {r['registered']}/{r['total']} | {r['anchors_used']} | "
             f"{r['angle_deg']:.3f} | "
-            f"{r['centre_dist']:.4f} | {r['centre_dist_pct']:.3f} | {r['centre_dist_after_similarity']:.4f} | "
+            f"{r['centre_dist']:.4f} | {r['centre_dist_min']:.4f}-{r['centre_dist_max']:.4f} | "
+            f"{r['centre_dist_pct']:.3f} | {r['centre_dist_after_similarity']:.4f} | "
             f"{'-' if sig != sig else f'{sig:.4f}'} | {'-' if zr != zr else f'{zr:.2f}'} | "
             f"{r['reproj_pct_width']:.3f} | {r['reproj_median_pct_width']:.3f} | {r['secs']:.1f} | "
             f"{ratio:.2f} | {'-' if dens != dens else f'{dens:.1f}'} |"
@@ -581,10 +622,12 @@ def base_notes() -> list[str]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="temple only, one run")
-    ap.add_argument("--runs", type=int, default=None)
+    ap.add_argument(
+        "--runs", type=int, default=None, help="runs = click-noise draws (default 6; pycolmap runs in at most 3)"
+    )
     ap.add_argument("--no-write", action="store_true")
     args = ap.parse_args(argv)
-    runs = args.runs or (1 if args.quick else 3)
+    runs = args.runs or (1 if args.quick else 6)
     cfgs = {
         "default": SfmConfig(),
         "paper: anchors fixed, anchor k1 = 0": SfmConfig(anchor_distortion=False, release_anchors=False),
@@ -597,12 +640,15 @@ def main(argv: list[str] | None = None) -> int:
     rows: list[dict] = []
     notes = base_notes()
     if TEMPLE_DIR.exists():
-        rows += bench_set("templeSparseRing", load_temple(), TEMPLE_DIR, None, runs, cfgs)
+        cams = load_temple()
+        rows += bench_set("templeSparseRing", cams, TEMPLE_DIR, None, runs, cfgs, simulated_anchor_writer(cams))
     else:
         notes.append(f"templeSparseRing skipped: {TEMPLE_DIR} absent")
     if not args.quick:
         if FOUNTAIN_DIR.exists():
-            rows += bench_set("fountain-P11", load_fountain(), FOUNTAIN_DIR / "images", 1600, runs, cfgs)
+            cams = load_fountain()
+            writer = simulated_anchor_writer(cams)
+            rows += bench_set("fountain-P11", cams, FOUNTAIN_DIR / "images", 1600, runs, cfgs, writer)
         else:
             notes.append(f"fountain-P11 skipped: {FOUNTAIN_DIR} absent")
         srows, note = synth_rows(runs, cfgs)
