@@ -183,12 +183,13 @@ class SfmConfig:
     # clicks leave 6-14 mm).
     target_centre_sigma: float | None = None
     accuracy_max_anchors: int = 4
-    # Anchor requests go to the image with the fewest matched tracks (the paper); among images tied there (at the
-    # start every image has none) the one with the strongest link to a registered image is asked first: most
-    # verified matches x sin^2 of the relative rotation (from the pair's fundamental matrix and the focal priors),
-    # over pairs with at least this many verified matches. A wide second anchor fixes the model frame better
-    # (fountain-P11, six click-noise draws: second anchor 9 deg from the first (collection order) 7.8 mm mean centre
-    # error, 26-69 deg 5.4-6.7 mm). 0 = ties in collection order.
+    # Anchor requests go to the image with the fewest matched tracks (the paper). At the start, before anything is
+    # triangulated, every image ties at zero; the second anchor then fixes the model frame with the first, so the
+    # image with the strongest link to a registered one is asked first: most verified matches x sin^2 of the
+    # relative rotation (from the pair's fundamental matrix and the focal priors), over pairs with at least this
+    # many verified matches. fountain-P11, six click-noise draws: second anchor 9 deg from the first (collection
+    # order) 7.8 mm mean centre error, 26-69 deg 5.4-6.7 mm (this rule: 47 deg, 6.4 mm). Later ties keep collection
+    # order (templeSparseRing, 18 draws: breaking them the same way cost 0.2 mm). 0 = collection order throughout.
     anchor_request_min_shared_matches: int = 100
 
 
@@ -976,12 +977,14 @@ def relative_rotation_deg(recon: Reconstruction, a: int, b: int, cfg: SfmConfig)
 
 
 def anchor_request_order(recon: Reconstruction, unreg: list[int], counts: dict[int, int], cfg: SfmConfig) -> list[int]:
-    """Unregistered images in the order anchor clicks are asked for: fewest matched tracks first (the paper); ties
-    broken by the triangulation strength of the image's links to registered images, most first: over registered
-    images sharing >= ``cfg.anchor_request_min_shared_matches`` verified matches, the largest matches x sin^2 of
-    the relative rotation (a point's depth precision from two rays grows with the sine of their angle); images
-    without such a link last, in collection order."""
-    if cfg.anchor_request_min_shared_matches <= 0:
+    """Unregistered images in the order anchor clicks are asked for: fewest matched tracks first (the paper). While
+    nothing is triangulated yet (every image ties at zero: the second anchor, which fixes the model frame with the
+    first), the image most strongly linked to a registered image goes first: over registered images sharing
+    >= ``cfg.anchor_request_min_shared_matches`` verified matches, the largest matches x sin^2 of the relative
+    rotation (a point's depth precision from two rays grows with the sine of their angle); images without such a
+    link last. Other ties in collection order."""
+    bootstrap = not np.isfinite(recon.points).all(axis=1).any()
+    if cfg.anchor_request_min_shared_matches <= 0 or not bootstrap:
         return sorted(unreg, key=lambda i: counts[i])
     registered = recon.registered_indices()
     strength: dict[int, float] = {}
