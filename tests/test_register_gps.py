@@ -200,7 +200,9 @@ def test_automatic_pose_checked_against_up_front_clicks():
     rng = np.random.default_rng(31)
     pts = scene_points(np.random.default_rng(21))
     poses = arc_cameras(5)
-    cfg = sfm.SfmConfig(focal_px=F, release_anchors=False)
+    # Anchor requests in collection order (view1 refused, view2 answered) so that view3 is reached by PnP and its
+    # up-front clicks only check it; the default would ask the widest view first and take view3's clicks at once.
+    cfg = sfm.SfmConfig(focal_px=F, release_anchors=False, anchor_request_min_shared_matches=0)
     agree = {"view3": clicks_for(rng, pts, poses[3], n=10)}
     recon, _, _, _ = _arc_run({}, cfg, up_front=agree)
     im = recon.images[recon.index("view3")]
@@ -214,7 +216,9 @@ def test_automatic_pose_checked_against_up_front_clicks():
     assert im.status == "anchor" and "re-registered from its clicks" in im.message, im.message
     assert np.linalg.norm(im.world_from_camera[:3, 3] - shifted[:3, 3]) < 0.5
     # Off: the automatic pose stays.
-    off = sfm.SfmConfig(focal_px=F, release_anchors=False, check_auto_with_clicks=False)
+    off = sfm.SfmConfig(
+        focal_px=F, release_anchors=False, check_auto_with_clicks=False, anchor_request_min_shared_matches=0
+    )
     recon, _, _, _ = _arc_run({}, off, up_front={"view3": (px, world)})
     assert recon.images[recon.index("view3")].status == "auto"
 
