@@ -108,8 +108,9 @@ class SfmConfig:
     # The final release also tries one focal and one k1, k2 per camera group (images with the same size and focal
     # prior, as for the principal point: one physical camera at one zoom) and keeps them shared unless the per-image
     # intrinsics fit much better (likelihood ratio > 9 per parameter, see release_anchors_if_significant). Off by
-    # default: on fountain-P11 (one calibrated camera) over six click-noise draws the mean centre error was 7.98 mm
-    # shared vs 7.81 mm per image (draws ranged 5.8-9.6 mm either way), temple 0.31 vs 0.29 deg: no gain.
+    # default: on fountain-P11 (one calibrated camera) over six click-noise draws (earlier seeding and second anchor)
+    # the mean centre error was 7.98 mm shared vs 7.81 mm per image (draws ranged 5.8-9.6 mm either way), temple
+    # 0.31 vs 0.29 deg: no gain.
     # ``share_intrinsics`` shares them in every adjustment (no test).
     release_shared_intrinsics: bool = False
     share_intrinsics: bool = False
@@ -126,7 +127,7 @@ class SfmConfig:
     release_min_observations: int = 300
     # Points per image in that final adjustment (its longest tracks; 0 = every triangulated point). The incremental
     # adjustments keep ba_points_per_image for speed; the final one uses all (fountain-P11: centre error over six
-    # click-noise draws 8.8 -> 7.8 mm mean).
+    # click-noise draws, earlier seeding and second anchor, 8.8 -> 7.8 mm mean).
     release_points_per_image: int = 0
     loss_scale_px: float = 2.0
     ba_max_nfev: int = 40
