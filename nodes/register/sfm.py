@@ -968,7 +968,9 @@ def relative_rotation_deg(recon: Reconstruction, a: int, b: int, cfg: SfmConfig)
     K, xy = [], []
     for i, col in ((a, 0), (b, 1)):
         im = recon.images[i]
-        intr = im.intrinsics or cam.centered_intrinsics(im.width_px, im.height_px, focal_prior(im, cfg))
+        intr = im.intrinsics
+        if intr is None:
+            intr = cam.centered_intrinsics(im.width_px, im.height_px, focal_prior(im, cfg))
         Ki = cam.K_matrix(intr)
         px = im.features.keypoints_px[m[:, col]].astype(np.float64)
         K.append(Ki)
