@@ -1459,8 +1459,8 @@ def release_anchors_if_significant(recon: Reconstruction, cfg: SfmConfig) -> flo
     ``(S0 - S1) / (k s^2) > 9`` with k added parameters and s^2 = S1 / m the noise variance per residual. Returns
     that statistic (NaN when there is nothing to release)."""
     reg = recon.registered_indices()
-    anchors = [i for i in reg if recon.images[i].status == "anchor"]
-    tracked = [i for i in anchors if matched_track_count(recon, i) >= cfg.release_min_observations]
+    held = _held_anchors(recon, cfg)
+    tracked = [i for i in reg if recon.images[i].status == "anchor" and i not in held]
     if not tracked or len(reg) < 2:
         return float("nan")
     n_grp = len(set(principal_point_groups(recon, reg).tolist())) if cfg.share_principal_point else len(reg)
@@ -1468,7 +1468,6 @@ def release_anchors_if_significant(recon: Reconstruction, cfg: SfmConfig) -> flo
     # Exact steps (Schur complement): the shared principal point and the anchors' rotations form a soft mode that
     # capped, inexact LSMR steps barely move (fountain-P11: 2 px of a 22 px offset found with the cap, 20 without).
     use_pp, use_asp = True, bool(cfg.release_aspect)
-    held = set(anchors) - set(tracked)
 
     def adjust(share: bool = False) -> dict[str, float]:
         release = {
@@ -1529,6 +1528,16 @@ def release_anchors_if_significant(recon: Reconstruction, cfg: SfmConfig) -> flo
     return float(score)
 
 
+def _held_anchors(recon: Reconstruction, cfg: SfmConfig) -> set[int]:
+    """Registered anchors observing fewer than ``cfg.release_min_observations`` triangulated points: the final
+    adjustment keeps their poses fixed (their tracks cannot check their clicks)."""
+    return {
+        i
+        for i in recon.registered_indices()
+        if recon.images[i].status == "anchor" and matched_track_count(recon, i) < cfg.release_min_observations
+    }
+
+
 def add_clicks_for_accuracy(
     recon: Reconstruction, cfg: SfmConfig, clicks_for: Callable[[int, str], Clicks | None]
 ) -> tuple[list[str], tuple[int, str] | None]:
@@ -1573,12 +1582,7 @@ def add_clicks_for_accuracy(
         if got < 0:
             return added, ((todo[0], reason) if todo else None)
         added.append(recon.images[got].name)
-        held = {
-            i
-            for i in recon.registered_indices()
-            if recon.images[i].status == "anchor" and matched_track_count(recon, i) < cfg.release_min_observations
-        }
-        bundle(recon, release_cfg, fixed_anchors=held, covariance=True)
+        bundle(recon, release_cfg, fixed_anchors=_held_anchors(recon, cfg), covariance=True)
     return added, None
 
 
@@ -1694,6 +1698,14 @@ def reconstruct(
         if progress is not None:
             progress(stage, len(recon.registered_indices()))
 
+    def clicks_for(i: int, reason: str, num_tracks: int) -> Clicks | None:
+        """Clicks for image ``i``: given up front (the anchor file's), else asked for (None: none to be had)."""
+        name = recon.images[i].name
+        clicks = pending.pop(name, None)
+        if clicks is None and request_anchor is not None:
+            clicks = request_anchor(name, reason, num_tracks)
+        return clicks
+
     def recheck_with_clicks(u: int) -> bool:
         """Image ``u`` was just registered automatically: when clicks for it are at hand (given up front, not
         answers to requests) and the pose puts them further than ``click_check_max_frac`` of the width (median)
@@ -1796,9 +1808,7 @@ def reconstruct(
             if u in failed_pnp and recon.images[u].message:
                 reason = recon.images[u].message.removeprefix("needs anchor clicks: ")
             recon.needs_anchor = [r for r in recon.needs_anchor if r[0] != name] + [(name, reason, counts[u])]
-            clicks = pending.pop(name, None)
-            if clicks is None and request_anchor is not None:
-                clicks = request_anchor(name, reason, counts[u])
+            clicks = clicks_for(u, reason, counts[u])
             if clicks is None:
                 recon.images[u].message = f"needs anchor clicks: {reason}"
                 continue
@@ -1818,15 +1828,9 @@ def reconstruct(
     if cfg.fix_anchor_poses and cfg.release_anchors:
         recon.anchor_release_score = release_anchors_if_significant(recon, cfg)
         recon.anchors_released = bool(recon.anchor_release_score > ANCHOR_RELEASE_THRESHOLD)
-
-        def clicks_for(i: int, reason: str) -> Clicks | None:
-            name = recon.images[i].name
-            clicks = pending.pop(name, None)
-            if clicks is None and request_anchor is not None:
-                clicks = request_anchor(name, reason, matched_track_count(recon, i))
-            return clicks
-
-        recon.accuracy_anchors, unmet = add_clicks_for_accuracy(recon, cfg, clicks_for)
+        recon.accuracy_anchors, unmet = add_clicks_for_accuracy(
+            recon, cfg, lambda i, reason: clicks_for(i, reason, matched_track_count(recon, i))
+        )
         for name in recon.accuracy_anchors:
             note(f"anchor {name} (accuracy)")
         if unmet is not None:
