@@ -136,3 +136,29 @@ def test_watched_photos_not_republished_after_restart(tmp_path: Path) -> None:
             got = photos.wait(count=2, timeout=30.0)
         assert [m.filename for _, m in got] == ["a.jpg", "b.jpg"]
         assert len(photos.items) == 2
+
+
+def test_model_file_reloaded_only_once_it_stops_changing(tmp_path: Path) -> None:
+    """A model file still being written (size or mtime changed since the previous poll) is not read; once its
+    signature holds for a poll it is, and an unchanged file never is."""
+    from nodes.ingest.node import settled_change
+
+    model = tmp_path / "model.ifc"
+    text = BSI.read_text()
+    model.write_text(text)
+
+    def sig() -> tuple[tuple[int, int], ...]:
+        st = model.stat()
+        return ((st.st_size, st.st_mtime_ns),)
+
+    loaded = sig()
+    assert not settled_change(sig(), loaded, loaded)  # nothing changed
+    model.write_text(text[: len(text) // 3])  # a save in progress
+    first = sig()
+    assert not settled_change(first, loaded, loaded)
+    with model.open("a") as f:  # ... still being written at the next poll
+        f.write(text[len(text) // 3 :])
+    os.utime(model, ns=(first[0][1] + 1_000_000, first[0][1] + 1_000_000))
+    second = sig()
+    assert second != first and not settled_change(second, loaded, first)
+    assert settled_change(sig(), loaded, second)  # the same on two polls: load it

@@ -3,8 +3,9 @@ and photos found in a watched folder (``Photo``).
 
 One background thread loads the configured IFC files and schedule, publishes the model
 (latched, so late joiners get it), then polls the watched folder and the model files every
-``poll_secs``. Problems found there become ``NodeError`` messages; the node keeps the last good
-model and keeps watching. Photo files are never moved or deleted.
+``poll_secs``; a changed model file is loaded once its size and mtime were the same on two consecutive polls
+(a save or copy in progress is not read half-written). Problems found there become ``NodeError`` messages; the
+node keeps the last good model and keeps watching. Photo files are never moved or deleted.
 
 Cameras with their own software either publish ``Photo`` messages on ``keys.PHOTO`` or put the
 raw JPEG/PNG bytes on :data:`UPLOAD` (``constructaide/{site}/upload/{camera}``); the node turns
@@ -67,6 +68,15 @@ class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=Tr
     occlude node hides elements below it; None = unknown (the occlude node then estimates it)."""
 
 
+Signature = tuple[tuple[int, int], ...]
+
+
+def settled_change(current: Signature, loaded: Signature | None, previous: Signature | None) -> bool:
+    """Whether to reload the model files: their (size, mtime_ns) per file differs from what was loaded and was the
+    same on the previous poll (a file still being written changes between polls)."""
+    return current != loaded and current == previous
+
+
 class IngestNode:
     """Owns the current site model revision and the folder watcher."""
 
@@ -75,7 +85,8 @@ class IngestNode:
         self.ctx = ctx
         self.site_model: SiteModel | None = None
         self.revision = ""
-        self._model_sig: tuple[tuple[int, int], ...] | None = None
+        self._model_sig: Signature | None = None
+        self._changing_sig: Signature | None = None  # the model files' signature on the previous poll
         self._lock = threading.Lock()
         self.watcher = FolderWatcher(config.watch_dir) if config.watch_dir else None
         self.seen = SeenHashes(config.seen_capacity, self._seen_path())
@@ -102,7 +113,7 @@ class IngestNode:
     def _model_paths(self) -> list[Path]:
         return [Path(p) for p in self.config.ifc] + ([Path(self.config.schedule)] if self.config.schedule else [])
 
-    def _signature(self) -> tuple[tuple[int, int], ...]:
+    def _signature(self) -> Signature:
         out = []
         for p in self._model_paths():
             try:
@@ -238,8 +249,11 @@ class IngestNode:
     def _loop(self) -> None:
         self._try_reload()
         while not self._stop.wait(self.config.poll_secs):
-            if self.config.ifc and self.config.watch_model_files and self._signature() != self._model_sig:
-                self._try_reload()
+            if self.config.ifc and self.config.watch_model_files:
+                sig = self._signature()
+                if settled_change(sig, self._model_sig, self._changing_sig):
+                    self._try_reload()
+                self._changing_sig = sig
             try:
                 self.poll_photos()
             except Exception as exc:  # never let the watcher thread die
