@@ -1,8 +1,8 @@
 """Registration benchmark: model-assisted SfM (``constructaide register``) vs. pycolmap on ground-truth sets.
 
-Sets: Middlebury templeSparseRing (16 x 640x480), Strecha fountain-P11 (11 x 3072x2048; features detected at
-1600 px longest side by both methods, everything reported at full resolution), and the synthetic site when
-``constructaide.synth`` provides it.
+Sets: Middlebury templeSparseRing (16 x 640x480), Strecha fountain-P11 (11 x 3072x2048; both methods detect
+features at full resolution: our default --max-side 3200 and pycolmap's max_image_size 3200), and the synthetic
+site when ``constructaide.synth`` provides it.
 
 Anchor clicks are simulated from ground truth (see ``bench/_datasets.py``): for each anchor image, SIFT matches
 with its nearest ground-truth view are triangulated with the ground-truth cameras; 12 of those points, spread
@@ -67,6 +67,7 @@ from constructaide import camera as cam  # noqa: E402
 from nodes.register import sfm  # noqa: E402
 from nodes.register.batch import (  # noqa: E402
     DEFAULT_DENSIFY,
+    DEFAULT_MAX_SIDE_PX,
     densify_reconstruction,
     exif_capture_time_ns,
     exif_focal_px,
@@ -350,7 +351,8 @@ def bench_set(
     takes no clicks) runs in the first ``pycolmap_runs`` runs only; its anchor-similarity row uses each draw's
     anchor poses."""
     if X_check is None:
-        X_check = checkpoints(cams, max_side_px=max_side or 1600)
+        # Evaluation fixture: the same checkpoints whatever size the methods detect features at.
+        X_check = checkpoints(cams)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -601,41 +603,51 @@ def base_notes() -> list[str]:
         "(0.17 deg at 0.05). The maximum-likelihood weight (the features' noise over the clicks': 0.58 px / 1 px) "
         "gives centre 7.56 mm, angle 0.061 -> 0.090 deg, reprojection 0.044 -> 0.047 % (six-draw means): the "
         "features carry errors beyond their noise that the clicks' weight keeps in check.",
-        "Second anchor (SfmConfig.anchor_request_min_shared_matches): at the start every image ties at zero "
-        "matched tracks, and the paper's rule (the fewest) does not say which to ask; the collection order gave "
-        "fountain-P11's 0001.jpg, 9 deg from the first anchor. Now the image with the most verified matches x "
-        "sin^2 of the relative rotation to a registered image is asked (0005.jpg, 47 deg; temple and the synthetic "
-        "site get the same anchors as before). fountain-P11 over 18 click-noise draws (draws 0-17; section "
-        "'registration (selected draws, sets or variants)' below, `python bench/registration.py --sets fountain "
-        "--runs 18 --variants 'default,collection order'`): this rule 6.81 mm (0.073 %, draws 4.2-11.8 mm), "
-        "0.059 deg, reprojection 0.019 % against the collection order's 8.26 mm (0.085 %), 0.062 deg, 0.058 % and "
-        "pycolmap's 7.16 mm (0.076 %), 0.388 deg, 0.372 %; predicted centre sigma 5.5 vs 9.2 mm. The six draws of "
-        "the table above are among the less favourable ones for this rule (7.40 vs 6.58 mm); the standard error "
-        "of the 18-draw mean is 0.46 mm, so ours vs pycolmap on the centre is level within the noise, ahead on the "
-        "mean. Second anchor fixed by hand (earlier seeding, six draws each): 0002 6.4 mm, 0003 5.4, 0004 6.7, "
-        "0005 6.4, 0006 5.8, 0007 6.6 mm. Breaking later ties (templeSparseRing's third request) the same way "
-        "cost 0.2 mm over 18 temple draws, so they keep collection order.",
+        "Second anchor (SfmConfig.anchor_request_min_shared_matches): at the start every image ties at zero matched "
+        "tracks, and the paper's rule (the fewest) does not say which to ask; the collection order gave "
+        "fountain-P11's 0001.jpg, 9 deg from the first anchor. Now the image with the most verified matches x sin^2 "
+        "of the relative rotation to a registered image is asked (0005.jpg, 47 deg; temple and the synthetic site "
+        "get the same anchors as before). fountain-P11 over 18 click-noise draws (draws 0-17, features at 1600 px; "
+        "`python bench/registration.py --sets fountain --runs 18 --variants 'default,collection order'` at commit "
+        "c4fc556): this rule 6.81 mm (0.073 %, draws 4.2-11.8 mm), 0.059 deg, reprojection 0.019 % against the "
+        "collection order's 8.26 mm (0.085 %), 0.062 deg, 0.058 % and pycolmap's 7.16 mm (0.076 %), 0.388 deg, "
+        "0.372 %; predicted centre sigma 5.5 vs 9.2 mm. (At 1600 px the standard error of the 18-draw mean, 0.46 "
+        "mm, exceeded the gap to pycolmap; see 'Detection size' for the figures at full resolution.) Second anchor "
+        "fixed by hand (earlier seeding, six draws each): 0002 6.4 mm, 0003 5.4, 0004 6.7, 0005 6.4, 0006 5.8, 0007 "
+        "6.6 mm. Breaking later ties (templeSparseRing's third request) the same way cost 0.2 mm over 18 temple "
+        "draws, so they keep collection order.",
         "What the clicks allow (the predicted-sigma columns): the final adjustment's camera-centre covariance "
         "(sandwich estimate, the features' and the clicks' noise each estimated from their own residuals; on a "
         "seeded synthetic scene its mean |error|^2 / trace over 150 noise draws is 1.01) says how well 24 clicks "
         "of 1 px and the features fix each centre: fountain-P11 5.6 mm mean over the six draws against an actual "
-        "7.4 mm (error / sigma RMS 1.42), temple 1.8 vs 2.5 mm (1.49). The excess is input noise the covariance "
+        "6.1 mm (error / sigma RMS 1.17; 7.4 mm and 1.42 with features detected at 1600 px), temple 1.8 vs 2.5 mm "
+        "(1.49). The excess is input noise the covariance "
         "does not model: it takes the clicked model points as exact, while the simulated ones are triangulated "
         "from the ground-truth cameras over the nearest view (fountain: 1.6 m baseline at ~9 m, 0.5 px matches: "
         "~9 mm median depth error per point, 6-18 mm for 80 % of them); with ground-truth poses and intrinsics the "
         "24 clicks alone already put the frame 4.3 mm off. So the fountain centre figure is what this input "
-        "allows, not a defect of the solve; pycolmap's 7.1 mm has no such term (its similarity is fitted to the 11 "
-        "ground-truth centres it is scored on), and under that same similarity ours is 3.1 mm. A BIM's points "
+        "allows, not a defect of the solve; pycolmap's 7.0 mm has no such term (its similarity is fitted to the 11 "
+        "ground-truth centres it is scored on), and under that same similarity ours is 2.6 mm. A BIM's points "
         "are exact in the model, but real sites differ from their model by centimetres, so real clicks carry "
         "such errors too.",
         "'accuracy target 5 mm' (SfmConfig(target_centre_sigma=0.005), batch --target-centre-sigma): after the "
         "release, while some centre's predicted sigma exceeds 5 mm the least certain image without clicks is "
         "clicked too (here from the anchor file, as a user answering the request would; at most 4) and the final "
-        "adjustment redone. fountain-P11: 2-4 more photos clicked over the six draws (4-6 anchors), centre 6.0 mm "
-        "(0.062 %), angle 0.042 deg, reprojection 0.014 % against pycolmap's 7.1 mm, 0.39 deg, 0.37 %. Temple "
+        "adjustment redone. fountain-P11: 2-4 more photos clicked over the six draws (4-6 anchors), centre 5.4 mm "
+        "(0.056 %), angle 0.039 deg, reprojection 0.015 % against pycolmap's 7.0 mm, 0.38 deg, 0.37 %. Temple "
         "(sigma 1.8 mm) and the synthetic site (anchors not released) are unchanged.",
-        "Both methods detect SIFT at 1600 px longest side on fountain (pycolmap max_image_size=1600); ours keeps "
-        "the 4000 strongest features per image (SIFT contrast threshold 0.01), pycolmap its default 8192.",
+        "Detection size: both methods detect SIFT on fountain-P11 at full resolution (3072 px; our default "
+        "--max-side 3200 = pycolmap's default max_image_size); ours keeps the 4000 strongest features per image "
+        "(SIFT contrast threshold 0.01), pycolmap its default 8192. Until 2026-12-02 both detected at 1600 px "
+        "(then our default): over click draws 0-5 our centre error went 7.40 -> 6.13 mm with full resolution "
+        "(after the ground-truth similarity 3.14 -> 2.6 mm), while pycolmap stays at 7.0-7.1 mm (one run each way: "
+        "7.1 mm at 1600 px, 7.03 mm at full resolution); ours takes ~2x the time (~19 s). Over 18 draws at full "
+        "resolution (draws 0-17; section 'registration (selected draws, sets or variants)' below, `python "
+        "bench/registration.py --sets fountain --runs 18 --variants default`): ours 6.29 mm (0.067 %, standard "
+        "error 0.46 mm, draws 3.9-9.7 mm, median 5.7 mm, below pycolmap in 10 of 18), 0.050 deg, reprojection "
+        "0.019 % against pycolmap's 6.96 mm (0.074 %), 0.38 deg, 0.37 %. Keeping 8000 features at "
+        "full resolution: 6.48 mm, ~28 s, so 4000 stay. The figures of the 'fountain-P11 centre distance', "
+        "'Tried' and 'Second anchor' notes were measured at 1600 px.",
     ]
 
 
@@ -700,7 +712,8 @@ def main(argv: list[str] | None = None) -> int:
             cams = load_fountain()
             writer = simulated_anchor_writer(cams)
             images = FOUNTAIN_DIR / "images"
-            rows += bench_set("fountain-P11", cams, images, 1600, runs, cfgs, writer, first_draw=args.first_draw)
+            first = args.first_draw
+            rows += bench_set("fountain-P11", cams, images, DEFAULT_MAX_SIDE_PX, runs, cfgs, writer, first_draw=first)
         else:
             notes.append(f"fountain-P11 skipped: {FOUNTAIN_DIR} absent")
     if "synthetic" in sets:
