@@ -636,20 +636,20 @@ def base_notes() -> list[str]:
         "adjustment redone. fountain-P11: 2-4 more photos clicked over the six draws (4-6 anchors), centre 5.4 mm "
         "(0.056 %), angle 0.039 deg, reprojection 0.015 % against pycolmap's 7.0 mm, 0.38 deg, 0.37 %. Temple "
         "(sigma 1.8 mm) and the synthetic site (anchors not released) are unchanged.",
-        "Detection size: both methods detect SIFT on fountain-P11 at full resolution (3072 px; our default "
-        "--max-side 3200 = pycolmap's default max_image_size); ours keeps the 4000 strongest features per image "
-        "(SIFT contrast threshold 0.01), pycolmap its default 8192. Until 2026-12-02 both detected at 1600 px "
-        "(then our default): over click draws 0-5 our centre error went 7.40 -> 6.13 mm with full resolution "
-        "(after the ground-truth similarity 3.14 -> 2.6 mm), while pycolmap stays at 7.0-7.1 mm (one run each way: "
-        "7.1 mm at 1600 px, 7.03 mm at full resolution); ours takes ~2x the time (~19 s). Over 18 draws at full "
-        "resolution (draws 0-17; section 'registration (selected draws, sets or variants)' below, `python "
-        "bench/registration.py --sets fountain --runs 18 --variants default`): ours 6.29 mm (0.067 %, standard "
-        "error 0.46 mm, draws 3.9-9.7 mm, median 5.7 mm, below pycolmap in 10 of 18), 0.050 deg, reprojection "
-        "0.019 % against pycolmap's 6.96 mm (0.074 %), 0.38 deg, 0.37 %. Keeping 8000 features at "
-        "full resolution: 6.48 mm, ~28 s, so 4000 stay. One shared focal and k1, k2 per camera in the release "
-        "(release_shared_intrinsics) at full resolution, draws 0-5: 6.01 mm, 0.049 deg (2.25 mm after the "
-        "similarity): within the noise of the default's 6.13 mm, so it stays off. The figures of the "
-        "'fountain-P11 centre distance', 'Tried' and 'Second anchor' notes were measured at 1600 px.",
+        "Detection size: both methods detect SIFT on fountain-P11 at full resolution (3072 px; our default --max-side "
+        "3200 = pycolmap's default max_image_size); ours keeps the 4000 strongest features per image (SIFT contrast "
+        "threshold 0.01), pycolmap its default 8192. Until 2026-12-02 both detected at 1600 px (then our default): "
+        "over click draws 0-5 our centre error went 7.40 -> 6.13 mm with full resolution (after the ground-truth "
+        "similarity 3.14 -> 2.6 mm), while pycolmap stays at 7.0-7.1 mm (one run each way: 7.1 mm at 1600 px, 7.03 mm "
+        "at full resolution); ours takes ~2x the time (~19 s). Over 36 draws at full resolution (draws 0-35; section "
+        "'registration (selected draws, sets or variants)' below, `python bench/registration.py --sets fountain "
+        "--runs 36 --variants default`): ours 5.81 mm (0.062 %, standard error 0.28 mm, draws 3.5-9.7 mm, median 5.5 "
+        "mm, below pycolmap in 26 of 36; draws 0-17 alone 6.29 mm), 0.050 deg, reprojection 0.018 % against "
+        "pycolmap's 6.99 mm (0.074 %), 0.38 deg, 0.37 %. Keeping 8000 features at full resolution: 6.48 mm, ~28 s, so "
+        "4000 stay. One shared focal and k1, k2 per camera in the release (release_shared_intrinsics) at full "
+        "resolution, draws 0-5: 6.01 mm, 0.049 deg (2.25 mm after the similarity): within the noise of the default's "
+        "6.13 mm, so it stays off. The figures of the 'fountain-P11 centre distance', 'Tried' and 'Second anchor' "
+        "notes were measured at 1600 px.",
     ]
 
 
