@@ -188,11 +188,11 @@ class SfmConfig:
     # triangulated, every image ties at zero; the second anchor then fixes the model frame with the first, so the
     # image with the strongest link to a registered one is asked first: most verified matches x sin^2 of the
     # relative rotation (from the pair's fundamental matrix and the focal priors), over pairs with at least this
-    # many verified matches. fountain-P11 over 18 click-noise draws, second anchor 47 deg from the first (this
-    # rule) vs 9 deg (collection order): centre 6.8 vs 8.3 mm, checkpoint reprojection 0.019 vs 0.058 % of the
-    # width, angle 0.059 vs 0.062 deg (bench/registration.py --sets fountain --runs 18 --variants
-    # 'default,collection order'). Later ties keep collection order (templeSparseRing, 18 draws: breaking them
-    # the same way cost 0.2 mm). 0 = collection order throughout.
+    # many verified matches. fountain-P11 over 18 click-noise draws (features at 1600 px), second anchor 47 deg
+    # from the first (this rule) vs 9 deg (collection order): centre 6.8 vs 8.3 mm, checkpoint reprojection
+    # 0.019 vs 0.058 % of the width, angle 0.059 vs 0.062 deg (bench/registration.py --sets fountain --runs 18
+    # --variants 'default,collection order'). Later ties keep collection order (templeSparseRing, 18 draws:
+    # breaking them the same way cost 0.2 mm). 0 = collection order throughout.
     anchor_request_min_shared_matches: int = 100
 
 
