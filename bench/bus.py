@@ -76,7 +76,7 @@ def main() -> int:
             if recorder:
                 procs.append(
                     subprocess.Popen(
-                        [sys.executable, "-m", "constructaide.cli", "node", "recorder", "--site", SITE]
+                        [sys.executable, "-m", "constructaide.app.cli", "node", "recorder", "--site", SITE]
                         + ["--hub-port", str(port), "--set", f"directory='{tmp}'"],
                         stdout=subprocess.DEVNULL,
                     )

@@ -31,7 +31,7 @@ def _jpeg_with_exif(path: Path, seed: int) -> None:
 
 
 def _cli(*args: str) -> list[str]:
-    return [sys.executable, "-m", "constructaide.cli", *args]
+    return [sys.executable, "-m", "constructaide.app.cli", *args]
 
 
 def test_run_config_push_and_recording(tmp_path: Path, hub_port: int) -> None:

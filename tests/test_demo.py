@@ -24,7 +24,7 @@ def _run_demo(out: Path, *flags: str, with_stdout: bool = False):
     ``with_stdout`` the printed output too."""
     env = {**os.environ, "CONSTRUCTAIDE_CACHE": str(CACHE)}
     proc = subprocess.run(
-        [sys.executable, "-m", "constructaide.cli", "demo", "--size", "small", "--out", str(out), *flags],
+        [sys.executable, "-m", "constructaide.app.cli", "demo", "--size", "small", "--out", str(out), *flags],
         cwd=ROOT,
         env=env,
         capture_output=True,

@@ -104,7 +104,7 @@ def test_router_joins_nodes_across_sessions_and_status_lists_them(hub_port: int)
     site = "rtr"
     endpoint = f"tcp/127.0.0.1:{hub_port}"
     router = subprocess.Popen(
-        [sys.executable, "-m", "constructaide.cli", "router", "--listen", endpoint],
+        [sys.executable, "-m", "constructaide.app.cli", "router", "--listen", endpoint],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )
@@ -120,7 +120,7 @@ def test_router_joins_nodes_across_sessions_and_status_lists_them(hub_port: int)
             [
                 sys.executable,
                 "-m",
-                "constructaide.cli",
+                "constructaide.app.cli",
                 "status",
                 "--site",
                 site,

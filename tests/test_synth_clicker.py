@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from constructaide import camera as cam
-from constructaide.demo import _finished, _SimulatedUser
+from constructaide.app.demo import _finished, _SimulatedUser
 from constructaide.runtime.local import LocalBus
 from constructaide.synth.clicker import simulated_clicks
 from constructaide.synth.truth import load_ids, true_camera

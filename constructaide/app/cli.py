@@ -126,12 +126,12 @@ def _router(argv: list[str]) -> int:
 
 
 COMMANDS: dict[str, Callable[[list[str]], int]] = {
-    "demo": _delegate("constructaide.demo", "main"),
-    "run": _delegate("constructaide.launch", "run_main"),
+    "demo": _delegate("constructaide.app.demo", "main"),
+    "run": _delegate("constructaide.app.launch", "run_main"),
     "node": _node,
     "router": _router,
     "status": _status,
-    "push": _delegate("constructaide.push", "main"),
+    "push": _delegate("constructaide.app.push", "main"),
     "replay": _delegate("nodes.recorder.cli", "replay_main"),
     "recording": _recording,
     "synth": _delegate("constructaide.synth.cli", "main"),

@@ -83,7 +83,7 @@ class Launcher:
     def start(
         self, node: str, config: Path | None = None, section: str | None = None, sets: list[str] | None = None
     ) -> NodeProcess:
-        argv = [sys.executable, "-m", "constructaide.cli", "node", node, "--site", self.site, *self.bus_argv()]
+        argv = [sys.executable, "-m", "constructaide.app.cli", "node", node, "--site", self.site, *self.bus_argv()]
         if config is not None:
             argv += ["--config", str(config)]
             if section:

@@ -26,8 +26,8 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from constructaide.app.launch import Launcher
 from constructaide.errors import UserError
-from constructaide.launch import Launcher
 from constructaide.runtime import BusConfig, free_port, open_bus
 from schemas import codec, keys
 from schemas.messages import AnchorClicks, AnchorPoint, NeedsAnchor, OcclusionMask, Overlay, Photo
@@ -176,7 +176,7 @@ def _latest_status(items: list) -> dict[str, str]:
 
 
 def main(argv: list[str]) -> int:
-    from constructaide.cli import cache_dir
+    from constructaide.app.cli import cache_dir
     from constructaide.synth import ensure_site
     from nodes.ingest.photos import photo_from_file
 

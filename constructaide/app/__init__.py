@@ -1,0 +1,1 @@
+"""Entry points (CLI, demo, launcher, push): the only part of ``constructaide`` that may import ``nodes``."""
