@@ -37,8 +37,8 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from constructaide import camera as cam
+from constructaide.anchorsolve import AnchorSolution, DegenerateAnchors, solve_anchor
 from constructaide.geo import EARTH_RADIUS_M, gps_distance_residuals_m, horizontal_distance_m
-from nodes.register.anchors import AnchorSolution, DegenerateAnchors, solve_anchor
 from nodes.register.bundle import BundleOptions, BundleProblem, bundle_adjust, single_thread_blas
 from nodes.register.features import (
     Features,
