@@ -64,7 +64,8 @@ from bench._datasets import (  # noqa: E402
     synth_checkpoints,
 )
 from constructaide import camera as cam  # noqa: E402
-from nodes.register import sfm  # noqa: E402
+from nodes.register import mapper  # noqa: E402
+from nodes.register import recon as rc  # noqa: E402
 from nodes.register.batch import (  # noqa: E402
     DEFAULT_DENSIFY,
     DEFAULT_MAX_SIDE_PX,
@@ -75,8 +76,8 @@ from nodes.register.batch import (  # noqa: E402
     load_anchor_file,
     run_batch,
 )
+from nodes.register.config import MapperConfig  # noqa: E402
 from nodes.register.features import Features  # noqa: E402
-from nodes.register.sfm import SfmConfig  # noqa: E402
 from schemas.messages import Intrinsics  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -172,7 +173,7 @@ def predicted_centre(report: dict, est: dict, cams: list[GtCamera]) -> dict[str,
 
 
 def run_ours(
-    images_dir: Path, anchor_file: Path, out_dir: Path, max_side: int | None, cfg: SfmConfig, densify: bool = False
+    images_dir: Path, anchor_file: Path, out_dir: Path, max_side: int | None, cfg: MapperConfig, densify: bool = False
 ):
     """Our batch registration timed without densification; with ``densify`` the default densification is then run
     on the result and timed on its own (what the default ``run_batch`` does after registering). Returns
@@ -193,21 +194,21 @@ def run_ours(
 
 
 def anchor_solve_poses(
-    images_dir: Path, anchor_file: Path, cams: list[GtCamera], cfg: SfmConfig, count: int = 2
+    images_dir: Path, anchor_file: Path, cams: list[GtCamera], cfg: MapperConfig, count: int = 2
 ) -> dict[str, np.ndarray]:
     """world_from_camera of the anchor file's first ``count`` images as our anchor solve gets them from their clicks
-    (``sfm.register_anchor``: the file's focal prior, else the EXIF one, with the configured sigmas)."""
+    (``mapper.register_anchor``: the file's focal prior, else the EXIF one, with the configured sigmas)."""
     clicks, file_focal, _ = load_anchor_file(anchor_file)
     if file_focal is not None:
-        cfg = SfmConfig(**{**cfg.__dict__, "focal_px": file_focal})
+        cfg = MapperConfig(**{**cfg.__dict__, "focal_px": file_focal})
     size = {c.name: (c.width_px, c.height_px) for c in cams}
     out = {}
     for name in list(clicks)[:count]:
         w, h = size[name]
-        recon = sfm.Reconstruction()
+        recon = rc.Reconstruction()
         empty = Features(np.zeros((0, 2), np.float32), np.zeros((0, 128), np.float32), np.zeros(0, np.float32), w, h)
-        sfm.add_image(recon, name, empty, focal_prior_px=exif_focal_px(Path(images_dir) / name, w))
-        sfm.register_anchor(recon, 0, clicks[name], cfg)
+        rc.add_image(recon, name, empty, focal_prior_px=exif_focal_px(Path(images_dir) / name, w))
+        mapper.register_anchor(recon, 0, clicks[name], cfg)
         out[name] = recon.images[0].world_from_camera
     return out
 
@@ -366,7 +367,7 @@ def bench_set(
             draw = first_draw + r
             anchor_file = tmp / f"anchors_{draw}.json"
             focal = write_anchors(anchor_file, draw)
-            anchor_poses = anchor_solve_poses(images_dir, anchor_file, cams, SfmConfig())
+            anchor_poses = anchor_solve_poses(images_dir, anchor_file, cams, MapperConfig())
             for k, (label, cfg) in enumerate(cfgs.items()):
                 out = tmp / f"ours_{label}_{r}"
                 est, secs, report, dsecs = run_ours(images_dir, anchor_file, out, max_side, cfg, densify=k == 0)
@@ -531,7 +532,7 @@ def write_section(rows: list[dict], notes: list[str], command: str, runs: int, t
 def base_notes() -> list[str]:
     """Explanations printed under the table."""
     return [
-        "Variants: 'default' (SfmConfig()) holds anchor poses fixed while the reconstruction grows (the paper), "
+        "Variants: 'default' (MapperConfig()) holds anchor poses fixed while the reconstruction grows (the paper), "
         "then one final adjustment over every triangulated point releases the anchors that observe >= 300 "
         "triangulated points (held by their clicks like the other cameras by their tracks) and refines one principal "
         "point and one pixel aspect ratio fy/fx per camera (images with the same size and focal prior; priors: "
@@ -574,7 +575,7 @@ def base_notes() -> list[str]:
         "off (EXIF focal 1.4 % below the truth) and the anchor poses are 0.4-0.8 m off along the view; their "
         "tracks are too few (0-250 triangulated points per anchor) to correct them, so they are not released, "
         "and the homography-registered photos of each fixed camera inherit their anchor's error. Tying those "
-        "photos to their anchor's centre (SfmConfig.homography_shares_centre) is off by default: the east camera "
+        "photos to their anchor's centre (MapperConfig.homography_shares_centre) is off by default: the east camera "
         "moved 0.56 m and turned 7 deg on 2026-03-12 and still passes the rotation-homography test.",
         "Speed (temple): matching's mutual check by column maxima instead of a column argmax, RANSAC iterations "
         "bounded by what the minimum inlier count needs (non-overlapping pairs: ~100 instead of 10000), candidate "
@@ -584,7 +585,7 @@ def base_notes() -> list[str]:
         "adjustments of 5 images x 5 evaluations, EXIF read without decoding PNG pixels. The final release costs "
         "~0.3 s on temple (one Schur-complement adjustment over all points). The PCA basis comes from the "
         "eigenvectors of the (128, 128) Gram matrix of a 20000-descriptor sample (0.25 s -> ~0.01 s). Exact "
-        "Schur-complement steps for the incremental adjustments too (SfmConfig.ba_solver='schur') were tried: "
+        "Schur-complement steps for the incremental adjustments too (MapperConfig.ba_solver='schur') were tried: "
         "temple 4.0 vs 4.6 s with the same errors, but on the default synthetic site the west camera's photos "
         "drifted 5 deg (mean 1.05 vs 0.24 deg), so the incremental adjustments keep the trust-region solver. "
         "Temple over 5 interleaved runs (--quick --runs 5): ours 3.96 s vs pycolmap 4.73 s (0.84).",
@@ -603,7 +604,7 @@ def base_notes() -> list[str]:
         "(0.17 deg at 0.05). The maximum-likelihood weight (the features' noise over the clicks': 0.58 px / 1 px) "
         "gives centre 7.56 mm, angle 0.061 -> 0.090 deg, reprojection 0.044 -> 0.047 % (six-draw means): the "
         "features carry errors beyond their noise that the clicks' weight keeps in check.",
-        "Second anchor (SfmConfig.anchor_request_min_shared_matches): at the start every image ties at zero matched "
+        "Second anchor (MapperConfig.anchor_request_min_shared_matches): at the start every image ties at zero matched "
         "tracks, and the paper's rule (the fewest) does not say which to ask; the collection order gave "
         "fountain-P11's 0001.jpg, 9 deg from the first anchor. Now the image with the most verified matches x sin^2 "
         "of the relative rotation to a registered image is asked (0005.jpg, 47 deg; temple and the synthetic site "
@@ -630,7 +631,7 @@ def base_notes() -> list[str]:
         "ground-truth centres it is scored on), and under that same similarity ours is 2.6 mm. A BIM's points "
         "are exact in the model, but real sites differ from their model by centimetres, so real clicks carry "
         "such errors too.",
-        "'accuracy target 5 mm' (SfmConfig(target_centre_sigma=0.005), batch --target-centre-sigma): after the "
+        "'accuracy target 5 mm' (MapperConfig(target_centre_sigma=0.005), batch --target-centre-sigma): after the "
         "release, while some centre's predicted sigma exceeds 5 mm the least certain image without clicks is "
         "clicked too (here from the anchor file, as a user answering the request would; at most 4) and the final "
         "adjustment redone. fountain-P11: 2-4 more photos clicked over the six draws (4-6 anchors), centre 5.4 mm "
@@ -655,8 +656,8 @@ def base_notes() -> list[str]:
 
 EXTRA_VARIANTS = {
     # Only when named with --variants: the second anchor asked in collection order (the rule before
-    # SfmConfig.anchor_request_min_shared_matches).
-    "second anchor: collection order": SfmConfig(anchor_request_min_shared_matches=0),
+    # MapperConfig.anchor_request_min_shared_matches).
+    "second anchor: collection order": MapperConfig(anchor_request_min_shared_matches=0),
 }
 SETS = ("temple", "fountain", "synthetic")
 
@@ -686,14 +687,14 @@ def main(argv: list[str] | None = None) -> int:
         if unknown := [x for x in sets if x not in SETS]:
             ap.error(f"unknown set(s) {', '.join(unknown)}; choose from {', '.join(SETS)}")
     cfgs = {
-        "default": SfmConfig(),
-        "paper: anchors fixed, anchor k1 = 0": SfmConfig(anchor_distortion=False, release_anchors=False),
+        "default": MapperConfig(),
+        "paper: anchors fixed, anchor k1 = 0": MapperConfig(anchor_distortion=False, release_anchors=False),
     }
     if not args.quick:
-        cfgs["release: square pixels"] = SfmConfig(release_aspect=False)
-        cfgs["pp refined"] = SfmConfig(refine_principal_point=True)
-        cfgs["pp refined, anchors free"] = SfmConfig(refine_principal_point=True, fix_anchor_poses=False)
-        cfgs["accuracy target 5 mm"] = SfmConfig(target_centre_sigma=0.005)
+        cfgs["release: square pixels"] = MapperConfig(release_aspect=False)
+        cfgs["pp refined"] = MapperConfig(refine_principal_point=True)
+        cfgs["pp refined, anchors free"] = MapperConfig(refine_principal_point=True, fix_anchor_poses=False)
+        cfgs["accuracy target 5 mm"] = MapperConfig(target_centre_sigma=0.005)
     if args.variants:
         wanted = [w.strip() for w in args.variants.split(",") if w.strip()]
         cfgs = {k: v for k, v in {**cfgs, **EXTRA_VARIANTS}.items() if any(w in k for w in wanted)}

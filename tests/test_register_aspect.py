@@ -7,7 +7,8 @@ import pytest
 from test_register_batch_sfm import F, H, W, arc_cameras, clicks_for, make_features, scene_points
 
 from constructaide import camera as cam
-from nodes.register import sfm
+from nodes.register import config, sfm
+from nodes.register import recon as rc
 from nodes.register.colmap_io import ColmapImage, ColmapModel, read_text_model, write_text_model
 from schemas.messages import Intrinsics
 
@@ -25,7 +26,9 @@ def test_camera_model_honours_the_aspect():
     assert Intrinsics(width_px=640, height_px=480, f_px=500.0, cx_px=319.5, cy_px=239.5).fy_over_fx == 1.0
 
 
-def run_stretched(aspect: float, cfg: sfm.SfmConfig, seed: int = 17) -> tuple[sfm.Reconstruction, list[np.ndarray]]:
+def run_stretched(
+    aspect: float, cfg: config.MapperConfig, seed: int = 17
+) -> tuple[rc.Reconstruction, list[np.ndarray]]:
     """Six arc views and two anchors (12 clicks each) of a camera with pixel aspect ``aspect``: the square-pixel
     projections are scaled about the image centre so that fx = 2 F / (1 + aspect), fy = aspect fx (mean focal F,
     the focal prior given)."""
@@ -39,11 +42,11 @@ def run_stretched(aspect: float, cfg: sfm.SfmConfig, seed: int = 17) -> tuple[sf
     def stretch(px: np.ndarray) -> np.ndarray:
         return c + (np.asarray(px, np.float64) - c) * scale
 
-    recon = sfm.Reconstruction()
+    recon = rc.Reconstruction()
     for k, T in enumerate(poses):
         feats, _ = make_features(rng, pts, desc, T)
         feats.keypoints_px = stretch(feats.keypoints_px).astype(np.float32)
-        sfm.add_image(recon, f"view{k}", feats)
+        rc.add_image(recon, f"view{k}", feats)
     px0, X0 = clicks_for(rng, pts, poses[0], n=12)
     px3, X3 = clicks_for(rng, pts, poses[3], n=12)
     sfm.reconstruct(recon, {"view0": (stretch(px0), X0), "view3": (stretch(px3), X3)}, cfg)
@@ -51,19 +54,19 @@ def run_stretched(aspect: float, cfg: sfm.SfmConfig, seed: int = 17) -> tuple[sf
     return recon, poses
 
 
-def centre_errors(recon: sfm.Reconstruction, poses: list[np.ndarray]) -> np.ndarray:
+def centre_errors(recon: rc.Reconstruction, poses: list[np.ndarray]) -> np.ndarray:
     return np.array([np.linalg.norm(recon.images[k].world_from_camera[:3, 3] - T[:3, 3]) for k, T in enumerate(poses)])
 
 
 def test_non_square_pixels_found_in_the_release():
     """fy / fx = 1.01: the release keeps one shared aspect (significant) near the truth, and the camera centres
     improve over the square-pixel model (seed 17: 1.0091, mean error 1.7 cm vs 6.1 cm)."""
-    recon, poses = run_stretched(1.01, sfm.SfmConfig(focal_px=F))
+    recon, poses = run_stretched(1.01, config.MapperConfig(focal_px=F))
     assert recon.anchors_released and recon.aspect_wald > 9.0
     aspects = {recon.images[i].intrinsics.fy_over_fx for i in recon.registered_indices()}
     assert len(aspects) == 1  # one camera group, one aspect
     assert aspects.pop() == pytest.approx(1.01, abs=0.003)
-    square, _ = run_stretched(1.01, sfm.SfmConfig(focal_px=F, release_aspect=False))
+    square, _ = run_stretched(1.01, config.MapperConfig(focal_px=F, release_aspect=False))
     assert all(square.images[i].intrinsics.fy_over_fx == 1.0 for i in square.registered_indices())
     assert np.isnan(square.aspect_wald)
     assert np.mean(centre_errors(recon, poses)) < 0.5 * np.mean(centre_errors(square, poses))
@@ -71,7 +74,7 @@ def test_non_square_pixels_found_in_the_release():
 
 
 def test_square_pixels_stay_square():
-    recon, poses = run_stretched(1.0, sfm.SfmConfig(focal_px=F))
+    recon, poses = run_stretched(1.0, config.MapperConfig(focal_px=F))
     assert recon.anchors_released and np.isfinite(recon.aspect_wald)
     assert recon.aspect_wald < 9.0  # one camera group, 1 parameter: not significant
     assert all(recon.images[i].intrinsics.fy_over_fx == 1.0 for i in recon.registered_indices())

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from constructaide import camera as cam
-from nodes.register import sfm
+from nodes.register import adjust, config, mapper, matching, pose, sfm, triangulation
+from nodes.register import recon as rc
 from nodes.register.features import Features
 
 W, H, F = 1024, 768, 900.0
@@ -55,7 +56,7 @@ def make_features(
 
 def clicks_for(
     rng: np.random.Generator, points: np.ndarray, world_from_camera: np.ndarray, n: int = 10, noise_px: float = 0.5
-) -> sfm.Clicks:
+) -> rc.Clicks:
     intr = cam.centered_intrinsics(W, H, F)
     px, z = cam.project_points(intr, cam.invert_rigid(world_from_camera), points)
     vis = np.nonzero((z > 0) & (px[:, 0] > 20) & (px[:, 0] < W - 20) & (px[:, 1] > 20) & (px[:, 1] < H - 20))[0]
@@ -64,8 +65,8 @@ def clicks_for(
 
 
 def run_scene(
-    cfg: sfm.SfmConfig, answer_accuracy: bool = False
-) -> tuple[sfm.Reconstruction, list[np.ndarray], np.ndarray, list[str]]:
+    cfg: config.MapperConfig, answer_accuracy: bool = False
+) -> tuple[rc.Reconstruction, list[np.ndarray], np.ndarray, list[str]]:
     """Seven views on an arc, a rotated + zoomed view from view0's centre, an unrelated image; two anchors.
     Requests for clicks are refused, except those for accuracy with ``answer_accuracy`` (10 clicks, 0.5 px)."""
     rng = np.random.default_rng(7)
@@ -77,14 +78,14 @@ def run_scene(
     turned = poses[0].copy()
     turned[:3, :3] = poses[0][:3, :3] @ rot
     poses.append(turned)
-    recon = sfm.Reconstruction()
+    recon = rc.Reconstruction()
     for k, T in enumerate(poses):
         feats, _ = make_features(rng, pts, desc, T, f_px=F * (1.1 if k == len(poses) - 1 else 1.0))
-        sfm.add_image(recon, f"view{k}", feats)
+        rc.add_image(recon, f"view{k}", feats)
     # An unrelated image (other scene): must end unregistered, asking for an anchor.
     other = scene_points(rng, 600) + [0, 0, 50]
     feats, _ = make_features(rng, other, rng.normal(size=(600, 128)), cam.look_at([0, -20, 53], [0, 0, 53]))
-    sfm.add_image(recon, "stranger", feats)
+    rc.add_image(recon, "stranger", feats)
     anchors = {"view0": clicks_for(rng, pts, poses[0]), "view2": clicks_for(rng, pts, poses[2])}
     requests: list[str] = []
 
@@ -100,7 +101,7 @@ def run_scene(
 
 @pytest.fixture(scope="module")
 def synthetic_run():
-    return run_scene(sfm.SfmConfig(focal_px=F))
+    return run_scene(config.MapperConfig(focal_px=F))
 
 
 def test_every_view_registered_accurately(synthetic_run):
@@ -146,19 +147,21 @@ def test_no_triangulation_from_narrow_rays():
     desc = rng.normal(size=(len(pts), 128))
     T0 = cam.look_at([0, -20, 3], [0, 0, 3])
     T1 = cam.look_at([0.3, -20, 3], [0, 0, 3])  # 0.9 degree baseline at 20 m
-    recon = sfm.Reconstruction()
+    recon = rc.Reconstruction()
     for k, T in enumerate((T0, T1)):
-        sfm.add_image(recon, f"v{k}", make_features(rng, pts, desc, T)[0])
-    cfg = sfm.SfmConfig(focal_px=F)
-    recon.pairs[(0, 1)] = sfm.verify_pair(recon.images[0].features, recon.images[1].features, cfg)
-    sfm.build_tracks(recon)
+        rc.add_image(recon, f"v{k}", make_features(rng, pts, desc, T)[0])
+    cfg = config.MapperConfig(focal_px=F)
+    recon.pairs[(0, 1)] = matching.verify_pair(recon.images[0].features, recon.images[1].features, cfg)
+    rc.build_tracks(recon)
     for k, T in enumerate((T0, T1)):
         recon.images[k].status = "anchor"
         recon.images[k].intrinsics = cam.centered_intrinsics(W, H, F)
         recon.images[k].world_from_camera = T
     assert len(recon.track_obs) > 100
-    assert sfm.triangulate_tracks(recon, cfg) == 0
-    assert sfm.triangulate_tracks(recon, sfm.SfmConfig(focal_px=F, min_triangulation_angle_deg=0.5)) > 100
+    assert triangulation.triangulate_tracks(recon, cfg) == 0
+    assert (
+        triangulation.triangulate_tracks(recon, config.MapperConfig(focal_px=F, min_triangulation_angle_deg=0.5)) > 100
+    )
 
 
 def test_points_run_off_to_infinity_are_untriangulated_after_adjustment():
@@ -169,17 +172,17 @@ def test_points_run_off_to_infinity_are_untriangulated_after_adjustment():
     pts = scene_points(rng, 600)
     desc = rng.normal(size=(len(pts), 128))
     poses = (cam.look_at([-6, -20, 3], [0, 0, 3]), cam.look_at([6, -20, 3], [0, 0, 3]))
-    recon = sfm.Reconstruction()
+    recon = rc.Reconstruction()
     for k, T in enumerate(poses):
-        sfm.add_image(recon, f"v{k}", make_features(rng, pts, desc, T)[0])
-    cfg = sfm.SfmConfig(focal_px=F)
-    recon.pairs[(0, 1)] = sfm.verify_pair(recon.images[0].features, recon.images[1].features, cfg)
-    sfm.build_tracks(recon)
+        rc.add_image(recon, f"v{k}", make_features(rng, pts, desc, T)[0])
+    cfg = config.MapperConfig(focal_px=F)
+    recon.pairs[(0, 1)] = matching.verify_pair(recon.images[0].features, recon.images[1].features, cfg)
+    rc.build_tracks(recon)
     for k, T in enumerate(poses):
         recon.images[k].status = "anchor"
         recon.images[k].intrinsics = cam.centered_intrinsics(W, H, F)
         recon.images[k].world_from_camera = T
-    made = sfm.triangulate_tracks(recon, cfg)
+    made = triangulation.triangulate_tracks(recon, cfg)
     assert made > 100
     tri = np.nonzero(np.all(np.isfinite(recon.points), axis=1))[0]
     far, odd = int(tri[0]), int(tri[1])
@@ -187,7 +190,7 @@ def test_points_run_off_to_infinity_are_untriangulated_after_adjustment():
     ray = recon.points[far] - c0
     recon.points[far] = c0 + 1e141 * ray / np.linalg.norm(ray)
     recon.points[odd] = [np.inf, 0.0, 0.0]
-    assert sfm.drop_runaway_points(recon, tri) == 2
+    assert triangulation.drop_runaway_points(recon, tri) == 2
     assert np.all(np.isnan(recon.points[[far, odd]]))
     assert int(np.sum(np.all(np.isfinite(recon.points), axis=1))) == made - 2
 
@@ -210,11 +213,11 @@ def test_epipolar_term_pulls_pose_to_the_lines():
     t0 = cfw[:3, 3] + [0.3, -0.2, 0.1]
     # Track pixels biased by 3 px: without the term the pose follows the bias.
     biased = px + [3.0, 0.0]
-    rv_a, t_a, _ = sfm.solve_pose_epipolar(intr, rv0, t0, pts, biased, clicks, lines, 0.0, False, 2.0)
-    rv_b, t_b, _ = sfm.solve_pose_epipolar(intr, rv0, t0, pts, biased, clicks, lines, 20.0, False, 2.0)
+    rv_a, t_a, _ = pose.solve_pose_epipolar(intr, rv0, t0, pts, biased, clicks, lines, 0.0, False, 2.0)
+    rv_b, t_b, _ = pose.solve_pose_epipolar(intr, rv0, t0, pts, biased, clicks, lines, 20.0, False, 2.0)
 
     def line_dist(rv, t):
-        q = sfm._project(intr, rv, t, F, clicks)
+        q = pose.project_pose(intr, rv, t, F, clicks)
         return float(np.mean(np.abs(np.sum(q * lines[:, :2], axis=1) + lines[:, 2])))
 
     assert line_dist(rv_b, t_b) < 0.8 * line_dist(rv_a, t_a)
@@ -228,14 +231,14 @@ def test_incremental_add_image_links_tracks(synthetic_run):
     desc = desc_rng.normal(size=(len(pts), 128))
     T_new = cam.look_at([20 * np.cos(np.radians(-75)), 20 * np.sin(np.radians(-75)), 3.5], [1.0, -2.0, 2.5])
     feats, _ = make_features(rng, pts, desc, T_new)
-    cfg = sfm.SfmConfig(focal_px=F)
-    idx = sfm.add_image(recon, "late", feats)
-    kept = sfm.match_image(recon, idx, recon.registered_indices(), cfg)
+    cfg = config.MapperConfig(focal_px=F)
+    idx = rc.add_image(recon, "late", feats)
+    kept = matching.match_image(recon, idx, recon.registered_indices(), cfg)
     assert kept >= 2
-    assert sfm.link_image_tracks(recon, idx) > 100
-    assert sfm.matched_track_count(recon, idx) >= cfg.min_track_matches
-    assert sfm.register_image_pnp(recon, idx, cfg)
-    stats = sfm.bundle(recon, cfg, window=sfm.local_window(recon, idx, 4))
+    assert rc.link_image_tracks(recon, idx) > 100
+    assert rc.matched_track_count(recon, idx) >= cfg.min_track_matches
+    assert mapper.register_image_pnp(recon, idx, cfg)
+    stats = adjust.bundle(recon, cfg, window=rc.local_window(recon, idx, 4))
     assert stats["final_rms_px"] < 1.0
     im = recon.images[idx]
     assert cam.viewing_angle_deg(im.world_from_camera, T_new) < 0.2
@@ -256,7 +259,7 @@ def test_plane_homography_from_a_translated_view_is_not_rotation_like():
     for T, expect_ok in ((Tb, False), (Tc, True)):
         pb = cam.project_points(cam.centered_intrinsics(W, H, F * 1.2), cam.invert_rigid(T), plane)[0]
         Hm, _ = cv2.findHomography(pa, pb, 0)
-        dev, f_b = sfm.rotation_homography_deviation(Hm, intr, W, H)
+        dev, f_b = pose.rotation_homography_deviation(Hm, intr, W, H)
         assert (dev < 0.03) == expect_ok, dev
         if expect_ok:
             assert f_b == pytest.approx(F * 1.2, rel=1e-3)
@@ -269,13 +272,13 @@ def test_retrieval_shortlist_keeps_neighbours():
     desc = rng.normal(size=(len(pts), 128))
     xs = np.arange(-50, 51, 10.0)
     feats = [make_features(rng, pts, desc, cam.look_at([x, -15, 3], [x, 0, 3]))[0] for x in xs]
-    cfg = sfm.SfmConfig(max_exhaustive_images=4, shortlist_size=2)
-    pairs = sfm.select_pairs(feats, cfg)
+    cfg = config.MapperConfig(max_exhaustive_images=4, shortlist_size=2)
+    pairs = matching.select_pairs(feats, cfg)
     n = len(feats)
     assert len(pairs) <= 2 * n < n * (n - 1) // 2
     for k in range(n - 1):
         assert (k, k + 1) in pairs
-    assert sfm.select_pairs(feats, sfm.SfmConfig()) == [(i, j) for i in range(n) for j in range(i + 1, n)]
+    assert matching.select_pairs(feats, config.MapperConfig()) == [(i, j) for i in range(n) for j in range(i + 1, n)]
 
 
 def test_pose_pair_agreement_rejects_a_wrong_pose(synthetic_run):
@@ -283,21 +286,21 @@ def test_pose_pair_agreement_rejects_a_wrong_pose(synthetic_run):
     k = recon.index("view4")
     im = recon.images[k]
     thr = 2 * 0.01 * W
-    good = sfm._pose_pair_agreement(recon, k, im.intrinsics, im.world_from_camera, thr)
+    good = pose.pose_pair_agreement(recon, k, im.intrinsics, im.world_from_camera, thr)
     assert good > 0.9
     # The same camera turned 150 degrees about the vertical (a view from the other side of the site).
     wrong = im.world_from_camera.copy()
     wrong[:3, :3] = cam.rodrigues_to_matrix([0.0, 0.0, np.radians(150.0)]) @ wrong[:3, :3]
     wrong[:3, 3] = -wrong[:3, 3]
-    bad = sfm._pose_pair_agreement(recon, k, im.intrinsics, wrong, thr)
-    assert bad < sfm.SfmConfig().min_pose_pair_agreement
+    bad = pose.pose_pair_agreement(recon, k, im.intrinsics, wrong, thr)
+    assert bad < config.MapperConfig().min_pose_pair_agreement
 
 
 def test_anchors_released_when_the_data_support_it(synthetic_run):
     """The final release of the anchors (held by their clicks) passes its significance test here and leaves every
     view within 0.15 % of the camera distance; held fixed to the end, the clicks' noise stays in the anchors."""
     recon, poses, _, _ = synthetic_run
-    assert recon.anchors_released and recon.anchor_release_score > sfm.ANCHOR_RELEASE_THRESHOLD
+    assert recon.anchors_released and recon.anchor_release_score > adjust.ANCHOR_RELEASE_THRESHOLD
 
     def errors(r):
         return [
@@ -311,7 +314,7 @@ def test_anchors_released_when_the_data_support_it(synthetic_run):
     sigma = np.array([recon.images[recon.index(f"view{k}")].centre_sigma_m for k in range(len(poses))])
     assert np.isfinite(sigma).all() and (sigma > 0).all()
     assert 0.2 < np.sqrt(np.mean((np.array(released) / sigma) ** 2)) < 3.0
-    fixed, _, _, _ = run_scene(sfm.SfmConfig(focal_px=F, release_anchors=False))
+    fixed, _, _, _ = run_scene(config.MapperConfig(focal_px=F, release_anchors=False))
     assert not fixed.anchors_released and np.isnan(fixed.anchor_release_score)
     assert all(np.isnan(im.centre_sigma_m) for im in fixed.images)
     assert np.mean(released) < np.mean(errors(fixed))
@@ -328,7 +331,9 @@ def test_focal_prior_dropped_where_the_clicks_contradict_it(synthetic_run):
 
 
 def test_homography_view_can_share_the_anchor_centre():
-    recon, poses, _, _ = run_scene(sfm.SfmConfig(focal_px=F, homography_shares_centre=True, release_anchors=False))
+    recon, poses, _, _ = run_scene(
+        config.MapperConfig(focal_px=F, homography_shares_centre=True, release_anchors=False)
+    )
     k = len(poses) - 1
     im, anchor = recon.images[recon.index(f"view{k}")], recon.images[recon.index("view0")]
     assert im.method == "homography" and im.centre_source == recon.index("view0")
@@ -356,15 +361,15 @@ def test_shared_off_centre_principal_point_found_in_the_release():
     pts = scene_points(rng)
     desc = rng.normal(size=(len(pts), 128))
     poses = arc_cameras(6)
-    recon = sfm.Reconstruction()
+    recon = rc.Reconstruction()
     for k, T in enumerate(poses):
         feats, _ = make_features(rng, pts, desc, T)
         feats.keypoints_px = feats.keypoints_px + shift
-        sfm.add_image(recon, f"view{k}", feats)
+        rc.add_image(recon, f"view{k}", feats)
     px0, X0 = clicks_for(rng, pts, poses[0], n=12)
     px3, X3 = clicks_for(rng, pts, poses[3], n=12)
     anchors = {"view0": (px0 + shift, X0), "view3": (px3 + shift, X3)}
-    sfm.reconstruct(recon, anchors, sfm.SfmConfig(focal_px=F))
+    sfm.reconstruct(recon, anchors, config.MapperConfig(focal_px=F))
     assert all(im.registered for im in recon.images)
     assert recon.anchors_released and recon.principal_point_wald > 9.0 * 2
     im = recon.images[0]
@@ -380,7 +385,7 @@ def test_release_shares_intrinsics_of_one_camera_but_not_across_a_zoom():
     keeps one focal and k1, k2 for them unless per-image intrinsics fit much better (likelihood ratio > 9 per
     parameter). In the standard scene one view is zoomed by 10 % under the same (absent) prior: sharing is refused
     and it keeps its own focal. Without it, the six arc views of one camera end with one focal near the truth."""
-    recon, poses, _, _ = run_scene(sfm.SfmConfig(focal_px=F, release_shared_intrinsics=True))
+    recon, poses, _, _ = run_scene(config.MapperConfig(focal_px=F, release_shared_intrinsics=True))
     assert recon.images[recon.index(f"view{len(poses) - 1}")].intrinsics.f_px == pytest.approx(F * 1.1, rel=0.005)
     n_tied = len(recon.registered_indices()) - 1
     assert not recon.shared_intrinsics and recon.shared_intrinsics_lr > 9.0 * 3 * n_tied
@@ -388,11 +393,11 @@ def test_release_shares_intrinsics_of_one_camera_but_not_across_a_zoom():
     pts = scene_points(rng)
     desc = rng.normal(size=(len(pts), 128))
     poses = arc_cameras(6)
-    one_camera = sfm.Reconstruction()
+    one_camera = rc.Reconstruction()
     for k, T in enumerate(poses):
-        sfm.add_image(one_camera, f"view{k}", make_features(rng, pts, desc, T)[0])
+        rc.add_image(one_camera, f"view{k}", make_features(rng, pts, desc, T)[0])
     anchors = {"view0": clicks_for(rng, pts, poses[0], n=12), "view3": clicks_for(rng, pts, poses[3], n=12)}
-    sfm.reconstruct(one_camera, anchors, sfm.SfmConfig(focal_px=F * 1.01, release_shared_intrinsics=True))
+    sfm.reconstruct(one_camera, anchors, config.MapperConfig(focal_px=F * 1.01, release_shared_intrinsics=True))
     assert one_camera.anchors_released and one_camera.shared_intrinsics
     focals = {im.intrinsics.f_px for im in one_camera.images}
     assert len(focals) == 1 and focals.pop() == pytest.approx(F, rel=0.004)
@@ -404,7 +409,7 @@ def test_accuracy_target_asks_for_clicks_where_the_centres_are_least_certain():
     each clicked view becomes an anchor, the largest centre standard deviation falls, and the errors stay of the
     size the deviations say. (Here the errors hardly change: views 20 m away, their 0.5 px clicks fix a centre
     about as well as the tracks already do; fountain-P11 in bench/registration.py is where the clicks dominate.)"""
-    base, poses, _, _ = run_scene(sfm.SfmConfig(focal_px=F))  # not the shared fixture: other tests modify it
+    base, poses, _, _ = run_scene(config.MapperConfig(focal_px=F))  # not the shared fixture: other tests modify it
     base_sig = {im.name: im.centre_sigma_m for im in base.images if im.registered}
     worst = max(base_sig, key=lambda n: base_sig[n])
     target = 0.7 * base_sig[worst]
@@ -417,35 +422,35 @@ def test_accuracy_target_asks_for_clicks_where_the_centres_are_least_certain():
             ]
         )
 
-    refused, _, _, asked = run_scene(sfm.SfmConfig(focal_px=F, target_centre_sigma=target))
+    refused, _, _, asked = run_scene(config.MapperConfig(focal_px=F, target_centre_sigma=target))
     assert refused.accuracy_anchors == []
     assert worst in asked
     reasons = {n: r for n, r, _ in refused.needs_anchor}
     assert worst in reasons and reasons[worst].startswith("accuracy")
     assert np.allclose(errors(refused), errors(base))
 
-    answered, _, _, _ = run_scene(sfm.SfmConfig(focal_px=F, target_centre_sigma=target), answer_accuracy=True)
+    answered, _, _, _ = run_scene(config.MapperConfig(focal_px=F, target_centre_sigma=target), answer_accuracy=True)
     assert answered.accuracy_anchors[0] == worst
-    assert 1 <= len(answered.accuracy_anchors) <= sfm.SfmConfig().accuracy_max_anchors
+    assert 1 <= len(answered.accuracy_anchors) <= config.MapperConfig().accuracy_max_anchors
     assert all(answered.images[answered.index(n)].status == "anchor" for n in answered.accuracy_anchors)
     sig = np.array([answered.images[answered.index(f"view{k}")].centre_sigma_m for k in range(len(poses))])
     assert sig.max() < base_sig[worst]
-    assert sig.max() <= target or len(answered.accuracy_anchors) == sfm.SfmConfig().accuracy_max_anchors
+    assert sig.max() <= target or len(answered.accuracy_anchors) == config.MapperConfig().accuracy_max_anchors
     err = errors(answered)
     assert 0.2 < np.sqrt(np.mean((err / sig) ** 2)) < 3.0
     assert np.mean(err) < 1.5 * np.mean(errors(base))
 
 
-def _arc_recon(n_views: int = 7, seed: int = 11) -> tuple[sfm.Reconstruction, list[np.ndarray], np.ndarray]:
+def _arc_recon(n_views: int = 7, seed: int = 11) -> tuple[rc.Reconstruction, list[np.ndarray], np.ndarray]:
     """Views on an 80-degree arc (features only, no clicks yet) and the scene points."""
     rng = np.random.default_rng(seed)
     pts = scene_points(rng)
     desc = rng.normal(size=(len(pts), 128))
     poses = arc_cameras(n_views)
-    recon = sfm.Reconstruction()
+    recon = rc.Reconstruction()
     for k, T in enumerate(poses):
         feats, _ = make_features(rng, pts, desc, T)
-        sfm.add_image(recon, f"view{k}", feats)
+        rc.add_image(recon, f"view{k}", feats)
     return recon, poses, pts
 
 
@@ -453,10 +458,12 @@ def test_relative_rotation_from_verified_matches_matches_the_truth():
     """The rotation between two views estimated from their fundamental matrix and the focal priors is within
     1 degree of the true one for every verified pair (true angles 13-80 degrees)."""
     recon, poses, pts = _arc_recon()
-    sfm.reconstruct(recon, {"view0": clicks_for(np.random.default_rng(1), pts, poses[0])}, sfm.SfmConfig(focal_px=F))
+    sfm.reconstruct(
+        recon, {"view0": clicks_for(np.random.default_rng(1), pts, poses[0])}, config.MapperConfig(focal_px=F)
+    )
     checked = 0
     for a, b in recon.pairs:
-        est = sfm.relative_rotation_deg(recon, a, b, sfm.SfmConfig(focal_px=F))
+        est = pose.relative_rotation_deg(recon, a, b, config.MapperConfig(focal_px=F))
         true = cam.rotation_angle_deg(poses[a][:3, :3], poses[b][:3, :3])
         assert abs(est - true) < 1.0, (a, b, est, true)
         checked += 1
@@ -476,7 +483,7 @@ def test_second_anchor_asked_for_a_wide_view():
             asked.append(name)
             return None
 
-        cfg = sfm.SfmConfig(focal_px=F, anchor_request_min_shared_matches=min_shared)
+        cfg = config.MapperConfig(focal_px=F, anchor_request_min_shared_matches=min_shared)
         sfm.reconstruct(recon, {"view0": clicks_for(np.random.default_rng(1), pts, poses[0])}, cfg, request)
         order[min_shared] = asked
         first = recon.index(asked[0])

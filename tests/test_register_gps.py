@@ -14,7 +14,8 @@ from test_register_batch_sfm import F, H, W, arc_cameras, clicks_for, make_featu
 from constructaide import camera as cam
 from constructaide.errors import UserError
 from constructaide.geo import gps_distance_residuals_m
-from nodes.register import batch, sfm
+from nodes.register import batch, config, gps, mapper, matching, sfm
+from nodes.register import recon as rc
 from schemas.messages import GeoPoint
 
 LAT0, LON0, R_EARTH = 51.8583, 5.8647, 6_371_008.8
@@ -60,11 +61,11 @@ def test_gps_residual_accepts_true_poses_and_refuses_displaced_ones():
         refs = site_references(rng, to_model)
         true = rng.uniform(-25, 25, 2)
         g = gps_at(*(true + rng.normal(0, 3.0, 2)))
-        why, res = sfm.gps_refusal(np.r_[to_model(true + rng.normal(0, 0.3, 2)), 1.6], g, refs, 15.0)
+        why, res = gps.gps_refusal(np.r_[to_model(true + rng.normal(0, 0.3, 2)), 1.6], g, refs, 15.0)
         accepted += why == ""
         residuals.append(res)
         d = rng.normal(size=2)
-        why, _ = sfm.gps_refusal(np.r_[to_model(true + 40.0 * d / np.linalg.norm(d)), 1.6], g, refs, 15.0)
+        why, _ = gps.gps_refusal(np.r_[to_model(true + 40.0 * d / np.linalg.norm(d)), 1.6], g, refs, 15.0)
         refused += why != ""
     assert accepted / n >= 0.99
     assert refused / n >= 0.97
@@ -82,13 +83,13 @@ def test_mirrored_pose_keeps_distances_but_not_the_heading():
         refs.append((np.r_[to_model((0.0, north)), 1.6], gps_at(*(np.array([0.0, north]) + rng.normal(0, 1.0, 2)))))
     west, east = np.array(FIXED["west"]), np.array([46.0, 5.0])  # mirror image of west across x = 0
     centre = np.r_[to_model(east), 9.0]
-    assert sfm.gps_median_residual_m(centre, gps_at(*west), refs) < 2.0
-    head, allowance = sfm.gps_heading_residual_m(centre, gps_at(*west), refs)
+    assert gps.gps_median_residual_m(centre, gps_at(*west), refs) < 2.0
+    head, allowance = gps.gps_heading_residual_m(centre, gps_at(*west), refs)
     assert head == pytest.approx(92.0, abs=3.0) and allowance < 20.0
-    why, res = sfm.gps_refusal(centre, gps_at(*west), refs, 15.0)
+    why, res = gps.gps_refusal(centre, gps_at(*west), refs, 15.0)
     assert "fitted" in why and res > 60.0
     # Registered where it is, it passes both tests.
-    why, res = sfm.gps_refusal(np.r_[to_model(west), 9.0], gps_at(*west), refs, 15.0)
+    why, res = gps.gps_refusal(np.r_[to_model(west), 9.0], gps_at(*west), refs, 15.0)
     assert why == "" and res < 5.0
 
 
@@ -103,10 +104,10 @@ def test_fixed_camera_frames_count_as_one_position():
     centres = np.array([c for c, _ in refs])
     per_photo = np.median(gps_distance_residuals_m(wrong, phone, centres, [g for _, g in refs]))
     assert per_photo < 1.0
-    assert sfm.gps_median_residual_m(wrong, phone, refs) > 40.0
+    assert gps.gps_median_residual_m(wrong, phone, refs) > 40.0
 
 
-def _two_view_recon(gps_turned: GeoPoint) -> tuple[sfm.Reconstruction, sfm.SfmConfig, np.ndarray]:
+def _two_view_recon(gps_turned: GeoPoint) -> tuple[rc.Reconstruction, config.MapperConfig, np.ndarray]:
     """An anchor and a view from its centre turned by 4 degrees and zoomed 10 % (one rotation homography)."""
     rng = np.random.default_rng(7)
     pts = scene_points(rng)
@@ -114,12 +115,12 @@ def _two_view_recon(gps_turned: GeoPoint) -> tuple[sfm.Reconstruction, sfm.SfmCo
     T0 = arc_cameras(7)[0]
     turned = T0.copy()
     turned[:3, :3] = T0[:3, :3] @ cam.rodrigues_to_matrix([0.0, np.radians(4.0), 0.0])
-    recon = sfm.Reconstruction()
+    recon = rc.Reconstruction()
     for name, T, f, g in (("anchor", T0, F, gps_at(*T0[:2, 3])), ("turned", turned, F * 1.1, gps_turned)):
-        sfm.add_image(recon, name, make_features(rng, pts, desc, T, f_px=f)[0], gps=g)
-    cfg = sfm.SfmConfig(focal_px=F)
-    sfm.match_image(recon, 1, [0], cfg)
-    sfm.register_anchor(recon, 0, clicks_for(rng, pts, T0), cfg)
+        rc.add_image(recon, name, make_features(rng, pts, desc, T, f_px=f)[0], gps=g)
+    cfg = config.MapperConfig(focal_px=F)
+    matching.match_image(recon, 1, [0], cfg)
+    mapper.register_anchor(recon, 0, clicks_for(rng, pts, T0), cfg)
     return recon, cfg, turned
 
 
@@ -128,30 +129,30 @@ def test_homography_transfer_refused_between_far_apart_gps_positions():
     rng = np.random.default_rng(11)
     # Same viewpoint, GPS 3 m sigma per axis: transferred.
     recon, cfg, turned = _two_view_recon(gps_at(*(T0[:2, 3] + rng.normal(0, 3.0, 2))))
-    assert sfm.try_homography_transfer(recon, 0, 1, cfg)
+    assert mapper.try_homography_transfer(recon, 0, 1, cfg)
     im = recon.images[1]
     assert im.method == "homography" and cam.viewing_angle_deg(im.world_from_camera, turned) < 0.3
     # The same images with GPS 40 m apart (a repeated print seen from elsewhere): refused, nothing registered.
     recon, cfg, _ = _two_view_recon(gps_at(*(T0[:2, 3] + [40.0, 0.0])))
-    assert not sfm.try_homography_transfer(recon, 0, 1, cfg)
+    assert not mapper.try_homography_transfer(recon, 0, 1, cfg)
     assert not recon.images[1].registered and "GPS positions 40 m apart" in recon.images[1].message
     # Off: transferred again.
-    off = sfm.SfmConfig(focal_px=F, gps_max_homography_distance_m=None)
-    assert sfm.try_homography_transfer(recon, 0, 1, off)
+    off = config.MapperConfig(focal_px=F, gps_max_homography_distance_m=None)
+    assert mapper.try_homography_transfer(recon, 0, 1, off)
 
 
-def _arc_run(gps_offsets: dict[str, np.ndarray], cfg: sfm.SfmConfig, up_front: dict | None = None):
+def _arc_run(gps_offsets: dict[str, np.ndarray], cfg: config.MapperConfig, up_front: dict | None = None):
     """Five views on an arc (20 m from a building corner), GPS = true position + N(0, 1 m) + offsets; anchors: view0
     (up front), view2 (asked for). Returns (reconstruction, true poses, requested names, points)."""
     rng = np.random.default_rng(21)
     pts = scene_points(rng)
     desc = rng.normal(size=(len(pts), 128))
     poses = arc_cameras(5)
-    recon = sfm.Reconstruction()
+    recon = rc.Reconstruction()
     for k, T in enumerate(poses):
         name = f"view{k}"
         g = gps_at(*(T[:2, 3] + rng.normal(0, 1.0, 2) + gps_offsets.get(name, 0.0)))
-        sfm.add_image(recon, name, make_features(rng, pts, desc, T)[0], gps=g)
+        rc.add_image(recon, name, make_features(rng, pts, desc, T)[0], gps=g)
     anchors = {"view0": clicks_for(rng, pts, poses[0]), **(up_front or {})}
     answers = {"view2": clicks_for(rng, pts, poses[2])}
     requests: list[tuple[str, str]] = []
@@ -166,7 +167,7 @@ def _arc_run(gps_offsets: dict[str, np.ndarray], cfg: sfm.SfmConfig, up_front: d
 
 @pytest.fixture(scope="module")
 def gps_displaced_run():
-    cfg = sfm.SfmConfig(focal_px=F, release_anchors=False)
+    cfg = config.MapperConfig(focal_px=F, release_anchors=False)
     return _arc_run({"view4": np.array([0.0, 40.0])}, cfg)
 
 
@@ -186,7 +187,7 @@ def test_pnp_refused_when_gps_contradicts_it(gps_displaced_run):
 
 
 def test_pnp_kept_with_the_gps_check_off():
-    cfg = sfm.SfmConfig(focal_px=F, release_anchors=False, gps_max_residual_m=None)
+    cfg = config.MapperConfig(focal_px=F, release_anchors=False, gps_max_residual_m=None)
     recon, poses, _, _ = _arc_run({"view4": np.array([0.0, 40.0])}, cfg)
     im = recon.images[recon.index("view4")]
     assert im.registered and im.method == "pnp", im.message
@@ -202,12 +203,12 @@ def test_automatic_pose_checked_against_up_front_clicks():
     poses = arc_cameras(5)
     # Anchor requests in collection order (view1 refused, view2 answered) so that view3 is reached by PnP and its
     # up-front clicks only check it; the default would ask the widest view first and take view3's clicks at once.
-    cfg = sfm.SfmConfig(focal_px=F, release_anchors=False, anchor_request_min_shared_matches=0)
+    cfg = config.MapperConfig(focal_px=F, release_anchors=False, anchor_request_min_shared_matches=0)
     agree = {"view3": clicks_for(rng, pts, poses[3], n=10)}
     recon, _, _, _ = _arc_run({}, cfg, up_front=agree)
     im = recon.images[recon.index("view3")]
     assert im.status == "auto" and im.method == "pnp", im.message
-    assert sfm.click_disagreement_px(im, agree["view3"]) < 0.005 * W
+    assert mapper.click_disagreement_px(im, agree["view3"]) < 0.005 * W
     shifted = poses[3].copy()
     shifted[:3, 3] += [3.0, 0.0, 0.0]
     px, world = clicks_for(rng, pts, shifted, n=10)
@@ -216,7 +217,7 @@ def test_automatic_pose_checked_against_up_front_clicks():
     assert im.status == "anchor" and "re-registered from its clicks" in im.message, im.message
     assert np.linalg.norm(im.world_from_camera[:3, 3] - shifted[:3, 3]) < 0.5
     # Off: the automatic pose stays.
-    off = sfm.SfmConfig(
+    off = config.MapperConfig(
         focal_px=F, release_anchors=False, check_auto_with_clicks=False, anchor_request_min_shared_matches=0
     )
     recon, _, _, _ = _arc_run({}, off, up_front={"view3": (px, world)})

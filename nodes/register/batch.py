@@ -9,7 +9,7 @@ Writes a COLMAP text model (cameras.txt, images.txt, points3D.txt) in the model 
 ``image`` is the posix path relative to ``--images``; ``pixel`` is OpenCV convention; ``world`` in model units.
 An anchor may carry ``"on_request": true``: its clicks are held back until the algorithm asks for that image's
 anchor (a scripted user answering requests, as the benchmarks simulate); the others count as given up front (an
-automatic registration of such an image is checked against them, ``SfmConfig.check_auto_with_clicks``).
+automatic registration of such an image is checked against them, ``MapperConfig.check_auto_with_clicks``).
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 import cv2
+import msgspec
 import numpy as np
 from tqdm import tqdm
 
@@ -32,9 +33,11 @@ from constructaide import camera as cam
 from constructaide.errors import UserError
 from constructaide.geo import exif_gps
 from nodes.register.colmap_io import ColmapImage, ColmapModel, write_text_model
+from nodes.register.config import MapperConfig
 from nodes.register.densify import DensifyParams, View, densify
 from nodes.register.features import Features, extract_features
-from nodes.register.sfm import Clicks, Reconstruction, SfmConfig, add_image, reconstruct
+from nodes.register.recon import Clicks, Reconstruction, add_image
+from nodes.register.sfm import reconstruct
 from schemas.messages import GeoPoint
 
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp"}
@@ -337,7 +340,7 @@ def run_batch(
     anchors_path: Path,
     out_dir: Path,
     focal_px: float | None = None,
-    cfg: SfmConfig | None = None,
+    cfg: MapperConfig | None = None,
     max_features: int = 4000,
     max_side_px: int | None = DEFAULT_MAX_SIDE_PX,
     bim_paths: tuple[Path, ...] = (),
@@ -349,7 +352,7 @@ def run_batch(
     With ``densify_params`` (the default) the registered cloud is then densified by epipolar-guided matching
     (:func:`densify_reconstruction`; ``None`` skips it); its time is reported separately (``timings_secs``)."""
     t0 = time.perf_counter()
-    cfg = cfg or SfmConfig()
+    cfg = cfg or MapperConfig()
     anchors, file_focal, on_request = load_anchor_file(anchors_path)
     for b in bim_paths:
         if not Path(b).exists():
@@ -363,7 +366,7 @@ def run_batch(
         raise UserError(f"anchor file names images not under {images_dir}: {', '.join(missing[:3])}")
     focal = focal_px if focal_px is not None else file_focal
     if focal is not None:
-        cfg = SfmConfig(**{**cfg.__dict__, "focal_px": focal})
+        cfg = msgspec.structs.replace(cfg, focal_px=focal)
     t_feat = time.perf_counter()
     feats = extract_all([p for _, p in named], max_features, max_side_px, cfg.workers, show_progress)
     recon = Reconstruction()
@@ -470,7 +473,7 @@ def main(argv: list[str] | None = None) -> int:
         raise UserError("--focal-px must be positive")
     if args.target_centre_sigma is not None and not (args.target_centre_sigma > 0):
         raise UserError("--target-centre-sigma must be positive")
-    cfg = SfmConfig(
+    cfg = MapperConfig(
         refine_principal_point=args.refine_principal_point,
         fix_anchor_poses=not args.free_anchors,
         release_anchors=not args.fixed_anchors,

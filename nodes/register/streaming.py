@@ -31,7 +31,7 @@ Paths, tried in this order for a photo:
 * otherwise the photo is ``failed`` and an anchor is requested (``Outcome.needs_anchor``).
 
 GPS (``PhotoInput.gps``, EXIF) guards the full path's automatic registrations like the batch
-(:func:`nodes.register.sfm.gps_refusal`): a homography transfer from a key image whose GPS position is more than
+(:func:`nodes.register.gps.gps_refusal`): a homography transfer from a key image whose GPS position is more than
 ``gps_max_homography_distance_m`` away is not tried (same viewpoint premise), and a PnP or homography pose whose
 distances to the registered photos with GPS contradict theirs (or that lies off its GPS position in the frame
 fitted to them) is refused. The fast path keeps a fixed camera's centre, so it is not checked.
@@ -57,7 +57,7 @@ from constructaide.geo import horizontal_distance_m
 from constructaide.gl import offscreen_renderer
 from nodes.register import bundle, features
 from nodes.register.densify import DensifyParams, View, densify
-from nodes.register.sfm import gps_refusal
+from nodes.register.gps import gps_refusal
 from nodes.register.viewpoints import ViewpointGraph, rotation_deviation, rotation_homography
 from schemas.messages import SPARSE_POINT_FROM_MODEL as POINT_FROM_MODEL
 from schemas.messages import SPARSE_POINT_VERIFIED as POINT_VERIFIED
@@ -130,7 +130,7 @@ class StreamConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     # than this (m; None = off) ...
     gps_max_homography_distance_m: float | None = 15.0
     # ... and no automatic pose whose GPS residual against >= gps_min_references registered photos with GPS exceeds
-    # this (m; None = off); see nodes.register.sfm.gps_refusal.
+    # this (m; None = off); see nodes.register.gps.gps_refusal.
     gps_max_residual_m: float | None = 15.0
     gps_min_references: int = 2
     gps_same_position_m: float = 1.0
@@ -1236,7 +1236,7 @@ class StreamingRegistrar:
         return horizontal_distance_m(photo.gps, rec.gps)
 
     def _gps_refusal(self, photo: PhotoInput | None, world_from_camera: np.ndarray) -> str:
-        """Why an automatic pose contradicts GPS ("" when it does not or cannot be told; sfm.gps_refusal against
+        """Why an automatic pose contradicts GPS ("" when it does not or cannot be told; gps.gps_refusal against
         the registered photos with GPS)."""
         c = self.config
         if photo is None or photo.gps is None or c.gps_max_residual_m is None:

@@ -1,0 +1,154 @@
+"""Thresholds of the incremental mapper, shared by batch and streaming registration (one struct, TOML / --set)."""
+
+from __future__ import annotations
+
+import msgspec
+
+
+class MapperConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """Thresholds of the algorithm. Fractions are of the image width."""
+
+    ratio: float = 0.8
+    fundamental_threshold_frac: float = 0.0015
+    min_pair_inliers: int = 20
+    preemptive_features: int = 0
+    preemptive_min_matches: int = 6
+    homography_min_inlier_ratio: float = 0.8
+    homography_min_matches: int = 30
+    homography_threshold_frac: float = 0.005
+    homography_max_rotation_deviation: float = 0.03
+    # A homography transfer's rotation fit about the source camera's centre must explain its rays to this RMS (px).
+    homography_max_rms_px: float = 3.0
+    # True: a photo registered through a rotation homography keeps its anchor's camera centre (only rotation
+    # and intrinsics are solved, and adjusted while that anchor's pose is held fixed). Off by default: a fixed
+    # camera bumped by half a metre 40 m from the building still passes the rotation test (synthetic site, east
+    # camera) and then inherits a wrong centre; on that site the mean centre error was 0.48 m with it vs 0.39 m
+    # without (0.24 vs 0.29 m after a similarity): no clear gain.
+    homography_shares_centre: bool = False
+    min_track_matches: int = 60
+    fallback_min_track_matches: int = 25
+    pnp_inlier_frac: float = 0.01
+    min_pnp_inliers: int = 20
+    # A PnP pose must explain this fraction of the verified matches to registered images (epipolar check).
+    min_pose_pair_agreement: float = 0.7
+    epipolar_weight: float = 1.0
+    min_triangulation_angle_deg: float = 2.0
+    max_obs_error_frac: float = 0.005
+    min_obs_error_px: float = 3.0
+    refine_distortion: bool = True
+    # Radial k1 in the anchor (click) solve: None = when the clicks constrain it (>= 8 spread, non-coplanar),
+    # False = the paper's k1 = k2 = 0, True = always.
+    anchor_distortion: bool | None = None
+    # Principal points: False = image centres (the paper); True = refined in every bundle adjustment under the
+    # prior below.
+    refine_principal_point: bool = False
+    # Standard deviation of a prior holding each principal point near the image centre, as a fraction of the
+    # image width, used when principal points are refined (None = no prior).
+    principal_point_sigma_frac: float | None = 0.01
+    # Refined principal points are shared by the images of one physical camera, taken to be those with the same
+    # size and focal prior (an image's own principal point is nearly a rotation of it, so per image it is hardly
+    # observable; shared over many poses and held against the clicks it is).
+    share_principal_point: bool = True
+    # Pixel aspect ratio fy / fx: False = square pixels (the paper); True = refined in every bundle adjustment, one
+    # per camera group like the principal point, under the prior below.
+    refine_aspect: bool = False
+    # Standard deviation of a prior holding each aspect ratio near 1 (square pixels), None = no prior.
+    aspect_sigma: float | None = 0.01
+    # The final release (release_anchors) also refines one aspect ratio per camera group, kept only when
+    # significant (Wald test like the principal point's); False = square pixels to the end.
+    release_aspect: bool = True
+    # The final release also tries one focal and one k1, k2 per camera group (images with the same size and focal
+    # prior, as for the principal point: one physical camera at one zoom) and keeps them shared unless the per-image
+    # intrinsics fit much better (likelihood ratio > 9 per parameter, see release_anchors_if_significant). Off by
+    # default: on fountain-P11 (one calibrated camera) over six click-noise draws (earlier seeding and second anchor)
+    # the mean centre error was 7.98 mm shared vs 7.81 mm per image (draws ranged 5.8-9.6 mm either way), temple
+    # 0.31 vs 0.29 deg: no gain.
+    # ``share_intrinsics`` shares them in every adjustment (no test).
+    release_shared_intrinsics: bool = False
+    share_intrinsics: bool = False
+    # The paper holds anchor poses fixed (and carries points on anchor rays); False lets them move, constrained by
+    # their clicks and feature tracks like any camera, throughout.
+    fix_anchor_poses: bool = True
+    # With fixed anchors: after the last image, one bundle adjustment with the anchors free (held by their clicks)
+    # and the (shared) principal points and aspect ratios refined is kept when the data support it (see
+    # release_anchors_if_significant); False = the paper, fixed to the end.
+    release_anchors: bool = True
+    # Only anchors observing at least this many triangulated track points are released: the others' poses rest on
+    # their clicks alone (synthetic site: 0-250 per anchor, fixed cameras 40 m from the building; temple 600-800,
+    # fountain 1900-2400).
+    release_min_observations: int = 300
+    # Points per image in that final adjustment (its longest tracks; 0 = every triangulated point). The incremental
+    # adjustments keep ba_points_per_image for speed; the final one uses all (fountain-P11: centre error over six
+    # click-noise draws, earlier seeding and second anchor, 8.8 -> 7.8 mm mean).
+    release_points_per_image: int = 0
+    loss_scale_px: float = 2.0
+    ba_max_nfev: int = 40
+    # Cap on the inner LSMR iterations of each bundle-adjustment step (inexact trust-region steps): ~2x faster
+    # batch BA at equal accuracy on temple/fountain/synthetic (bench/registration.py); None = SciPy's default.
+    ba_lsmr_maxiter: int | None = 30
+    # Bundle-adjustment solver of the incremental adjustments (BundleOptions.solver); the final release always
+    # uses "schur" (exact steps).
+    ba_solver: str = "trf"
+    local_ba_window: int = 5
+    local_ba_max_nfev: int = 5
+    ba_points_per_image: int = 400
+    full_ba_every: int = 4
+    focal_px: float | None = None
+    # Standard deviation of a known focal prior as a fraction of it, applied in bundle adjustment (focal and depth
+    # trade off for narrow fields of view, so a free focal drifts): a user-given focal_px is trusted, EXIF less.
+    focal_prior_sigma_frac: float | None = 0.001
+    exif_focal_sigma_frac: float | None = 0.02
+    # Candidate search in matching on the descriptors' top principal components (exact similarities then decide
+    # the ratio test): ~30 % less matching time, 99.6 % of the exact verified matches (templeSparseRing);
+    # 0 = exact search.
+    match_pca_dims: int = 64
+    max_exhaustive_images: int = 40
+    shortlist_size: int = 15
+    use_all_anchors: bool = False
+    workers: int = 2
+    # GPS safeguards (EXIF positions; phones ~3 m error, sometimes much worse). Distances between registered centres
+    # are horizontal distances in the model frame, taken to be metric and z-up (the BIM's site-local metres).
+    # A homography transfer (the premise: the same viewpoint) is refused when both photos carry GPS more than this
+    # far apart (m; None = off). Two fixes 3 m sigma per axis of one viewpoint lie > 15 m apart with p ~ 2e-3.
+    gps_max_homography_distance_m: float | None = 15.0
+    # An automatic registration (PnP, homography) is refused when the median over the registered photos with GPS
+    # of |distance between registered centres - distance between GPS positions| exceeds this (m; None = off); it
+    # needs at least gps_min_references such photos. The image then stays unregistered (and asks for an anchor).
+    gps_max_residual_m: float | None = 15.0
+    gps_min_references: int = 2
+    # Registered photos within this distance of each other by GPS count as one position in that median (the frames
+    # of one fixed camera; see gps_median_residual_m).
+    gps_same_position_m: float = 1.0
+    # Orientation-aware second test (gps_heading_residual_m): used when the registered photos' GPS positions span at
+    # least this (m); gps_sigma_m is the GPS error assumed for the fit's uncertainty.
+    gps_min_fit_span_m: float = 30.0
+    gps_sigma_m: float = 3.0
+    # When clicks for an image are at hand before it is asked for them (the anchor file's, not answers to requests)
+    # and an automatic registration puts them further than click_check_max_frac of the width (median) from where
+    # they were clicked, the image is re-registered from its clicks (an anchor). Synthetic default site: correct
+    # automatic poses put clicks <= 0.6 % of the width off, the wrong ones (mirrored, repeated print) >= 14 %.
+    check_auto_with_clicks: bool = True
+    click_check_max_frac: float = 0.02
+    # Accuracy target (model units, None = off): after a kept release, while some camera centre's standard deviation
+    # (ImageState.centre_sigma_m) exceeds it, clicks are asked for the registered image with the largest one that
+    # has none (the anchor file's, else request_anchor) and the final adjustment is redone with them; at most
+    # accuracy_max_anchors such images. More clicks fix the model frame better (fountain-P11: 2 anchors of 12
+    # clicks leave 6-14 mm).
+    target_centre_sigma: float | None = None
+    accuracy_max_anchors: int = 4
+    # Anchor requests go to the image with the fewest matched tracks (the paper). At the start, before anything is
+    # triangulated, every image ties at zero; the second anchor then fixes the model frame with the first, so the
+    # image with the strongest link to a registered one is asked first: most verified matches x sin^2 of the
+    # relative rotation (from the pair's fundamental matrix and the focal priors), over pairs with at least this
+    # many verified matches. fountain-P11 over 18 click-noise draws (features at 1600 px), second anchor 47 deg
+    # from the first (this rule) vs 9 deg (collection order): centre 6.8 vs 8.3 mm, checkpoint reprojection
+    # 0.019 vs 0.058 % of the width, angle 0.059 vs 0.062 deg (bench/registration.py --sets fountain --runs 18
+    # --variants 'default,collection order'). Later ties keep collection order (templeSparseRing, 18 draws:
+    # breaking them the same way cost 0.2 mm). 0 = collection order throughout.
+    anchor_request_min_shared_matches: int = 100
+    # One-anchor bootstrap (try_relative_pose): when no image has enough matched tracks, the unregistered image
+    # with the most verified matches to a registered one is placed by their relative pose.
+    bootstrap: bool = True
+    bootstrap_min_matches: int = 100
+    bootstrap_min_parallax_deg: float = 2.0
+    bootstrap_click_radius_frac: float = 0.05

@@ -1,0 +1,427 @@
+"""Registration steps of the incremental mapper: anchors, homography transfer, relative-pose bootstrap, PnP."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from constructaide import camera as cam
+from constructaide.anchorsolve import AnchorSolution, solve_anchor
+from nodes.register.config import MapperConfig
+from nodes.register.features import (
+    homography_inlier_ratio,
+)
+from nodes.register.gps import gps_apart_m, gps_check
+from nodes.register.pose import (
+    fit_rotation_about_centre,
+    pose_pair_agreement,
+    project_pose,
+    rays_from_pixels,
+    relative_rotation_deg,
+    rotation_deviation,
+    rotation_from_homography,
+    solve_pose_epipolar,
+    with_focal,
+)
+from nodes.register.recon import Clicks, ImageState, Reconstruction, anchor_focal_kwargs, focal_prior, focal_sigma_frac
+from schemas.messages import Intrinsics
+
+
+def register_anchor(recon: Reconstruction, idx: int, clicks: Clicks, cfg: MapperConfig) -> AnchorSolution:
+    """Solve image ``idx`` from user clicks; marks it an anchor. Raises DegenerateAnchors."""
+    im = recon.images[idx]
+    px, world = np.asarray(clicks[0], float), np.asarray(clicks[1], float)
+    sol = solve_anchor(
+        px, world, im.width_px, im.height_px, solve_distortion=cfg.anchor_distortion, **anchor_focal_kwargs(im, cfg)
+    )
+    im.intrinsics, im.world_from_camera = sol.intrinsics, sol.world_from_camera
+    im.status, im.method, im.anchor = "anchor", "anchor", sol
+    im.solved_focal_px = sol.intrinsics.f_px if sol.focal_solved else None
+    im.focal_prior_rejected = sol.focal_prior_rejected
+    im.clicks, im.click_inliers = (px, world), ~sol.outlier_mask
+    im.num_inliers = int(np.sum(~sol.outlier_mask))
+    im.rms_px = sol.rms_px
+    n_out = int(sol.outlier_mask.sum())
+    im.message = f"{len(px)} clicks, rms {sol.rms_px:.2f} px" + (f", {n_out} flagged as mis-clicks" if n_out else "")
+    return sol
+
+
+def inherited_intrinsics(src: ImageState, im: ImageState, cfg: MapperConfig) -> Intrinsics:
+    """Starting intrinsics of image ``im`` seen from (nearly) the viewpoint of registered ``src``: ``src``'s lens
+    (distortion, principal point, aspect) when both have the same size and focal prior (one physical camera),
+    else a centred pinhole at ``im``'s focal prior."""
+    si = src.intrinsics
+    same_camera = (si is not None and (si.width_px, si.height_px) == (im.width_px, im.height_px)) and (
+        im.focal_prior_px is None
+        or src.focal_prior_px is None
+        or abs(im.focal_prior_px / src.focal_prior_px - 1) < 0.02
+    )
+    if same_camera and si is not None:
+        return si
+    return cam.centered_intrinsics(im.width_px, im.height_px, focal_prior(im, cfg))
+
+
+def try_homography_transfer(recon: Reconstruction, src: int, idx: int, cfg: MapperConfig) -> bool:
+    """Register ``idx`` from registered image ``src`` when one homography explains >= ``homography_min_inlier_ratio``
+    of their verified matches and it is a rotation (+ zoom) about a shared centre (paper Sec. 6, same viewpoint):
+    rotation and focal fitted about ``src``'s centre on the rays of the matches it explains, the lens inherited
+    from ``src`` (:func:`inherited_intrinsics`), the focal under ``idx``'s prior; ``src``'s clicks, warped by the
+    homography, go with it as constraints of the adjustments. Returns True when registered."""
+    a, im = recon.images[src], recon.images[idx]
+    p = recon.pair(src, idx)
+    if p is None or not a.registered or len(p[0]) < cfg.homography_min_matches:
+        return False
+    # The transfer's premise is the same viewpoint; GPS fixes far apart say otherwise (a repeated print, e.g. site
+    # hoarding, gives one homography for most matches of two photos taken 50 m apart, and no image test can tell).
+    apart = gps_apart_m(a.gps, im.gps)
+    if cfg.gps_max_homography_distance_m is not None and apart > cfg.gps_max_homography_distance_m:
+        im.message = f"homography from {a.name} refused: GPS positions {apart:.0f} m apart"
+        return False
+    m, _ = p
+    thr = max(1.0, cfg.homography_threshold_frac * im.width_px)
+    H, ratio = homography_inlier_ratio(a.features.keypoints_px, im.features.keypoints_px, m, thr)
+    if H is None or ratio < cfg.homography_min_inlier_ratio:
+        return False
+    intr0 = inherited_intrinsics(a, im, cfg)
+    # A plane (a facade) also gives one homography for most matches from far-apart viewpoints; only rotation
+    # (+ zoom) homographies mean the same viewpoint.
+    f_h, dev = rotation_deviation(H, a.intrinsics, intr0.cx_px, intr0.cy_px)
+    if not dev <= cfg.homography_max_rotation_deviation:
+        return False
+    intr0 = with_focal(intr0, f_h)
+    pk = a.features.keypoints_px[m[:, 0]].astype(np.float64)
+    pn = im.features.keypoints_px[m[:, 1]].astype(np.float64)
+    good = np.linalg.norm(cv2.perspectiveTransform(pk.reshape(-1, 1, 2), H).reshape(-1, 2) - pn, axis=1) < thr
+    if good.sum() < cfg.homography_min_matches:
+        return False
+    sigma = focal_sigma_frac(im, cfg)
+    prior = (focal_prior(im, cfg), float(sigma)) if np.isfinite(sigma) else None
+    T_a = cam.invert_rigid(a.world_from_camera)
+    rays = rays_from_pixels(a.intrinsics, a.world_from_camera, pk)
+    R0 = rotation_from_homography(H, a.intrinsics, intr0, T_a)
+    R, intr, res = fit_rotation_about_centre(rays[good], pn[good], intr0, R0, True, prior)
+    inl = np.nonzero(good)[0][res < thr]
+    if len(inl) >= cfg.homography_min_matches:
+        R, intr, res = fit_rotation_about_centre(rays[inl], pn[inl], intr, R, True, prior)
+    rms = float(np.sqrt(np.mean(res**2))) if len(res) else float("inf")
+    if len(inl) < cfg.homography_min_matches or rms > cfg.homography_max_rms_px:
+        im.message = f"homography from {a.name}: rotation about its centre leaves {rms:.1f} px (a moved camera?)"
+        return False
+    world_from_camera = cam.rigid(R.T, a.world_from_camera[:3, 3])
+    why = gps_check(recon, idx, world_from_camera, cfg)
+    if why:
+        im.message = f"homography from {a.name} refused: {why}"
+        return False
+    im.intrinsics, im.world_from_camera = intr, world_from_camera
+    im.status, im.method = "auto", "homography"
+    im.centre_source = src if cfg.homography_shares_centre else None
+    im.num_inliers, im.rms_px = len(inl), rms
+    n_warped = 0
+    if a.clicks is not None:
+        keep = a.click_inliers if a.click_inliers is not None else np.ones(len(a.clicks[0]), bool)
+        warped = cv2.perspectiveTransform(a.clicks[0][keep].reshape(-1, 1, 2).astype(np.float64), H).reshape(-1, 2)
+        inside = np.all(np.isfinite(warped), axis=1) & np.all(
+            (warped >= -0.5) & (warped <= np.array([im.width_px, im.height_px]) - 0.5), axis=1
+        )
+        if inside.sum() >= 4:
+            im.clicks, im.click_inliers = (warped[inside], a.clicks[1][keep][inside]), np.ones(int(inside.sum()), bool)
+            n_warped = int(inside.sum())
+    im.message = (
+        f"homography from {a.name} ({ratio:.0%} inliers), rotation about its centre on {len(inl)} rays, "
+        f"rms {rms:.2f} px, {n_warped} warped clicks"
+    )
+    return True
+
+
+def epipolar_constraints(recon: Reconstruction, idx: int) -> tuple[np.ndarray, np.ndarray]:
+    """Model points (K, 3) of anchor clicks and their epipolar lines (K, 3) in image ``idx`` (normalised so
+    a·u + b·v + c is a distance in pixels)."""
+    pts, lines = [], []
+    for a_idx, a in enumerate(recon.images):
+        if a.status != "anchor" or a.clicks is None or a_idx == idx:
+            continue
+        p = recon.pair(a_idx, idx)
+        if p is None:
+            continue
+        _, F = p  # x_idx^T F x_a = 0
+        keep = a.click_inliers if a.click_inliers is not None else np.ones(len(a.clicks[0]), bool)
+        x_a = np.c_[a.clicks[0][keep], np.ones(int(keep.sum()))]
+        ln = x_a @ F.T
+        ln /= np.maximum(np.linalg.norm(ln[:, :2], axis=1, keepdims=True), 1e-12)
+        pts.append(a.clicks[1][keep])
+        lines.append(ln)
+    if not pts:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    return np.vstack(pts), np.vstack(lines)
+
+
+def anchor_request_order(
+    recon: Reconstruction, unreg: list[int], counts: dict[int, int], cfg: MapperConfig
+) -> list[int]:
+    """Unregistered images in the order anchor clicks are asked for: fewest matched tracks first (the paper). While
+    nothing is triangulated yet (every image ties at zero: the second anchor, which fixes the model frame with the
+    first), the image most strongly linked to a registered image goes first: over registered images sharing
+    >= ``cfg.anchor_request_min_shared_matches`` verified matches, the largest matches x sin^2 of the relative
+    rotation (a point's depth precision from two rays grows with the sine of their angle); images without such a
+    link last. Other ties in collection order."""
+    bootstrap = not np.isfinite(recon.points).all(axis=1).any()
+    if cfg.anchor_request_min_shared_matches <= 0 or not bootstrap:
+        return sorted(unreg, key=lambda i: counts[i])
+    registered = recon.registered_indices()
+    strength: dict[int, float] = {}
+    for u in unreg:
+        scores = [-1.0]
+        for r in registered:
+            p = recon.pair(r, u)
+            if p is not None and len(p[0]) >= cfg.anchor_request_min_shared_matches:
+                angle = relative_rotation_deg(recon, r, u, cfg)
+                if np.isfinite(angle):
+                    scores.append(len(p[0]) * np.sin(np.radians(min(angle, 90.0))) ** 2)
+        strength[u] = max(scores)
+    return sorted(unreg, key=lambda i: (counts[i], -strength[i]))
+
+
+def _neighbour_scale_ratios(
+    click_px: np.ndarray, click_depth_m: np.ndarray, px: np.ndarray, depth_unit: np.ndarray, radius_px: float, k: int
+) -> np.ndarray:
+    """Per click (K, 2) with its model depth (K,): the model depth over the median unit depth of the <= ``k``
+    nearest of the points (N, 2) px with unit depths (N,) within ``radius_px`` (NaN without at least 3)."""
+    out = np.full(len(click_px), np.nan)
+    for c, (p, d) in enumerate(zip(click_px, click_depth_m, strict=True)):
+        dist = np.linalg.norm(px - p, axis=1)
+        near = np.argsort(dist)[:k]
+        near = near[dist[near] <= radius_px]
+        if len(near) >= 3 and d > 0:
+            out[c] = d / float(np.median(depth_unit[near]))
+    return out
+
+
+def _transfer_clicks(
+    click_px: np.ndarray, px_a: np.ndarray, px_b: np.ndarray, radius_px: float, max_err_px: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Clicks (K, 2) of image a carried into image b by a local homography of the nearest matches (px_a (N, 2) ->
+    px_b (N, 2)) within ``radius_px``: (pixels (K, 2) in b, ok (K,) bool where >= 8 neighbours fit it within
+    ``max_err_px``)."""
+    out = np.full((len(click_px), 2), np.nan)
+    ok = np.zeros(len(click_px), bool)
+    for c, p in enumerate(click_px):
+        dist = np.linalg.norm(px_a - p, axis=1)
+        near = np.argsort(dist)[:24]
+        near = near[dist[near] <= radius_px]
+        if len(near) < 8:
+            continue
+        H, inl = cv2.findHomography(px_a[near], px_b[near], cv2.RANSAC, max_err_px)
+        if H is None or inl is None or inl.sum() < 8:
+            continue
+        q = cv2.perspectiveTransform(p.reshape(1, 1, 2).astype(np.float64), H).reshape(2)
+        out[c], ok[c] = q, bool(np.all(np.isfinite(q)))
+    return out, ok
+
+
+def try_relative_pose(recon: Reconstruction, ref: int, idx: int, cfg: MapperConfig) -> bool:
+    """Register image ``idx`` from its verified matches with registered image ``ref`` when too few of them reach
+    triangulated tracks: the relative pose from the essential matrix (``ref``'s intrinsics, ``idx``'s focal prior,
+    RANSAC, cheirality), ``ref``'s pose held, and the baseline's length from what is known in ``ref``'s view:
+    the triangulated points among the matches (depth ratios, median), else ``ref``'s clicks (each click's model
+    depth against the unit-baseline depths of the matches around it; median over clicks, so a mis-click does not
+    count), which are then carried into ``idx`` by local homographies of their neighbouring matches and keep the
+    baseline in the adjustments. Needs a median ray angle of ``bootstrap_min_parallax_deg``. Returns True when
+    registered."""
+    r, im = recon.images[ref], recon.images[idx]
+    p = recon.pair(ref, idx)
+    if p is None or len(p[0]) < cfg.bootstrap_min_matches or r.intrinsics is None:
+        return False
+    m, _ = p
+    px_r = r.features.keypoints_px[m[:, 0]].astype(np.float64)
+    px_u = im.features.keypoints_px[m[:, 1]].astype(np.float64)
+    intr_u = cam.centered_intrinsics(im.width_px, im.height_px, focal_prior(im, cfg))
+    x_r = cam.pixels_to_normalized(r.intrinsics, px_r)
+    x_u = cam.pixels_to_normalized(intr_u, px_u)
+    thr = cfg.fundamental_threshold_frac * im.width_px / intr_u.f_px
+    E, mask = cv2.findEssentialMat(x_r, x_u, np.eye(3), cv2.RANSAC, 0.999, max(thr, 1e-4))
+    if E is None or E.shape != (3, 3):
+        return False
+    n_ok, R, t, mask = cv2.recoverPose(E, x_r, x_u, np.eye(3), mask=mask)
+    inl = mask.ravel() > 0
+    if n_ok < cfg.bootstrap_min_matches // 2:
+        return False
+    t = t.ravel()
+    # Unit-baseline triangulation in ref's camera frame.
+    P0 = np.hstack([np.eye(3), np.zeros((3, 1))])
+    P1 = np.hstack([R, t[:, None]])
+    Xh = cv2.triangulatePoints(P0, P1, x_r[inl].T, x_u[inl].T)
+    X = (Xh[:3] / Xh[3]).T
+    z0 = X[:, 2]
+    z1 = X @ R[2] + t[2]
+    front = (z0 > 0) & (z1 > 0)
+    if front.sum() < cfg.bootstrap_min_matches // 2:
+        return False
+    X, idx_inl = X[front], np.nonzero(inl)[0][front]
+    c1 = -R.T @ t
+    a0 = X / np.linalg.norm(X, axis=1, keepdims=True)
+    a1 = (X - c1) / np.linalg.norm(X - c1, axis=1, keepdims=True)
+    parallax = np.degrees(np.arccos(np.clip(np.sum(a0 * a1, axis=1), -1, 1)))
+    if float(np.median(parallax)) < cfg.bootstrap_min_parallax_deg:
+        im.message = f"relative pose from {r.name}: median parallax {np.median(parallax):.1f} deg too small"
+        return False
+    T_r = cam.invert_rigid(r.world_from_camera)  # ref camera from world
+    # Baseline length: triangulated tracks among the matches ...
+    tracks = recon.feature_track[ref][m[idx_inl, 0]]
+    known = tracks >= 0
+    known[known] = np.all(np.isfinite(recon.points[tracks[known]]), axis=1)
+    scale, how = float("nan"), ""
+    transferred = None
+    if known.sum() >= 5:
+        z_known = (recon.points[tracks[known]] @ T_r[:3, :3].T + T_r[:3, 3])[:, 2]
+        ratios = z_known / X[known, 2]
+        scale, how = float(np.median(ratios)), f"{int(known.sum())} triangulated points"
+    elif r.clicks is not None:
+        keep = r.click_inliers if r.click_inliers is not None else np.ones(len(r.clicks[0]), bool)
+        cpx, cw = r.clicks[0][keep], r.clicks[1][keep]
+        d = (cw @ T_r[:3, :3].T + T_r[:3, 3])[:, 2]
+        radius = cfg.bootstrap_click_radius_frac * r.width_px
+        ratios = _neighbour_scale_ratios(cpx, d, px_r[idx_inl], X[:, 2], radius, 8)
+        good = np.isfinite(ratios)
+        if good.sum() >= 3:
+            scale, how = float(np.median(ratios[good])), f"{int(good.sum())} clicks"
+            q, ok = _transfer_clicks(cpx, px_r[idx_inl], px_u[idx_inl], radius, 2.0)
+            if ok.sum() >= 3:
+                transferred = (q[ok], cw[ok])
+    if not (np.isfinite(scale) and scale > 0):
+        im.message = f"relative pose from {r.name}: no known depth in {r.name} to fix the baseline"
+        return False
+    T_u = cam.rigid(R, scale * t) @ T_r  # idx camera from world
+    world_from_camera = cam.invert_rigid(T_u)
+    agree = pose_pair_agreement(recon, idx, intr_u, world_from_camera, 2 * cfg.pnp_inlier_frac * im.width_px)
+    if agree < cfg.min_pose_pair_agreement:
+        im.message = f"relative pose from {r.name} explains only {agree:.0%} of the verified matches"
+        return False
+    why = gps_check(recon, idx, world_from_camera, cfg)
+    if why:
+        im.message = f"relative pose from {r.name} refused: {why}"
+        return False
+    im.intrinsics, im.world_from_camera = intr_u, world_from_camera
+    im.status, im.method = "auto", "relative"
+    im.num_inliers = int(front.sum())
+    if transferred is not None:
+        im.clicks, im.click_inliers = transferred, np.ones(len(transferred[0]), bool)
+    im.message = (
+        f"relative pose from {r.name}: {int(front.sum())} matches, parallax {np.median(parallax):.1f} deg, "
+        f"baseline from {how}"
+    )
+    return True
+
+
+def register_image_pnp(recon: Reconstruction, idx: int, cfg: MapperConfig) -> bool:
+    """Register image ``idx`` from its matches to triangulated tracks: PnP-RANSAC (inliers within
+    ``pnp_inlier_frac`` of the width) then the epipolar-constrained refinement. Returns True on success."""
+    im = recon.images[idx]
+    ft = recon.feature_track[idx]
+    feats = np.nonzero(ft >= 0)[0]
+    tr = ft[feats]
+    ok = np.all(np.isfinite(recon.points[tr]), axis=1)
+    feats, tr = feats[ok], tr[ok]
+    im.num_matched_tracks = len(feats)
+    if len(feats) < max(cfg.min_pnp_inliers, 6):
+        im.message = f"only {len(feats)} matches to triangulated tracks"
+        return False
+    obj = recon.points[tr].astype(np.float64)
+    img = im.features.keypoints_px[feats].astype(np.float64)
+    f0 = focal_prior(im, cfg)
+    intr = cam.centered_intrinsics(im.width_px, im.height_px, f0)
+    K = cam.K_matrix(intr)
+    thr = cfg.pnp_inlier_frac * im.width_px
+    best = None
+    # Try the prior focal and, if that registers poorly, a few alternatives (a wrong prior breaks RANSAC).
+    for f_try in (f0, f0 * 0.7, f0 * 1.4, f0 * 2.0, f0 * 0.5):
+        Kt = K.copy()
+        Kt[0, 0] = Kt[1, 1] = f_try
+        ok_r, rvec, tvec, inl = cv2.solvePnPRansac(
+            obj, img, Kt, None, iterationsCount=2000, reprojectionError=thr, confidence=0.999, flags=cv2.SOLVEPNP_SQPNP
+        )
+        n_inl = 0 if (not ok_r or inl is None) else len(inl)
+        if best is None or n_inl > best[0]:
+            best = (n_inl, f_try, rvec, tvec, inl)
+        if n_inl >= 0.5 * len(obj):
+            break
+    n_inl, f_try, rvec, tvec, inl = best
+    if n_inl < cfg.min_pnp_inliers:
+        im.message = f"PnP found {n_inl} inliers among {len(obj)} track matches (< {cfg.min_pnp_inliers})"
+        return False
+    inl = inl.ravel()
+    intr = cam.centered_intrinsics(im.width_px, im.height_px, f_try)
+    cpts, clines = epipolar_constraints(recon, idx)
+    rv, tv, f = solve_pose_epipolar(
+        intr,
+        rvec.ravel(),
+        tvec.ravel(),
+        obj[inl],
+        img[inl],
+        cpts,
+        clines,
+        cfg.epipolar_weight,
+        solve_focal=n_inl >= 50 and not np.isfinite(focal_sigma_frac(im, cfg)),
+        loss_scale_px=cfg.loss_scale_px,
+    )
+    intr = cam.centered_intrinsics(im.width_px, im.height_px, f)
+    proj = project_pose(intr, rv, tv, f, obj)
+    err = np.linalg.norm(proj - img, axis=1)
+    R = cam.rodrigues_to_matrix(rv)
+    z = obj @ R.T[:, 2] + tv[2]
+    inliers = (err < thr) & (z > 0)
+    if inliers.sum() < cfg.min_pnp_inliers:
+        im.message = f"refined pose keeps {int(inliers.sum())} inliers (< {cfg.min_pnp_inliers})"
+        return False
+    agree = pose_pair_agreement(recon, idx, intr, cam.invert_rigid(cam.rigid(R, tv)), 2 * thr)
+    if agree < cfg.min_pose_pair_agreement:
+        im.message = (
+            f"PnP pose explains only {agree:.0%} of the verified matches to registered images "
+            f"(< {cfg.min_pose_pair_agreement:.0%}; repeated texture?)"
+        )
+        return False
+    world_from_camera = cam.invert_rigid(cam.rigid(R, tv))
+    why = gps_check(recon, idx, world_from_camera, cfg)
+    if why:
+        im.message = f"PnP pose ({int(inliers.sum())}/{len(obj)} inliers) refused: {why}"
+        return False
+    im.intrinsics = intr
+    im.world_from_camera = world_from_camera
+    im.status, im.method = "auto", "pnp"
+    im.num_inliers = int(inliers.sum())
+    im.rms_px = float(np.sqrt(np.mean(err[inliers] ** 2)))
+    im.message = f"PnP {int(inliers.sum())}/{len(obj)} inliers, {len(clines)} epipolar click constraints"
+    # Drop this image's outlier observations from their tracks.
+    for fi, t in zip(feats[~inliers], tr[~inliers], strict=True):
+        recon.track_obs[t].pop(idx, None)
+        recon.feature_track[idx][fi] = -1
+    return True
+
+
+def click_disagreement_px(im: ImageState, clicks: Clicks) -> float:
+    """Median distance (px) between clicked pixels and their model points projected under image ``im``'s current
+    pose and intrinsics (points behind the camera count as infinitely far)."""
+    return cam.median_click_error_px(im.intrinsics, im.world_from_camera, clicks[0], clicks[1])
+
+
+def bootstrap_next(recon: Reconstruction, unreg: list[int], cfg: MapperConfig) -> int:
+    """Try :func:`try_relative_pose` on (registered, unregistered) pairs, most verified matches first; returns the
+    image registered, or -1."""
+    reg = recon.registered_indices()
+    cands = []
+    for u in unreg:
+        for r in reg:
+            p = recon.pair(r, u)
+            if p is not None and len(p[0]) >= cfg.bootstrap_min_matches:
+                cands.append((len(p[0]), r, u))
+    tried: set[int] = set()
+    for _, r, u in sorted(cands, reverse=True):
+        if u in tried and len(tried) > 3:
+            continue
+        tried.add(u)
+        if try_relative_pose(recon, r, u, cfg):
+            return u
+        import os
+
+        if os.environ.get("CA_DEBUG"):
+            print("bootstrap fail", recon.images[r].name, recon.images[u].name, recon.images[u].message)
+    return -1

@@ -1,0 +1,249 @@
+"""Pose estimation pieces: constrained PnP refinement, rotation about a known centre, epipolar checks."""
+
+from __future__ import annotations
+
+import cv2
+import msgspec
+import numpy as np
+from scipy.optimize import least_squares
+
+from constructaide import camera as cam
+from nodes.register.config import MapperConfig
+from nodes.register.recon import Reconstruction, focal_prior
+from schemas.messages import Intrinsics
+
+
+def with_focal(intr: Intrinsics, f_px: float) -> Intrinsics:
+    """``intr`` with another focal (px)."""
+    return msgspec.structs.replace(intr, f_px=float(f_px))
+
+
+def rays_from_pixels(intr: Intrinsics, world_from_camera: np.ndarray, pixels_px: np.ndarray) -> np.ndarray:
+    """Unit viewing rays (N, 3) in world coordinates of pixels (N, 2)."""
+    xy = cam.pixels_to_normalized(intr, pixels_px)
+    d = np.c_[xy, np.ones(len(xy))]
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return d @ np.asarray(world_from_camera)[:3, :3].T
+
+
+def tilt_deg(world_from_camera: np.ndarray) -> float:
+    """Angle (deg) between the image's up direction (camera -y) and world up (+z)."""
+    up = -np.asarray(world_from_camera)[:3, 1]
+    return float(np.degrees(np.arccos(np.clip(up[2] / np.linalg.norm(up), -1.0, 1.0))))
+
+
+def rotation_deviation(
+    this_from_other: np.ndarray, intr_other: Intrinsics, cx_px: float, cy_px: float
+) -> tuple[float, float]:
+    """How far a pixel homography (other -> this) is from a pure rotation + zoom about a common camera centre.
+
+    For ``H = K_this R K_other^-1`` with square pixels and principal point (cx, cy) of this image, the rows of
+    ``H K_other`` minus the principal-point terms are ``f_this`` times orthonormal rows. Returns the implied focal
+    of this image (px) and the deviation (0 for an exact rotation: relative norm mismatch and cosines of the angles
+    between the rows). A plane seen from two different centres gives a clearly non-zero deviation.
+    """
+    M = np.asarray(this_from_other, np.float64) @ cam.K_matrix(intr_other)
+    r3 = M[2]
+    n3 = np.linalg.norm(r3)
+    if n3 < 1e-15:
+        return float("nan"), float("inf")
+    r1 = M[0] - cx_px * r3
+    r2 = M[1] - cy_px * r3
+    n1, n2 = np.linalg.norm(r1), np.linalg.norm(r2)
+    f1, f2 = n1 / n3, n2 / n3
+    f = 0.5 * (f1 + f2)
+    dev = max(
+        abs(f1 - f2) / max(f, 1e-12),
+        abs(r1 @ r2) / (n1 * n2 + 1e-18),
+        abs(r1 @ r3) / (n1 * n3 + 1e-18),
+        abs(r2 @ r3) / (n2 * n3 + 1e-18),
+    )
+    return float(f), float(dev)
+
+
+def rotation_from_homography(
+    this_from_other: np.ndarray, intr_other: Intrinsics, intr_this: Intrinsics, other_from_world: np.ndarray
+) -> np.ndarray:
+    """Camera-from-world rotation (3, 3) of this image from a rotation homography (other pixels -> this pixels):
+    ``H ~ K_this R_rel K_other^-1``, ``R_rel`` projected on the rotations, times the other's rotation (3, 3)."""
+    M = np.linalg.inv(cam.K_matrix(intr_this)) @ np.asarray(this_from_other, np.float64) @ cam.K_matrix(intr_other)
+    U, _, Vt = np.linalg.svd(M / np.cbrt(np.linalg.det(M)))
+    R_rel = U @ Vt
+    if np.linalg.det(R_rel) < 0:
+        R_rel = -R_rel
+    return R_rel @ np.asarray(other_from_world)[:3, :3]
+
+
+def _rot_residuals(params: np.ndarray, rays_cam0: np.ndarray, px: np.ndarray, intr: Intrinsics, solve_f: bool):
+    R = cam.rodrigues_to_matrix(params[:3])
+    f = float(np.exp(params[3])) if solve_f else intr.f_px
+    d = rays_cam0 @ R.T
+    z = np.where(d[:, 2] > 1e-6, d[:, 2], 1e-6)
+    xy = cam.distort_normalized(d[:, :2] / z[:, None], intr.k1, intr.k2)
+    return (xy * np.array([f, f * intr.fy_over_fx]) + np.array([intr.cx_px, intr.cy_px]) - px).ravel()
+
+
+def fit_rotation_about_centre(
+    rays_in_world: np.ndarray,
+    pixels_px: np.ndarray,
+    intr: Intrinsics,
+    camera_from_world_rotation0: np.ndarray,
+    solve_focal: bool = True,
+    focal_prior: tuple[float, float] | None = None,
+) -> tuple[np.ndarray, Intrinsics, np.ndarray]:
+    """Camera rotation (and focal) about a known centre from rays (N, 3, world, unit) seen at pixels (N, 2); the
+    lens distortion, principal point and aspect are ``intr``'s. Levenberg-Marquardt from
+    ``camera_from_world_rotation0`` (3, 3) and ``intr.f_px``; ``focal_prior`` (f px, relative sigma) holds the focal
+    near a prior. Returns the ``camera_from_world`` rotation (3, 3), the intrinsics with the new focal and
+    per-point residuals (N,) in px."""
+    R0 = np.asarray(camera_from_world_rotation0, np.float64)
+    rays_cam0 = rays_in_world @ R0.T
+    x0 = np.zeros(4 if solve_focal else 3)
+    if solve_focal:
+        x0[3] = np.log(intr.f_px)
+
+    def res(x: np.ndarray) -> np.ndarray:
+        r = _rot_residuals(x, rays_cam0, pixels_px, intr, solve_focal)
+        if solve_focal and focal_prior is not None:
+            r = np.concatenate([r, [(x[3] - np.log(focal_prior[0])) / focal_prior[1]]])
+        return r
+
+    sol = least_squares(res, x0, method="lm", x_scale="jac", max_nfev=200)
+    R = cam.rodrigues_to_matrix(sol.x[:3]) @ R0
+    f = float(np.exp(sol.x[3])) if solve_focal else intr.f_px
+    r = _rot_residuals(sol.x, rays_cam0, pixels_px, intr, solve_focal).reshape(-1, 2)
+    return R, with_focal(intr, f), np.linalg.norm(r, axis=1)
+
+
+def _pose_residuals(params: np.ndarray, pts: np.ndarray, px: np.ndarray, intr: Intrinsics, solve_f: bool):
+    f = float(np.exp(params[6])) if solve_f else intr.f_px
+    return (project_pose(intr, params[:3], params[3:6], f, pts) - px).ravel()
+
+
+def refine_pose_focal(
+    points_in_world: np.ndarray,
+    pixels_px: np.ndarray,
+    intr: Intrinsics,
+    world_from_camera: np.ndarray,
+    solve_focal: bool = True,
+    robust_px: float | None = 2.0,
+) -> tuple[np.ndarray, Intrinsics, np.ndarray]:
+    """Refinement of a 6-DOF pose (and focal) on 2D-3D correspondences (N, 3) <-> (N, 2); ``robust_px`` sets a
+    soft-L1 loss scale (None: plain least squares). Returns ``world_from_camera`` (4, 4), intrinsics and per-point
+    residuals (N,) in px."""
+    T = cam.invert_rigid(np.asarray(world_from_camera, np.float64))
+    x0 = np.concatenate([cam.matrix_to_rodrigues(T[:3, :3]), T[:3, 3]] + ([[np.log(intr.f_px)]] if solve_focal else []))
+    args = (points_in_world, pixels_px, intr, solve_focal)
+    if robust_px is None:
+        sol = least_squares(_pose_residuals, x0, method="lm", args=args, x_scale="jac")
+    else:
+        sol = least_squares(
+            _pose_residuals, x0, method="trf", loss="soft_l1", f_scale=robust_px, args=args, x_scale="jac", max_nfev=50
+        )
+    R = cam.rodrigues_to_matrix(sol.x[:3])
+    f = float(np.exp(sol.x[6])) if solve_focal else intr.f_px
+    res = _pose_residuals(sol.x, points_in_world, pixels_px, intr, solve_focal).reshape(-1, 2)
+    return cam.invert_rigid(cam.rigid(R, sol.x[3:6])), with_focal(intr, f), np.linalg.norm(res, axis=1)
+
+
+def project_pose(intr: Intrinsics, rvec: np.ndarray, t: np.ndarray, f: float, pts: np.ndarray) -> np.ndarray:
+    R = cam.rodrigues_to_matrix(rvec)
+    p = pts @ R.T + t
+    xy = p[:, :2] / np.maximum(p[:, 2:3], 1e-9)
+    r2 = np.sum(xy * xy, axis=1, keepdims=True)
+    xy = xy * (1 + intr.k1 * r2 + intr.k2 * r2 * r2)
+    return xy * np.array([f, f * intr.fy_over_fx]) + np.array([intr.cx_px, intr.cy_px])
+
+
+def solve_pose_epipolar(
+    intr: Intrinsics,
+    rvec0: np.ndarray,
+    t0: np.ndarray,
+    points_in_world: np.ndarray,
+    pixels_px: np.ndarray,
+    click_points_in_world: np.ndarray,
+    click_lines: np.ndarray,
+    epipolar_weight: float,
+    solve_focal: bool,
+    loss_scale_px: float,
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """The paper's constrained PnP: min over (R, t[, f]) of robust reprojection error of (N, 3) points to their
+    pixels plus the distance of projected click model points (K, 3) to their epipolar lines (K, 3)."""
+
+    def res(x: np.ndarray) -> np.ndarray:
+        f = float(np.exp(x[6])) if solve_focal else intr.f_px
+        r = (project_pose(intr, x[:3], x[3:6], f, points_in_world) - pixels_px).ravel()
+        if len(click_lines):
+            q = project_pose(intr, x[:3], x[3:6], f, click_points_in_world)
+            d = np.sum(q * click_lines[:, :2], axis=1)
+            r = np.concatenate([r, epipolar_weight * (d + click_lines[:, 2])])
+        return r
+
+    x0 = np.concatenate([rvec0, t0] + ([[np.log(intr.f_px)]] if solve_focal else []))
+    sol = least_squares(res, x0, method="trf", loss="soft_l1", f_scale=loss_scale_px, x_scale="jac", max_nfev=100)
+    f = float(np.exp(sol.x[6])) if solve_focal else intr.f_px
+    return sol.x[:3], sol.x[3:6], f
+
+
+def epipolar_agreement(
+    x_other: np.ndarray, x_this: np.ndarray, this_from_other: np.ndarray, f_px: float, thr_px: float
+) -> tuple[int, int]:
+    """Of matched normalised points (M, 2) in another camera and in this one, how many lie within ``thr_px``
+    (this image's px, ``f_px``) of their epipolar lines under the relative pose ``this_from_other`` (4, 4): (agreeing,
+    counted). Cameras sharing a centre have no epipolar geometry: nothing is counted."""
+    T = np.asarray(this_from_other, np.float64)
+    t = T[:3, 3]
+    if np.linalg.norm(t) < 1e-9 * max(1.0, float(np.abs(T[:3, :3]).max())):
+        return 0, 0
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    ln = np.c_[x_other, np.ones(len(x_other))] @ (tx @ T[:3, :3]).T
+    d = np.abs(np.sum(ln[:, :2] * x_this, axis=1) + ln[:, 2]) / np.maximum(np.linalg.norm(ln[:, :2], axis=1), 1e-12)
+    return int(np.sum(d * f_px < thr_px)), len(x_this)
+
+
+def pose_pair_agreement(
+    recon: Reconstruction, idx: int, intr: Intrinsics, world_from_camera: np.ndarray, thr_px: float
+) -> float:
+    """Fraction of the verified matches between image ``idx`` and registered images whose epipolar distance (px,
+    in image ``idx``) under the candidate pose is below ``thr_px`` (1.0 without such pairs; pairs sharing the
+    camera centre are not counted). A pose fitted to matches on repeated texture (the same lettering on two sides
+    of a site) disagrees with the other matches."""
+    n_ok, n_all = 0, 0
+    this_from_world = cam.invert_rigid(world_from_camera)
+    for j in recon.registered_indices():
+        if j == idx:
+            continue
+        p = recon.pair(j, idx)
+        if p is None:
+            continue
+        m, _ = p
+        o = recon.images[j]
+        xj = cam.pixels_to_normalized(o.intrinsics, o.features.keypoints_px[m[:, 0]].astype(np.float64))
+        xi = cam.pixels_to_normalized(intr, recon.images[idx].features.keypoints_px[m[:, 1]].astype(np.float64))
+        ok, n = epipolar_agreement(xj, xi, this_from_world @ o.world_from_camera, intr.f_px, thr_px)
+        n_ok, n_all = n_ok + ok, n_all + n
+    return n_ok / n_all if n_all else 1.0
+
+
+def relative_rotation_deg(recon: Reconstruction, a: int, b: int, cfg: MapperConfig) -> float:
+    """Rotation angle (deg) between the cameras of images ``a`` and ``b`` from their verified matches: the pair's
+    fundamental matrix made essential with each image's pinhole matrix (registered: its intrinsics without
+    distortion; else its focal prior and a centred principal point), decomposed with the cheirality test. NaN
+    without a pair."""
+    p = recon.pair(a, b)
+    if p is None or len(p[0]) < 8:
+        return float("nan")
+    m, F = p
+    K, xy = [], []
+    for i, col in ((a, 0), (b, 1)):
+        im = recon.images[i]
+        intr = im.intrinsics
+        if intr is None:
+            intr = cam.centered_intrinsics(im.width_px, im.height_px, focal_prior(im, cfg))
+        Ki = cam.K_matrix(intr)
+        px = im.features.keypoints_px[m[:, col]].astype(np.float64)
+        K.append(Ki)
+        xy.append((px - Ki[:2, 2]) / np.diag(Ki)[:2])
+    E = K[1].T @ F @ K[0]
+    _, R, _, _ = cv2.recoverPose(E, xy[0], xy[1], np.eye(3))
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))

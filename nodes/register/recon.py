@@ -1,0 +1,359 @@
+"""Reconstruction state: images (features, camera, status), verified pairs, tracks and their points.
+
+``track_obs[t]`` maps image index -> feature index; ``points`` (T, 3) world (NaN while untriangulated). Pixels:
+OpenCV convention. Poses: ``world_from_camera`` (4, 4), OpenCV camera frame, model units.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from constructaide import camera as cam
+from constructaide.anchorsolve import AnchorSolution
+from nodes.register.config import MapperConfig
+from nodes.register.features import (
+    Features,
+)
+from schemas.messages import GeoPoint, Intrinsics
+
+Clicks = tuple[np.ndarray, np.ndarray]  # pixels (N, 2) OpenCV px, world points (N, 3) model units
+
+
+@dataclass
+class PairGeometry:
+    """Verified matches between images i < j: ``matches`` (M, 2) feature indices (in i, in j), ``F`` with
+    ``x_j^T F x_i = 0`` in pixels, and the homography inlier ratio (computed lazily, NaN until then)."""
+
+    matches: np.ndarray
+    F: np.ndarray
+    num_raw_matches: int
+    homography_i_to_j: np.ndarray | None = None
+    homography_ratio: float = float("nan")
+
+
+@dataclass
+class ImageState:
+    """One image. ``status``: unregistered, anchor, auto or failed; ``clicks`` are model-point constraints
+    (user clicks for anchors, warped clicks for homography registrations)."""
+
+    name: str
+    features: Features
+    colors_rgb_u8: np.ndarray | None = None
+    focal_prior_px: float | None = None
+    intrinsics: Intrinsics | None = None
+    world_from_camera: np.ndarray | None = None
+    status: str = "unregistered"
+    method: str = ""
+    num_inliers: int = 0
+    rms_px: float = float("nan")
+    message: str = ""
+    clicks: Clicks | None = None
+    click_inliers: np.ndarray | None = None
+    anchor: AnchorSolution | None = None
+    num_matched_tracks: int = 0
+    # Focal solved from this image's own clicks (None when the prior was kept); informational.
+    solved_focal_px: float | None = None
+    # The image's clicks (or warped clicks) contradicted the focal prior: no focal prior for it any more.
+    focal_prior_rejected: bool = False
+    # Image whose camera centre this one shares (a rotation homography to that anchor), or None.
+    centre_source: int | None = None
+    # EXIF GPS position, None when absent.
+    gps: GeoPoint | None = None
+    # Median GPS distance residual (m) of the automatic registration (see gps_check), NaN when not checked.
+    gps_residual_m: float = float("nan")
+    # Standard deviation of the camera centre (model units; sqrt of the trace of its 3x3 covariance) from the final
+    # adjustment with the anchors released (release_anchors_if_significant): what the features and clicks fix of
+    # where the camera stood. NaN when not estimated (release not run or not kept, or the pose held fixed).
+    centre_sigma_m: float = float("nan")
+
+    @property
+    def width_px(self) -> int:
+        return self.features.width_px
+
+    @property
+    def height_px(self) -> int:
+        return self.features.height_px
+
+    @property
+    def registered(self) -> bool:
+        return self.status in ("anchor", "auto")
+
+
+@dataclass
+class Reconstruction:
+    """Images, verified pairs, tracks and points (T, 3) world (NaN while untriangulated)."""
+
+    images: list[ImageState] = field(default_factory=list)
+    pairs: dict[tuple[int, int], PairGeometry] = field(default_factory=dict)
+    track_obs: list[dict[int, int]] = field(default_factory=list)
+    feature_track: list[np.ndarray] = field(default_factory=list)
+    points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    colors: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.uint8))
+    needs_anchor: list[tuple[str, str, int]] = field(default_factory=list)
+    timings_secs: dict[str, float] = field(default_factory=dict)
+    # Statistic of the final anchor-release test (see release_anchors_if_significant), NaN when not run, and
+    # whether the released anchors were kept.
+    anchor_release_score: float = float("nan")
+    anchors_released: bool = False
+    # Likelihood-ratio statistic of shared focal / distortion per camera group in the release (NaN if not tried)
+    # and whether they were kept shared.
+    shared_intrinsics_lr: float = float("nan")
+    shared_intrinsics: bool = False
+    # Wald statistic of the shared principal points in the release (kept when > 9 per parameter), NaN if not run.
+    principal_point_wald: float = float("nan")
+    # MapperConfig fields the kept release adjusted with (principal points, aspects, shared intrinsics), {} otherwise.
+    release_settings: dict = field(default_factory=dict)
+    # Images given clicks to meet MapperConfig.target_centre_sigma, in order.
+    accuracy_anchors: list[str] = field(default_factory=list)
+    # (T,) bool per track once densified (nodes.register.batch.densify_reconstruction): confirmed by epipolar-guided
+    # matching (the densified tracks are by construction); None before. Occlusion reasoning uses confirmed ones only.
+    point_verified: np.ndarray | None = None
+    # Same for the aspect ratios (fy / fx, one per camera group) in the release, NaN if not refined there.
+    aspect_wald: float = float("nan")
+
+    def index(self, name: str) -> int:
+        for i, im in enumerate(self.images):
+            if im.name == name:
+                return i
+        raise KeyError(name)
+
+    def registered_indices(self) -> list[int]:
+        return [i for i, im in enumerate(self.images) if im.registered]
+
+    def pair(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """(matches (M, 2) as (feature in a, feature in b), F with x_b^T F x_a = 0) or None."""
+        if a < b:
+            g = self.pairs.get((a, b))
+            return None if g is None else (g.matches, g.F)
+        g = self.pairs.get((b, a))
+        return None if g is None else (g.matches[:, ::-1], g.F.T)
+
+    def sparse_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Triangulated points (P, 3), colours (P, 3) u8, and observations over registered images:
+        point index (M,), image index (M,), pixel (M, 2)."""
+        ok = np.nonzero(np.all(np.isfinite(self.points), axis=1))[0]
+        remap = -np.ones(len(self.points), int)
+        remap[ok] = np.arange(len(ok))
+        op, oi, ox = [], [], []
+        for t in ok:
+            for i, f in self.track_obs[t].items():
+                if self.images[i].registered:
+                    op.append(remap[t])
+                    oi.append(i)
+                    ox.append(self.images[i].features.keypoints_px[f])
+        px = np.array(ox, np.float64).reshape(-1, 2)
+        return self.points[ok], self.colors[ok], np.array(op, int), np.array(oi, int), px
+
+    def _add_tracks(self, n: int) -> None:
+        self.points = np.vstack([self.points, np.full((n, 3), np.nan)])
+        self.colors = np.vstack([self.colors, np.zeros((n, 3), np.uint8)])
+
+
+def focal_prior(im: ImageState, cfg: MapperConfig) -> float:
+    if cfg.focal_px is not None:
+        return float(cfg.focal_px)
+    if im.focal_prior_px is not None:
+        return float(im.focal_prior_px)
+    return float(cam.focal_from_fov(im.width_px, 50.0))
+
+
+def focal_sigma_frac(im: ImageState, cfg: MapperConfig) -> float:
+    """Relative standard deviation of the focal prior of an image (inf when the prior is only a FOV guess, or
+    when the image's own clicks contradicted it)."""
+    if im.focal_prior_rejected:
+        return np.inf
+    if cfg.focal_px is not None:
+        return cfg.focal_prior_sigma_frac if cfg.focal_prior_sigma_frac is not None else np.inf
+    if im.focal_prior_px is not None:
+        return cfg.exif_focal_sigma_frac if cfg.exif_focal_sigma_frac is not None else np.inf
+    return np.inf
+
+
+def anchor_focal_kwargs(im: ImageState, cfg: MapperConfig) -> dict:
+    """Focal arguments of :func:`solve_anchor` for image ``im``: its external prior (user / EXIF) with that
+    prior's relative sigma, or no prior at all (a 50 degree FOV is a starting guess, not evidence)."""
+    sigma = focal_sigma_frac(im, cfg)
+    if not np.isfinite(sigma):
+        return {"focal_px": None}
+    return {"focal_px": focal_prior(im, cfg), "focal_prior_sigma": float(sigma)}
+
+
+def add_image(
+    recon: Reconstruction,
+    name: str,
+    features: Features,
+    colors_rgb_u8: np.ndarray | None = None,
+    focal_prior_px: float | None = None,
+    gps: GeoPoint | None = None,
+) -> int:
+    """Append an unregistered image; returns its index. ``colors_rgb_u8`` (N, 3): colour at each keypoint;
+    ``gps``: its EXIF position (None when absent)."""
+    if any(im.name == name for im in recon.images):
+        raise ValueError(f"image {name!r} is already in the reconstruction")
+    recon.images.append(ImageState(name, features, colors_rgb_u8, focal_prior_px, gps=gps))
+    recon.feature_track.append(-np.ones(len(features), dtype=np.int64))
+    return len(recon.images) - 1
+
+
+def build_tracks(recon: Reconstruction) -> None:
+    """(Re)build all tracks from the verified pairs by union-find; tracks with two features in one image are
+    dropped. Clears triangulated points."""
+    offsets = np.cumsum([0] + [len(im.features) for im in recon.images])
+    parent = np.arange(offsets[-1])
+
+    def find(x: int) -> int:
+        root = x
+        while parent[root] != root:
+            root = parent[root]
+        while parent[x] != root:
+            parent[x], x = root, parent[x]
+        return root
+
+    for (i, j), g in recon.pairs.items():
+        for fa, fb in g.matches:
+            ra, rb = find(offsets[i] + fa), find(offsets[j] + fb)
+            if ra != rb:
+                parent[max(ra, rb)] = min(ra, rb)
+    comps: dict[int, dict[int, int]] = {}
+    bad: set[int] = set()
+    node_image = np.repeat(np.arange(len(recon.images)), np.diff(offsets))
+    used = set()
+    for (i, j), g in recon.pairs.items():
+        used.update((offsets[i] + g.matches[:, 0]).tolist())
+        used.update((offsets[j] + g.matches[:, 1]).tolist())
+    for node in used:
+        r = find(node)
+        img = int(node_image[node])
+        d = comps.setdefault(r, {})
+        if img in d:
+            bad.add(r)
+        d[img] = int(node - offsets[img])
+    recon.track_obs = [d for r, d in comps.items() if r not in bad and len(d) >= 2]
+    recon.feature_track = [-np.ones(len(im.features), dtype=np.int64) for im in recon.images]
+    for t, d in enumerate(recon.track_obs):
+        for i, f in d.items():
+            recon.feature_track[i][f] = t
+    n = len(recon.track_obs)
+    recon.points = np.full((n, 3), np.nan)
+    recon.colors = np.zeros((n, 3), np.uint8)
+
+
+def link_image_tracks(recon: Reconstruction, idx: int) -> int:
+    """Attach the features of image ``idx`` to tracks through its verified pairs (incremental, no merging of
+    existing tracks); new two-view tracks are created for unmatched pairs. Returns the number of links made."""
+    links = 0
+    ft = recon.feature_track[idx]
+    for (i, j), g in list(recon.pairs.items()):
+        if idx not in (i, j):
+            continue
+        other = j if i == idx else i
+        m = g.matches if i == idx else g.matches[:, ::-1]
+        for f_new, f_other in m:
+            if ft[f_new] >= 0:
+                continue
+            t = int(recon.feature_track[other][f_other])
+            if t < 0:
+                t = len(recon.track_obs)
+                recon.track_obs.append({int(other): int(f_other)})
+                recon._add_tracks(1)
+                recon.feature_track[other][f_other] = t
+            elif idx in recon.track_obs[t]:
+                continue
+            recon.track_obs[t][idx] = int(f_new)
+            ft[f_new] = t
+            links += 1
+    return links
+
+
+def matched_track_count(recon: Reconstruction, idx: int) -> int:
+    """Features of image ``idx`` that belong to triangulated tracks."""
+    t = recon.feature_track[idx]
+    t = t[t >= 0]
+    if len(t) == 0:
+        return 0
+    return int(np.sum(np.all(np.isfinite(recon.points[t]), axis=1)))
+
+
+def obs_threshold_px(im: ImageState, cfg: MapperConfig) -> float:
+    return max(cfg.min_obs_error_px, cfg.max_obs_error_frac * im.width_px)
+
+
+def obs_threshold_per_image(recon: Reconstruction, cfg: MapperConfig) -> np.ndarray:
+    return np.array([obs_threshold_px(im, cfg) for im in recon.images])
+
+
+def flat_obs(recon: Reconstruction, tracks) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Observations of ``tracks`` as flat arrays (track, image, feature) (M,), in each track's dict order."""
+    tracks = np.asarray(tracks, dtype=np.int64).ravel()
+    imgs: list[int] = []
+    feats: list[int] = []
+    lens = np.empty(len(tracks), dtype=np.int64)
+    obs = recon.track_obs
+    for k, t in enumerate(tracks.tolist()):
+        d = obs[t]
+        imgs.extend(d)
+        feats.extend(d.values())
+        lens[k] = len(d)
+    return np.repeat(tracks, lens), np.array(imgs, dtype=np.int64), np.array(feats, dtype=np.int64)
+
+
+def obs_pixels(recon: Reconstruction, img: np.ndarray, feat: np.ndarray) -> np.ndarray:
+    """Keypoints (M, 2) float64 px of observations (image, feature)."""
+    px = np.zeros((len(img), 2))
+    for i in np.unique(img):
+        sel = img == i
+        px[sel] = recon.images[i].features.keypoints_px[feat[sel]]
+    return px
+
+
+def snapshot(recon: Reconstruction) -> tuple:
+    ims = []
+    for im in recon.images:
+        T = None if im.world_from_camera is None else im.world_from_camera.copy()
+        ims.append((im.intrinsics, T, im.rms_px, im.num_inliers, im.centre_sigma_m))
+    return (
+        ims,
+        recon.points.copy(),
+        [dict(d) for d in recon.track_obs],
+        [ft.copy() for ft in recon.feature_track],
+    )
+
+
+def restore(recon: Reconstruction, snap: tuple) -> None:
+    ims, points, track_obs, feature_track = snap
+    for im, (intr, T, rms, n_inl, sig) in zip(recon.images, ims, strict=True):
+        im.intrinsics, im.world_from_camera, im.rms_px, im.num_inliers, im.centre_sigma_m = intr, T, rms, n_inl, sig
+    recon.points, recon.track_obs, recon.feature_track = points, track_obs, feature_track
+
+
+def principal_point_groups(recon: Reconstruction, indices: list[int]) -> np.ndarray:
+    """Group id per image of ``indices``: images with the same size and focal prior (EXIF) share one."""
+    keys: dict[tuple, int] = {}
+    out = []
+    for i in indices:
+        im = recon.images[i]
+        f = None if im.focal_prior_px is None else round(float(im.focal_prior_px), 1)
+        out.append(keys.setdefault((im.width_px, im.height_px, f), len(keys)))
+    return np.array(out, int)
+
+
+def image_tracks(recon: Reconstruction, images: list[int]) -> list[int]:
+    """Tracks (sorted ids) with an observation in any of ``images``."""
+    ft = [recon.feature_track[i] for i in images]
+    ids = np.concatenate([t[t >= 0] for t in ft]) if ft else np.zeros(0, np.int64)
+    return np.unique(ids).tolist()
+
+
+def local_window(recon: Reconstruction, idx: int, size: int) -> list[int]:
+    """Image ``idx`` and the registered images sharing the most triangulated tracks with it (``size`` in all)."""
+    shared: dict[int, int] = {}
+    for t in recon.feature_track[idx]:
+        if t < 0 or not np.isfinite(recon.points[t, 0]):
+            continue
+        for i in recon.track_obs[t]:
+            if i != idx and recon.images[i].registered:
+                shared[i] = shared.get(i, 0) + 1
+    best = sorted(shared, key=lambda i: -shared[i])[: max(0, size - 1)]
+    return [idx, *best]
