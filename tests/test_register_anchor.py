@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from constructaide import camera as cam
-from nodes.register.anchors import DegenerateAnchors, solve_anchor
+from constructaide.anchorsolve import DegenerateAnchors, solve_anchor
 
 W, H = 1920, 1080
 

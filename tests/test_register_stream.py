@@ -10,8 +10,8 @@ import pytest
 from test_register_stream_scene import PlaneScene, anchor_clicks, encode_jpeg, jitter, mast_camera
 
 from constructaide import camera as cam
+from constructaide.anchorsolve import DegenerateAnchors
 from nodes.register import features
-from nodes.register.anchors import DegenerateAnchors
 from nodes.register.streaming import FrameImage, PhotoInput, StreamConfig, StreamingRegistrar
 from nodes.register.viewpoints import ViewpointGraph, rotation_deviation, rotation_homography
 

@@ -6,7 +6,7 @@ be added one at a time (:func:`add_image`, :func:`match_image`, :func:`link_imag
 :func:`register_image_pnp`, :func:`triangulate_tracks`, :func:`bundle`), which is what the streaming node
 does; :func:`reconstruct` runs the whole batch algorithm:
 
-1. the first anchor image is solved from its clicks (:mod:`nodes.register.anchors`);
+1. the first anchor image is solved from its clicks (:mod:`constructaide.anchorsolve`);
 2. features are matched over the collection (exhaustive, or a bag-of-words shortlist for large sets) and
    pruned by a fundamental matrix (RANSAC); matches are chained into tracks;
 3. images whose matches to an anchor are >= 80 % inliers of one homography receive the warped clicks and are
@@ -37,8 +37,8 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from constructaide import camera as cam
+from constructaide.anchorsolve import AnchorSolution, DegenerateAnchors, solve_anchor
 from constructaide.geo import EARTH_RADIUS_M, gps_distance_residuals_m, horizontal_distance_m
-from nodes.register.anchors import AnchorSolution, DegenerateAnchors, solve_anchor
 from nodes.register.bundle import BundleOptions, BundleProblem, bundle_adjust, single_thread_blas
 from nodes.register.features import (
     Features,

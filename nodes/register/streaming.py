@@ -51,10 +51,11 @@ import msgspec
 import numpy as np
 from scipy.optimize import least_squares
 
+from constructaide import anchorsolve as anchors
 from constructaide import camera as cam
 from constructaide.geo import horizontal_distance_m
 from constructaide.gl import offscreen_renderer
-from nodes.register import anchors, bundle, features
+from nodes.register import bundle, features
 from nodes.register.densify import DensifyParams, View, densify
 from nodes.register.sfm import gps_refusal
 from nodes.register.viewpoints import ViewpointGraph, rotation_deviation, rotation_homography
