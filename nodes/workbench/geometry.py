@@ -140,21 +140,20 @@ class ModelGeometry:
         visible: NDArray[np.bool_] | None = None,
         snap_px: float = SNAP_PX,
     ) -> Pick:
-        """Element and 3D point under pixel (u, v); with ``snap_px`` > 0 the point snaps to the hit element's
-        nearest visible corner, else edge, within ``snap_px`` pixels."""
+        """Element and 3D point under pixel (u, v). With ``snap_px`` > 0 the point snaps to the nearest corner, else
+        edge, of a visible element that shows within ``snap_px`` pixels (not hidden by another surface), so a click
+        just beside a silhouette corner still finds it."""
         origin, d = pixel_ray(camera, u, v)
         vis = np.ones(len(self.elements), bool) if visible is None else visible
         hit = self.ray_cast(origin, d, vis)
-        if hit is None:
+        found = self._snap(camera, np.array([u, v]), origin, d, vis, snap_px) if snap_px > 0 else None
+        if found is not None:
+            point, owner, snapped = found
+        elif hit is not None:
+            point, owner, snapped = origin + hit[0] * d, int(self.tri_owner[hit[1]]), "surface"
+        else:
             return Pick(global_id=None)
-        t, k = hit
-        owner = int(self.tri_owner[k])
         el = self.elements[owner]
-        point, snapped = origin + t * d, "surface"
-        if snap_px > 0:
-            found = self._snap(camera, np.array([u, v]), origin, d, owner, vis, snap_px)
-            if found is not None:
-                point, snapped = found
         depth = float((camera.camera_from_world[:3, :3] @ point + camera.camera_from_world[:3, 3])[2])
         return Pick(
             global_id=el.global_id,
@@ -170,21 +169,23 @@ class ModelGeometry:
         px: NDArray[np.float64],
         origin: NDArray[np.float64],
         d: NDArray[np.float64],
-        owner: int,
         visible: NDArray[np.bool_],
         snap_px: float,
-    ) -> tuple[NDArray[np.float64], Snap] | None:
-        corners = self.corners[self.corner_owner == owner]
+    ) -> tuple[NDArray[np.float64], int, Snap] | None:
+        """(point, owner, kind) of the nearest unhidden corner, else edge point, within ``snap_px`` of ``px``."""
+        keep = visible[self.corner_owner]
+        corners, owners = self.corners[keep], self.corner_owner[keep]
         if len(corners):
             proj, z = camera.project(corners)
             dist = np.linalg.norm(proj - px, axis=1)
             dist[~(z > 0) | ~np.isfinite(dist)] = np.inf
-            for i in np.argsort(dist):
+            for i in np.argsort(dist)[:16]:
                 if dist[i] > snap_px:
                     break
                 if self._sees(origin, corners[i], visible):
-                    return corners[i].copy(), "vertex"
-        edges = self.edges[self.edge_owner == owner]
+                    return corners[i].copy(), int(owners[i]), "vertex"
+        keep = visible[self.edge_owner]
+        edges, owners = self.edges[keep], self.edge_owner[keep]
         if len(edges):
             a, za = camera.project(edges[:, 0])
             b, zb = camera.project(edges[:, 1])
@@ -192,12 +193,12 @@ class ModelGeometry:
             tt = np.clip(np.einsum("ij,ij->i", px - a, ab) / np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-12), 0, 1)
             dist = np.linalg.norm(a + tt[:, None] * ab - px, axis=1)
             dist[~((za > 0) & (zb > 0)) | ~np.isfinite(dist)] = np.inf
-            for i in np.argsort(dist):
+            for i in np.argsort(dist)[:16]:
                 if dist[i] > snap_px:
                     break
                 p = _closest_on_segment_to_ray(edges[i, 0], edges[i, 1], origin, d)
                 if self._sees(origin, p, visible):
-                    return p, "edge"
+                    return p, int(owners[i]), "edge"
         return None
 
     def mesh_bytes(self) -> bytes:

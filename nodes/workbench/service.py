@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from constructaide import camera as cam
-from constructaide.anchorsolve import DegenerateAnchors, solve_anchor
+from constructaide.anchorsolve import MIN_CLICKS, AnchorSolution, DegenerateAnchors, solve_anchor
 from constructaide.bimgeom import glb_to_meshes, meshes_to_glb
 from nodes.workbench import regions
 from nodes.workbench.geometry import GROW_BY, ModelGeometry
@@ -113,6 +113,33 @@ class AnchorBody(msgspec.Struct, forbid_unknown_fields=True):
     points: list[_Points]
     focal_px: float | None = None
     author: str = ""
+
+
+def _leave_one_out(
+    px: NDArray[np.float64], world: NDArray[np.float64], w: int, h: int, focal: float | None
+) -> tuple[AnchorSolution, NDArray[np.float64], NDArray[np.bool_]] | None:
+    """The best solve without one click (lowest RMS of the others), every click's residual under it, and that
+    click flagged; None when no subset solves or the left-out click fits as well as the others."""
+    best = None
+    for i in range(len(px)):
+        keep = np.arange(len(px)) != i
+        try:
+            sol = solve_anchor(px[keep], world[keep], w, h, focal_px=focal, solve_distortion=False)
+        except DegenerateAnchors:
+            continue
+        if best is None or sol.rms_px < best[0].rms_px:
+            best = (sol, i)
+    if best is None:
+        return None
+    sol, i = best
+    proj, _ = cam.project_points(sol.intrinsics, cam.invert_rigid(sol.world_from_camera), world)
+    residuals = np.linalg.norm(proj - px, axis=1)
+    residuals[~np.isfinite(residuals)] = 1e6  # behind the camera
+    if not residuals[i] > max(sol.outlier_threshold_px, 5.0 * sol.rms_px, 3.0):
+        return None
+    flags = np.zeros(len(px), bool)
+    flags[i] = True
+    return sol, residuals, flags
 
 
 class Workbench:
@@ -351,22 +378,31 @@ class Workbench:
         bad = [i for i, (u, v) in enumerate(px) if not (-0.5 <= u < w - 0.5 and -0.5 <= v < h - 0.5)]
         if bad:
             raise ApiError(400, f"clicks {bad} are outside the {w}x{h} photo")
+        world = np.array([q.world for q in req.points], np.float64).reshape(-1, 3)
+        focal = req.focal_px or p.focal_px
+        note = ""
         try:
-            sol = solve_anchor(
-                px, [q.world for q in req.points], w, h, focal_px=req.focal_px or p.focal_px, solve_distortion=False
-            )
+            sol = solve_anchor(px, world, w, h, focal_px=focal, solve_distortion=False)
+            residuals, misclick = sol.residuals_px, sol.outlier_mask
         except DegenerateAnchors as e:
-            raise ApiError(422, str(e)) from None
+            # One mis-click among few clicks can leave no camera at all (e.g. drag a free focal into a mirrored one):
+            # solve without each click in turn and flag the one whose removal explains the rest.
+            found = _leave_one_out(px, world, w, h, focal) if len(px) > MIN_CLICKS else None
+            if found is None:
+                raise ApiError(422, str(e)) from None
+            sol, residuals, misclick = found
+            note = f"solved without click {int(np.argmax(misclick)) + 1}: with it, {e}"
         return {
             "photo_id": photo_id,
-            "residuals_px": [round(float(r), 3) for r in sol.residuals_px],
+            "residuals_px": [round(float(r), 3) for r in residuals],
             "world_from_camera": cam.pose_to_tuple(sol.world_from_camera),
             "intrinsics": msgspec.to_builtins(sol.intrinsics),
             "rms_px": sol.rms_px,
-            "misclick": [bool(b) for b in sol.outlier_mask],
+            "misclick": [bool(b) for b in misclick],
             "loo_errors_px": [None if not np.isfinite(e) else round(float(e), 3) for e in sol.loo_errors_px],
             "outlier_threshold_px": float(sol.outlier_threshold_px),
             "focal_solved": sol.focal_solved,
+            "note": note,
             "_req": req,
         }
 

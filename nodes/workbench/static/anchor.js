@@ -91,17 +91,20 @@ export class AnchorView {
   }
 
   async update() {
-    this.solution = null;
+    const gen = (this.generation = (this.generation || 0) + 1);
+    let solution = null;
     if (this.pairs.length >= 4) {
       const t0 = performance.now();
       try {
-        this.solution = await api.send("POST", `/api/photos/${this.photoId}/solve`, this.body());
+        solution = await api.send("POST", `/api/photos/${this.photoId}/solve`, this.body());
         this.solveError = null;
       } catch (e) {
         this.solveError = e.message;
       }
+      if (gen !== this.generation) return; // the pairs changed meanwhile: a newer update draws
       this.wb.timings.solveMs = performance.now() - t0;
     }
+    this.solution = solution;
     this.renderTable();
     this.drawPhotoMarkers();
     this.view.draw();
@@ -114,9 +117,10 @@ export class AnchorView {
     const sol = this.solution;
     this.pairs.forEach((q, i) => {
       const tr = document.createElement("tr");
-      const bad = sol && sol.misclick[i];
+      const solved = sol && sol.residuals_px.length === this.pairs.length;
+      const bad = solved && sol.misclick[i];
       tr.classList.toggle("misclick", !!bad);
-      const res = sol ? sol.residuals_px[i].toFixed(1) : "";
+      const res = solved ? sol.residuals_px[i].toFixed(1) : "";
       tr.innerHTML = `<td>${i + 1}</td><td>${q.world.map((x) => x.toFixed(2)).join(", ")} <small>${q.snapped}</small></td><td>${q.pixel.map((x) => x.toFixed(1)).join(", ")}</td><td class="residual">${res}${bad ? " mis-click?" : ""}</td>`;
       const td = document.createElement("td");
       const b = document.createElement("button");

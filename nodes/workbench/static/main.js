@@ -214,7 +214,10 @@ function drawAll() {
 
 async function loadAnnotations() {
   const p = wb.byId[wb.current];
-  wb.annotations = await api.get(`/api/annotations?photo_id=${p.photo_id}`);
+  const list = await api.get(`/api/annotations?photo_id=${p.photo_id}`);
+  if (wb.current !== p.photo_id) return; // moved on meanwhile
+  wb.annotations = list;
+  wb.annotationsFor = p.photo_id;
   const ul = $("#annotations");
   ul.replaceChildren();
   for (const a of wb.annotations) {
