@@ -367,7 +367,7 @@ def solve_anchor(
                 loo[i] = err
             rms_i = _rms(_residuals(p_i, pts[keep], px[keep], c, f_i))
             if rms_i < best_rms:
-                best_i, best_rms, best_err = i, rms_i, err
+                best_i, best_rms, best_err = int(i), rms_i, err
         threshold = max(floor, 5.0 * best_rms)
         if best_err <= threshold:
             break
