@@ -187,7 +187,7 @@ def element(req: Request) -> JSONResponse:
         raise ApiError(404, f"unknown element {req.path_params['global_id']!r}") from None
 
 
-def annotations(req: Request) -> JSONResponse:
+def list_annotations(req: Request) -> JSONResponse:
     pid = _q(req, "photo_id", str, None)
     wb = _wb(req)
     if pid is not None:
@@ -363,7 +363,7 @@ ENDPOINTS: tuple[Endpoint, ...] = (
     Endpoint(
         "GET",
         "/api/annotations",
-        annotations,
+        list_annotations,
         "Current annotations; with photo_id only those showing there, each with its transferred polygons",
         ("photo_id",),
     ),

@@ -15,6 +15,7 @@ from __future__ import annotations
 import os
 from collections import OrderedDict
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -72,7 +73,7 @@ class IdRenderer:
 
         self._pr = pyrender
         self.geometry = geometry
-        self._renderer = None
+        self._renderer: Any = None
         self._meshes: OrderedDict[bytes, object] = OrderedDict()
         self._maps: OrderedDict[tuple, tuple] = OrderedDict()
         idx = np.repeat(geometry.tri_owner.astype(np.int64) + 1, 3)
@@ -149,7 +150,7 @@ class IdRenderer:
         ids_u = (color[..., 0].astype(np.int32) << 16) | (color[..., 1].astype(np.int32) << 8) | color[..., 2]
         ids = cv2.remap(ids_u.astype(np.float32), mx, my, cv2.INTER_NEAREST, borderValue=0).astype(np.int32)
         dep = cv2.remap(depth.astype(np.float32), mx, my, cv2.INTER_NEAREST, borderValue=0)
-        return IdImage(ids=ids, depth_m=dep, scale=scale)
+        return IdImage(ids=ids, depth_m=np.asarray(dep, np.float32), scale=scale)
 
     def close(self) -> None:
         if self._renderer is not None:

@@ -121,8 +121,8 @@ def project_region(
     seen = (d > 0) & (np.abs(d - z) <= np.maximum(DEPTH_TOLERANCE * z, 0.05))
     out[vi[seen], ui[seen]] = 1
     k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * splat_px + 1, 2 * splat_px + 1))
-    out = cv2.morphologyEx(cv2.dilate(out, k), cv2.MORPH_CLOSE, k)
-    return (out > 0) & (depth_m > 0)
+    closed = cv2.morphologyEx(cv2.dilate(out, k), cv2.MORPH_CLOSE, k)
+    return (closed > 0) & (depth_m > 0)
 
 
 def warp_region(

@@ -59,7 +59,7 @@ class ApiError(Exception):
         self.reason = reason
 
 
-def encode_png(img: NDArray[np.uint8]) -> bytes:
+def encode_png(img: NDArray[Any]) -> bytes:
     """PNG of an RGB / RGBA / gray uint8 image."""
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_RGBA2BGRA if img.shape[2] == 4 else cv2.COLOR_RGB2BGR)
@@ -73,7 +73,7 @@ def decode_rgb(data: bytes) -> NDArray[np.uint8]:
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
     if img is None:
         raise ApiError(422, "stored image is not a decodable JPEG/PNG")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    return np.asarray(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), np.uint8)
 
 
 def fit_intrinsics(intr: Intrinsics, width_px: int, height_px: int) -> Intrinsics:
@@ -457,7 +457,10 @@ class Workbench:
                 kind = str(body.get("kind", "combined"))
                 p = self.photo(photo_id)
                 png = self.mask_png(photo_id, kind)
-                m = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_GRAYSCALE) > 127
+                gray = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_GRAYSCALE)
+                if gray is None:
+                    raise ApiError(422, f"the {kind} mask of photo {photo_id} is not a decodable PNG")
+                m = np.asarray(gray > 127, bool)
                 part = regions.component_at(m, float(body["u"]), float(body["v"]))
                 if not part.any():
                     raise ApiError(404, f"no {kind} occlusion region under that pixel")
@@ -635,7 +638,7 @@ class Workbench:
         w, h = p.width_px, p.height_px
         if w <= 0 or h <= 0:
             h, w = decode_rgb(p.data).shape[:2]
-        region = regions.region_mask((h, w), polygon=polygon) if polygon else None
+        region = regions.region_mask((h, w), polygon=[(float(x), float(y)) for x, y in polygon]) if polygon else None
         if polygon and (region is None or not region.any()):
             raise ApiError(400, "peek region is empty: give a polygon of >= 3 points inside the photo")
         if at_ns < p.capture_time_ns:
@@ -662,7 +665,7 @@ class Workbench:
         edges[:, 1:] |= img.ids[:, 1:] != img.ids[:, :-1]
         edges[1:, :] |= img.ids[1:, :] != img.ids[:-1, :]
         layer[edges & (img.ids > 0)] = (40, 40, 40, 255)
-        layer = cv2.resize(layer, (w, h), interpolation=cv2.INTER_NEAREST)
+        layer = np.asarray(cv2.resize(layer, (w, h), interpolation=cv2.INTER_NEAREST), np.uint8)
         if region is not None:
             layer[~region, 3] = 0
         return encode_png(layer), {"direction": "forward", "source_photo_id": None, "at_ns": at_ns}
@@ -679,7 +682,7 @@ class Workbench:
         g = self.geometry()
         photo = decode_rgb(self.photo(photo_id).data)
         real = decode_rgb(ov.image_png)
-        real = cv2.resize(real, (photo.shape[1], photo.shape[0]), interpolation=cv2.INTER_AREA)
+        real = np.asarray(cv2.resize(real, (photo.shape[1], photo.shape[0]), interpolation=cv2.INTER_AREA), np.uint8)
         img, _ = self._render(photo_id)
         mask = regions.element_mask(img.ids, [g.index_of[x] for x in element_ids if x in g.index_of])
         mask = cv2.resize(mask.astype(np.uint8), (photo.shape[1], photo.shape[0]), interpolation=cv2.INTER_NEAREST) > 0
