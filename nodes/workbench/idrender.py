@@ -50,19 +50,8 @@ class IdImage:
 
 
 def scaled_intrinsics(intr: Intrinsics, scale: float) -> Intrinsics:
-    """The same camera for the image resized by ``scale`` (pixel centres kept)."""
-    w, h = max(1, round(intr.width_px * scale)), max(1, round(intr.height_px * scale))
-    sx, sy = w / intr.width_px, h / intr.height_px
-    return Intrinsics(
-        width_px=w,
-        height_px=h,
-        f_px=intr.f_px * sx,
-        cx_px=(intr.cx_px + 0.5) * sx - 0.5,
-        cy_px=(intr.cy_px + 0.5) * sy - 0.5,
-        k1=intr.k1,
-        k2=intr.k2,
-        fy_over_fx=intr.fy_over_fx * sy / sx,
-    )
+    """The same camera for its image resized by ``scale`` (sizes rounded)."""
+    return cam.scale_intrinsics(intr, max(1, round(intr.width_px * scale)), max(1, round(intr.height_px * scale)))
 
 
 class IdRenderer:
