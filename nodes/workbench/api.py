@@ -14,7 +14,7 @@ import json
 import logging
 import socket
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, MutableMapping
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -449,9 +449,29 @@ async def _http_error(req: Request, exc: Exception) -> JSONResponse:
     return JSONResponse({"error": exc.detail}, status_code=exc.status_code)
 
 
-async def _crash(req: Request, exc: Exception) -> JSONResponse:
-    log.error("request %s %s failed", req.method, req.url.path, exc_info=exc)
-    return JSONResponse({"error": f"internal error: {type(exc).__name__}: {exc}"}, status_code=500)
+class CrashGuard:
+    """ASGI middleware: a bug in a handler becomes a JSON 500 (logged with its traceback, none sent) and the
+    connection stays usable (Starlette's outermost error middleware would re-raise into the server)."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        started = False
+
+        async def tracked(message: MutableMapping[str, Any]) -> None:
+            nonlocal started
+            started = started or message["type"] == "http.response.start"
+            await send(message)
+
+        try:
+            await self.app(scope, receive, tracked)
+        except Exception as exc:
+            log.error("request %s %s failed", scope.get("method"), scope.get("path"), exc_info=exc)
+            if scope["type"] != "http" or started:
+                raise
+            body = {"error": f"internal error: {type(exc).__name__}: {exc}"}
+            await JSONResponse(body, status_code=500)(scope, receive, send)
 
 
 class TokenGate:
@@ -488,10 +508,11 @@ def make_app(workbench: Workbench, token: str = "") -> Starlette:
     routes.append(Mount("/static", app=StaticFiles(directory=STATIC), name="static"))
     app = Starlette(
         routes=routes,
-        exception_handlers={ApiError: _api_error, HTTPException: _http_error, Exception: _crash},
+        exception_handlers={ApiError: _api_error, HTTPException: _http_error},
     )
     app.state.workbench = workbench
     app.state.stopping = threading.Event()
+    app.add_middleware(CrashGuard)
     app.add_middleware(TokenGate, token=token)
     return app
 
