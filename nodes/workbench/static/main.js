@@ -420,6 +420,16 @@ function bindTools() {
       $("#peek-info").textContent = "photoreal preview of the selection";
     });
   $("#reanchor").onclick = () => openAnchor(wb.current);
+  $("#peek-toggle").onchange = async () => {
+    if ($("#peek-toggle").checked) {
+      if (wb.region) await peek();
+      else say("draw a region (region tool) to peek into");
+    } else {
+      $("#peekimg").removeAttribute("src");
+      $("#peek-info").textContent = "";
+      wb.lastPeek = null;
+    }
+  };
 }
 
 // -- time ---------------------------------------------------------------------------------------------------------
@@ -457,8 +467,9 @@ async function onTime(ns, final) {
 
 async function peek(ns) {
   const at = ns ?? Number($("#time").value) * 1e9;
+  const seq = (wb.peekSeq = (wb.peekSeq || 0) + 1);
   const res = await guarded(() => api.postForImage(`/api/photos/${wb.current}/peek`, { at_ns: at, polygon: wb.region }));
-  if (!res) return;
+  if (!res || seq !== wb.peekSeq) return; // a newer peek was asked for meanwhile
   $("#peekimg").src = res.url;
   wb.lastPeek = res.meta;
   const src = res.meta.source_photo_id && wb.byId[res.meta.source_photo_id];
