@@ -468,6 +468,13 @@ async function onTime(ns, final) {
 async function peek(ns) {
   const at = ns ?? Number($("#time").value) * 1e9;
   const seq = (wb.peekSeq = (wb.peekSeq || 0) + 1);
+  if (Math.abs(at - wb.byId[wb.current].capture_time) < 600e9) {
+    // the slider is at the photo's own time (within its 10 min step): nothing to peek at
+    $("#peekimg").removeAttribute("src");
+    $("#peek-info").textContent = "move the slider to look back or ahead";
+    wb.lastPeek = null;
+    return;
+  }
   const res = await guarded(() => api.postForImage(`/api/photos/${wb.current}/peek`, { at_ns: at, polygon: wb.region }));
   if (!res || seq !== wb.peekSeq) return; // a newer peek was asked for meanwhile
   $("#peekimg").src = res.url;
