@@ -75,6 +75,23 @@ def centered_intrinsics(
     )
 
 
+def scale_intrinsics(intr: Intrinsics, width_px: int, height_px: int) -> Intrinsics:
+    """The same camera for its image resized to ``width_px`` x ``height_px`` (pixel centres kept: fx scales with the
+    width, fy with the height)."""
+    sx = width_px / intr.width_px
+    sy = height_px / intr.height_px
+    return Intrinsics(
+        width_px=width_px,
+        height_px=height_px,
+        f_px=intr.f_px * sx,
+        cx_px=(intr.cx_px + 0.5) * sx - 0.5,
+        cy_px=(intr.cy_px + 0.5) * sy - 0.5,
+        k1=intr.k1,
+        k2=intr.k2,
+        fy_over_fx=intr.fy_over_fx * sy / sx,
+    )
+
+
 def focal_from_fov(width_px: int, fov_deg: float = 50.0) -> float:
     """Focal length in pixels for a horizontal field of view."""
     return 0.5 * width_px / np.tan(np.radians(fov_deg) / 2.0)

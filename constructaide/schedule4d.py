@@ -141,6 +141,17 @@ def actual_state(window: ElementWindow | None, at_ns: int) -> State | None:
     )
 
 
+BUILT_STATES: tuple[State, ...] = ("complete", "under_demolition", "unscheduled")
+"""States in which an element stands on site (elements no task names always stand)."""
+
+
+def stands(window: ElementWindow | None, at_ns: int, basis: Literal["actual", "planned"] = "actual") -> bool:
+    """Whether an element stands at ``at_ns``: its construction finished and it is not removed. ``basis``:
+    "actual" (actual dates where the element has them, else planned) or "planned"."""
+    state = actual_state(window, at_ns) if basis == "actual" else None
+    return (state if state is not None else planned_state(window, at_ns)) in BUILT_STATES
+
+
 def schedule_status(window: ElementWindow | None, at_ns: int) -> Status:
     """Early / on time / late at ``at_ns``: actual progress compared with planned progress.
 

@@ -305,6 +305,11 @@ class Annotation(Message, frozen=True, kw_only=True):
 
     ``kind``: ``status`` (elements built / not built ...), ``occluder`` (polygon that hides the
     model, sticks to the camera), ``note``. ``polygon_px`` is in the pixels of ``photo_id``.
+    ``status`` ``ahead`` / ``on_time`` / ``behind`` is the user's schedule judgement (paper Sec. 4.2 colours).
+    ``rgba``: the colour to draw it in, 0-255 (all 0: the status's default colour). ``polygon_in_world_m``: a
+    region's outline lifted onto the model surface (world metres), when it was drawn on a registered photo.
+    Edits and deletions are new messages with the same ``annotation_id`` and a higher ``revision``
+    (``deleted=True`` ends it); ``modified_ns`` is when that revision was made (``created_ns`` stays).
     """
 
     annotation_id: str
@@ -313,10 +318,15 @@ class Annotation(Message, frozen=True, kw_only=True):
     camera_id: str | None = None
     polygon_px: tuple[tuple[float, float], ...] = ()
     element_ids: tuple[str, ...] = ()
-    status: Literal["", "built", "not_built", "occluded", "needs_review"] = ""
+    status: Literal["", "built", "not_built", "occluded", "needs_review", "ahead", "on_time", "behind"] = ""
     text: str = ""
     author: str = ""
     created_ns: int = 0
+    rgba: tuple[int, int, int, int] = (0, 0, 0, 0)
+    polygon_in_world_m: tuple[tuple[float, float, float], ...] = ()
+    revision: int = 0
+    deleted: bool = False
+    modified_ns: int = 0
 
 
 class NodeError(Message, frozen=True, kw_only=True):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import msgspec
 import numpy as np
 import pytest
 from render_scenes import AT, camera, four_box_model
@@ -127,6 +128,14 @@ def test_render_progress_colours_follow_schedule_and_annotations(ras, world):
         assert cos > 0.98, (name, got, base)
         assert np.median(res.layer_rgba[m][:, 3]) >= rgba[3]
     assert {e.label for e in res.legend} >= {"ahead of schedule", "on time", "behind schedule"}
+    # A user's judgement (workbench status) overrides; deleting it (a later revision) restores the schedule's.
+    judged = Annotation(
+        site="t", annotation_id="a2", kind="status", element_ids=("B",), status="behind", created_ns=AT - 10
+    )
+    sched.apply_annotation(judged)
+    assert sched.progress(AT, scene.global_ids)[scene.index_of["B"]] == 2
+    sched.apply_annotation(msgspec.structs.replace(judged, revision=1, deleted=True))
+    assert sched.progress(AT, scene.global_ids)[scene.index_of["B"]] == 1
     # Before anything was due nothing is coloured.
     early = render_overlay(ras, scene, sched, intr, wfc, "progress", AT - 30 * 86_400 * 10**9)
     assert early.layer_rgba[..., 3].max() == 0

@@ -134,6 +134,21 @@ SAMPLES = [
         status="occluded",
         created_ns=T0,
     ),
+    Annotation(
+        site=S,
+        annotation_id="a2",
+        kind="status",
+        photo_id="p",
+        element_ids=("g1", "g2"),
+        status="behind",
+        text="slab late",
+        created_ns=T0,
+        rgba=(230, 40, 40, 160),
+        polygon_in_world_m=((0.0, 0.0, 1.0), (1.0, 0.0, 1.0), (1.0, 1.0, 1.0)),
+        revision=2,
+        deleted=True,
+        modified_ns=T0 + 5,
+    ),
     NodeError(site=S, node="register", topic="constructaide/site-1/photo/*", reason="bad", key="k", time_ns=T0),
 ]
 

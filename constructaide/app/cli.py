@@ -23,6 +23,7 @@ NODE_MODULES = {
     "render": "nodes.render.node",
     "recorder": "nodes.recorder.node",
     "dashboard": "nodes.dashboard.node",
+    "workbench": "nodes.workbench.node",
 }
 
 USAGE = """usage: constructaide COMMAND [ARGS...]
@@ -31,12 +32,14 @@ main job
   demo                 run every node on the embedded synthetic site; writes .mcap and .rrd
   run CONFIG.toml      start all nodes of a site from a TOML config
 nodes and bus
-  node NAME [...]      run one node (ingest, register, occlude, render, recorder, dashboard)
+  node NAME [...]      run one node (ingest, register, occlude, render, recorder, dashboard, workbench)
   router               run a zenoh router so nodes on several machines can meet
   status               list live nodes
   push FILES --camera ID
                        publish photo files as a camera would
 recordings
+  workbench --recording FILE [--host H] [--port P] [--live]
+                       open a recording in the browser workbench (review; --live publishes answers)
   replay FILE [--rate R|max]
                        re-publish a recording so nodes process it again
   recording repair FILE
@@ -133,6 +136,7 @@ COMMANDS: dict[str, Callable[[list[str]], int]] = {
     "status": _status,
     "push": _delegate("constructaide.app.push", "main"),
     "replay": _delegate("nodes.recorder.cli", "replay_main"),
+    "workbench": _delegate("constructaide.app.workbench", "main"),
     "recording": _recording,
     "synth": _delegate("constructaide.synth.cli", "main"),
     "bim": _bim,

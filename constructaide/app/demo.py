@@ -29,6 +29,7 @@ from tqdm import tqdm
 from constructaide.app.launch import Launcher
 from constructaide.errors import UserError
 from constructaide.runtime import BusConfig, free_port, open_bus
+from constructaide.runtime.bus import port_free
 from schemas import codec, keys
 from schemas.messages import AnchorClicks, AnchorPoint, NeedsAnchor, OcclusionMask, Overlay, Photo
 
@@ -192,6 +193,10 @@ def main(argv: list[str]) -> int:
         action="store_true",
         help="a simulated user answers every NeedsAnchor request with clicks simulated from the site's truth",
     )
+    ap.add_argument("--workbench-port", type=int, default=8770, help="port of the browser workbench (0: any free)")
+    ap.add_argument(
+        "--stay", action="store_true", help="after the summary keep every node (and the workbench) running until Ctrl-C"
+    )
     args = ap.parse_args(argv)
     keys.check_chunk(args.site, "site")
 
@@ -244,7 +249,11 @@ def main(argv: list[str]) -> int:
         launcher.start("dashboard", sets=[f"rerun='save:{rrd_path}'"])
         for name in PROCESSING_NODES:
             launcher.start(name)
-        launcher.wait_live(bus, ["recorder", "dashboard", *PROCESSING_NODES])
+        wb_port = args.workbench_port if args.workbench_port and port_free(args.workbench_port) else free_port()
+        launcher.start("workbench", sets=[f"port={wb_port}"])
+        workbench_url = f"http://127.0.0.1:{wb_port}/"
+        launcher.wait_live(bus, ["recorder", "dashboard", "workbench", *PROCESSING_NODES])
+        print(f"      workbench: {workbench_url} (answer anchor requests there while the demo runs)", file=sys.stderr)
         ingest_sets = [f"ifc=['{ifc_path}']", f"tz='{tz}'"]
         if site_doc["site"].get("terrain_height_m") is not None:
             ingest_sets.append(f"terrain_height_m={float(site_doc['site']['terrain_height_m'])}")
@@ -298,6 +307,10 @@ def main(argv: list[str]) -> int:
         stale = arrivals.stale(registered)
         for sub in arrival_subs:
             sub.close()
+        if args.stay:
+            print(f"demo done; nodes keep running, workbench at {workbench_url}; Ctrl-C to stop", file=sys.stderr)
+            with contextlib.suppress(KeyboardInterrupt):
+                threading.Event().wait()
         print("[5/5] stopping nodes", file=sys.stderr)
         exit_codes = launcher.stop_all()
 
@@ -322,6 +335,7 @@ def main(argv: list[str]) -> int:
         ("MCAP recording", str(mcap_path)),
         ("rerun file", f"{rrd_path}  (view: rerun {rrd_path})"),
         ("node logs", str(log_dir)),
+        ("workbench", f"{workbench_url}  (running while the demo runs; --stay keeps it)"),
     ]
     width = max(len(k) for k, _ in summary)
     print("\nConstructAide demo summary")

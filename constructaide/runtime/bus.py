@@ -245,6 +245,11 @@ def _port_free(port: int) -> bool:
     return True
 
 
+def port_free(port: int) -> bool:
+    """Whether a loopback TCP port is free now."""
+    return _port_free(port)
+
+
 def free_port() -> int:
     """A currently free loopback TCP port (for tests and demos)."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:

@@ -40,6 +40,7 @@ FUTURE_RGBA = (255, 170, 0, 120)
 EDGE_RGBA = (255, 230, 40, 255)
 
 _BUILT_STATES = ("complete", "under_demolition", "unscheduled")
+_JUDGED = {"ahead": 0, "on_time": 1, "behind": 2}
 
 
 @dataclass
@@ -79,8 +80,9 @@ class ScheduleView:
         Due = planned finish <= t. Ahead: actually finished before the planned finish (by more than
         ``tolerance_ns``), or finished by t though not yet due. On time: finished within tolerance, or
         due with no actual dates known for it (the plan is all we have). Behind: due but not actually
-        finished by t, or finished later than planned. Status annotations override: ``needs_review``
-        -> 3, ``not_built`` on a due element -> 2, ``built`` on an element not due -> 0.
+        finished by t, or finished later than planned. Status annotations override: ``ahead`` / ``on_time`` /
+        ``behind`` -> 0 / 1 / 2, ``needs_review`` -> 3, ``not_built`` on a due element -> 2, ``built`` on an
+        element not due -> 0.
         """
         out = np.full(len(self.windows), -1, np.int8)
         for i, w in enumerate(self.windows[1:], start=1):
@@ -103,7 +105,9 @@ class ScheduleView:
                 out[i] = 2
             ann = self.annotations.get(global_ids[i - 1])
             if ann is not None and ann.created_ns <= at_ns:
-                if ann.status == "needs_review":
+                if ann.status in _JUDGED:  # the user's own schedule judgement (workbench)
+                    out[i] = _JUDGED[ann.status]
+                elif ann.status == "needs_review":
                     out[i] = 3
                 elif ann.status == "not_built" and due:
                     out[i] = 2
@@ -112,8 +116,14 @@ class ScheduleView:
         return out
 
     def apply_annotation(self, ann: Annotation) -> None:
-        """Remember the latest status annotation per element (kind ``status`` only)."""
-        if ann.kind != "status" or not ann.status:
+        """Remember the latest status annotation per element (kind ``status`` only); a later revision of an
+        annotation (an edit, or ``deleted``) replaces it."""
+        if ann.kind != "status":
+            return
+        for gid, old in list(self.annotations.items()):
+            if old.annotation_id == ann.annotation_id and old.revision <= ann.revision:
+                del self.annotations[gid]
+        if ann.deleted or not ann.status:
             return
         for gid in ann.element_ids:
             old = self.annotations.get(gid)
