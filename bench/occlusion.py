@@ -157,7 +157,7 @@ def system_registration(
             write_synth_anchor_file(site, load_synth(site), anchors)
         recon, report = run_batch(site / "photos", anchors, Path(tmp) / "out", show_progress=False)
     pts, _, obs_p, obs_i, obs_px = recon.sparse_arrays()
-    if recon.point_verified is not None:  # only points confirmed by guided matching (what the node publishes)
+    if recon.densified:  # only points confirmed by guided matching (what the node publishes)
         confirmed = recon.point_verified[np.all(np.isfinite(recon.points), axis=1)]
         keep = confirmed[obs_p]
         remap = np.cumsum(confirmed) - 1

@@ -39,14 +39,9 @@ from constructaide.bimgeom import glb_to_meshes  # noqa: E402
 from constructaide.synth import ensure_site  # noqa: E402
 from constructaide.synth.truth import load_cameras, load_depth, load_ids, true_camera  # noqa: E402
 from nodes.ingest.photos import exif_focal  # noqa: E402
-from nodes.register.streaming import (  # noqa: E402
-    FrameImage,
-    MeshDepthLookup,
-    PhotoInput,
-    StreamConfig,
-    StreamingRegistrar,
-    standing_elements,
-)
+from nodes.register.bimdepth import MeshDepthLookup, standing_elements  # noqa: E402
+from nodes.register.photo import FrameImage, PhotoInput  # noqa: E402
+from nodes.register.streaming import StreamConfig, StreamingRegistrar  # noqa: E402
 
 
 def exif_f(data: bytes) -> float | None:

@@ -69,7 +69,6 @@ from nodes.register import recon as rc  # noqa: E402
 from nodes.register.batch import (  # noqa: E402
     DEFAULT_DENSIFY,
     DEFAULT_MAX_SIDE_PX,
-    densify_reconstruction,
     exif_capture_time_ns,
     exif_focal_px,
     find_images,
@@ -77,6 +76,7 @@ from nodes.register.batch import (  # noqa: E402
     run_batch,
 )
 from nodes.register.config import MapperConfig  # noqa: E402
+from nodes.register.densify import densify_reconstruction  # noqa: E402
 from nodes.register.features import Features  # noqa: E402
 from schemas.messages import Intrinsics  # noqa: E402
 

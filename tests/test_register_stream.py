@@ -235,7 +235,7 @@ def test_viewpoint_graph_thresholds_and_bounds() -> None:
 
 
 def test_mesh_depth_lookup_matches_analytic_depth_and_schedule(scene) -> None:
-    from nodes.register.streaming import MeshDepthLookup
+    from nodes.register.bimdepth import MeshDepthLookup
 
     meshes = {}
     for i, pl in enumerate(scene.planes):

@@ -131,7 +131,7 @@ def bundle(
         pose_fixed=pose_fixed,
         intrinsics_fixed=intr_fixed,
         points_in_world=recon.points[pt_list] if pt_list else np.zeros((0, 3)),
-        point_fixed=np.zeros(len(pt_list), bool),
+        point_fixed=recon.point_from_model[pt_arr].copy(),
         point_ref_cam=np.where(point_ref >= 0, point_ref, -1) if len(point_ref) else np.zeros(0, int),
         point_ref_px=ref_px,
         obs_cam=obs_c,
@@ -150,7 +150,16 @@ def bundle(
     reg_ims = [recon.images[i] for i in reg]
     f_prior = np.array([focal_prior(im, cfg) for im in reg_ims])
     sigma = np.array([focal_sigma_frac(recon.images[i], cfg) for i in reg]) * f_prior
+    d_centre = np.zeros((len(reg), 2))
+    d_sigma = np.full(len(reg), np.nan)
+    for c, i in enumerate(reg):
+        src = recon.images[i].lens_source
+        if src is not None and recon.images[src].intrinsics is not None:
+            d_centre[c] = (recon.images[src].intrinsics.k1, recon.images[src].intrinsics.k2)
+            d_sigma[c] = cfg.inherited_distortion_sigma
     opts = BundleOptions(
+        distortion_prior_centre=d_centre,
+        distortion_prior_sigma=d_sigma,
         focal_prior_px=f_prior,
         focal_prior_sigma_px=sigma,
         loss_scale_px=cfg.loss_scale_px,
@@ -167,6 +176,12 @@ def bundle(
         covariance=covariance,
     )
     res = bundle_adjust(prob, opts)
+    lim = cfg.max_abs_distortion
+    moved = np.array([i in movable for i in reg])
+    broken = moved & ~((res.f_px > 0) & (np.abs(res.k1) <= lim) & (np.abs(res.k2) <= lim))
+    if broken.any() or not np.isfinite(res.final_rms_px):
+        # A camera's lens went implausible (outliers a robust loss did not hold): the adjustment is not applied.
+        return {"rejected": 1.0}
     if res.centre_cov_m2 is not None:
         sig = np.sqrt(np.einsum("cii->c", res.centre_cov_m2))
         for c, i in enumerate(reg):
@@ -201,8 +216,9 @@ def bundle(
     # Points left with < 2 registered views (views outside the adjustment count too).
     if len(pt_arr):
         remaining = views_per_track[pt_arr] - np.bincount(obs_p_a[drop], minlength=len(pt_arr))
-        recon.points[pt_arr[remaining < 2]] = np.nan
-        drop_runaway_points(recon, pt_arr)
+        lost = pt_arr[(remaining < 2) & ~recon.point_from_model[pt_arr]]
+        recon.points[lost] = np.nan
+        drop_runaway_points(recon, pt_arr[~recon.point_from_model[pt_arr]])
     if left_out:
         triangulate_tracks(recon, cfg, retriangulate=True, only=left_out)
     keep = ~drop

@@ -34,7 +34,7 @@ from constructaide.errors import UserError
 from constructaide.geo import exif_gps
 from nodes.register.colmap_io import ColmapImage, ColmapModel, write_text_model
 from nodes.register.config import MapperConfig
-from nodes.register.densify import DensifyParams, View, densify
+from nodes.register.densify import DensifyParams, densify_reconstruction
 from nodes.register.features import Features, extract_features
 from nodes.register.recon import Clicks, Reconstruction, add_image
 from nodes.register.sfm import reconstruct
@@ -213,74 +213,6 @@ def exif_capture_time_ns(path: Path) -> int:
         return 0
 
 
-def densify_reconstruction(
-    recon: Reconstruction,
-    params: DensifyParams | None = None,
-    capture_times_ns: list[int] | None = None,
-    show_progress: bool = False,
-) -> dict:
-    """Densify a finished reconstruction in place (``nodes.register.densify``): new tracks for the guided matches
-    and new observations of the existing tracks in the registered images. Returns counts for the report."""
-    t0 = time.perf_counter()
-    reg = recon.registered_indices()
-    if len(reg) < 2:
-        return {"new_points": 0, "new_observations": 0, "pairs": 0, "secs": 0.0}
-    local = {i: k for k, i in enumerate(reg)}
-    views = [
-        View(
-            recon.images[i].intrinsics,  # type: ignore[arg-type]
-            np.asarray(recon.images[i].world_from_camera, np.float64),
-            recon.images[i].features.keypoints_px.astype(np.float64),
-            recon.images[i].features.descriptors,
-            recon.images[i].features.scales,
-            capture_times_ns[i] if capture_times_ns else 0,
-        )
-        for i in reg
-    ]
-    known = np.flatnonzero(np.all(np.isfinite(recon.points), axis=1))
-    known_obs = [[(local[i], f) for i, f in recon.track_obs[t].items() if i in local] for t in known]
-    bar = tqdm(total=0, desc="densify", unit="pair", disable=not show_progress, file=sys.stderr)
-
-    def prog(done: int, total: int) -> None:
-        bar.total = total
-        bar.n = done
-        bar.refresh()
-
-    dense = densify(views, params, recon.points[known], known_obs, progress=prog)
-    bar.close()
-    first = len(recon.points)
-    recon._add_tracks(dense.num_points)
-    recon.points[first:] = dense.points_m
-    new_tracks: list[dict[int, int]] = [{} for _ in range(dense.num_points)]
-    for p, v, f in zip(dense.obs_point, dense.obs_view, dense.obs_feature, strict=True):
-        new_tracks[p][reg[v]] = int(f)
-        recon.feature_track[reg[v]][f] = first + p
-    for p, obs in enumerate(new_tracks):
-        i, f = next(iter(obs.items()))
-        colors = recon.images[i].colors_rgb_u8
-        if colors is not None:
-            recon.colors[first + p] = colors[f]
-    recon.track_obs.extend(new_tracks)
-    for k, v, f in dense.known_new_obs:
-        t = int(known[k])
-        recon.track_obs[t][reg[v]] = int(f)
-        recon.feature_track[reg[v]][f] = t
-    verified = np.zeros(len(recon.points), bool)
-    verified[known] = dense.known_verified
-    verified[first:] = True
-    recon.point_verified = verified
-    secs = time.perf_counter() - t0
-    recon.timings_secs["densify"] = secs
-    return {
-        "confirmed_registration_points": int(dense.known_verified.sum()),
-        "registration_points": len(known),
-        "new_points": dense.num_points,
-        "new_observations": int(len(dense.obs_point) + len(dense.known_new_obs)),
-        "pairs": len(dense.pairs),
-        "secs": secs,
-    }
-
-
 def reconstruction_to_colmap(recon: Reconstruction) -> ColmapModel:
     """Registered images and triangulated points as a COLMAP model (every keypoint written as a 2D point)."""
     pts, cols, *_ = recon.sparse_arrays()
@@ -397,7 +329,14 @@ def run_batch(
     dense_stats = None
     if densify_params is not None:
         times = [exif_capture_time_ns(p) for _, p in named]
-        dense_stats = densify_reconstruction(recon, densify_params, times, show_progress)
+        bar_d = tqdm(total=0, desc="densify", unit="pair", disable=not show_progress, file=sys.stderr)
+
+        def dprog(done: int, total: int) -> None:
+            bar_d.total, bar_d.n = total, done
+            bar_d.refresh()
+
+        dense_stats = densify_reconstruction(recon, densify_params, times, dprog)
+        bar_d.close()
     out_dir = Path(out_dir)
     write_text_model(reconstruction_to_colmap(recon), out_dir)
     registered = [im.name for im in recon.images if im.registered]

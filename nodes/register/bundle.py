@@ -135,7 +135,13 @@ class BundleOptions:
     loss_scale_px: float = 2.0
     refine_distortion: bool = True
     refine_principal_point: bool = False
+    # Zero-mean prior on k1 and k2: their standard deviation (dimensionless, despite the name).
     distortion_prior_px: float = 0.05
+    # Optional per-camera distortion priors: centres (C, 2) of (k1, k2) and standard deviations (C,); cameras
+    # with a NaN sigma take the zero-mean prior above (e.g. a photo that inherits its lens from the photo it was
+    # transferred from is held near that lens).
+    distortion_prior_centre: np.ndarray | None = None
+    distortion_prior_sigma: np.ndarray | None = None
     click_weight: float = 1.0
     max_nfev: int = 50
     ftol: float = 1e-4
@@ -444,6 +450,12 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
     obs_cam, obs_point, obs_px = prob.obs_cam, prob.obs_point, prob.obs_px
     n_obs, n_clk = len(obs_cam), len(prob.click_cam)
     distortion_cams = lay.intr_lead if opts.refine_distortion else np.zeros(0, int)
+    dist_centre = np.zeros((C, 2))
+    dist_sigma = np.full(C, float(opts.distortion_prior_px))
+    if opts.distortion_prior_centre is not None and opts.distortion_prior_sigma is not None:
+        own = np.isfinite(np.asarray(opts.distortion_prior_sigma, float))
+        dist_centre[own] = np.asarray(opts.distortion_prior_centre, float).reshape(C, 2)[own]
+        dist_sigma[own] = np.asarray(opts.distortion_prior_sigma, float)[own]
     if opts.focal_prior_px is not None and opts.focal_prior_sigma_px is not None:
         focal_cams = lay.intr_lead[np.isfinite(np.asarray(opts.focal_prior_sigma_px, float)[lay.intr_lead])]
         f_prior = np.asarray(opts.focal_prior_px, float)[focal_cams]
@@ -562,7 +574,8 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
         """Raw prior residuals (distortion k1 then k2, focal, principal points, aspects), in sigmas."""
         parts = []
         if len(distortion_cams):
-            parts.append(np.concatenate([k1[distortion_cams], k2[distortion_cams]]) / opts.distortion_prior_px)
+            dc, ds = dist_centre[distortion_cams], dist_sigma[distortion_cams]
+            parts.append(np.concatenate([(k1[distortion_cams] - dc[:, 0]) / ds, (k2[distortion_cams] - dc[:, 1]) / ds]))
         if len(focal_cams):
             f_eff = f[focal_cams] * (1 + a[focal_cams]) / 2 if focal_mean else f[focal_cams]
             parts.append((f_eff - f_prior) / f_sigma)
@@ -686,7 +699,7 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
             ic = lay.intr_col[distortion_cams]
             rows += [base + np.arange(nd), base + nd + np.arange(nd)]
             cols += [ic + 1, ic + 2]
-            vals += [np.full(nd, 1 / opts.distortion_prior_px)] * 2
+            vals += [1 / dist_sigma[distortion_cams]] * 2
         if len(focal_cams):
             base = 2 * (n_obs + n_clk) + 2 * len(distortion_cams)
             rows.append(base + np.arange(len(focal_cams)))

@@ -17,8 +17,11 @@ class MapperConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     homography_min_matches: int = 30
     homography_threshold_frac: float = 0.005
     homography_max_rotation_deviation: float = 0.03
-    # A homography transfer's rotation fit about the source camera's centre must explain its rays to this RMS (px).
-    homography_max_rms_px: float = 3.0
+    # A homography transfer's rotation fit about the source camera's centre must explain its rays to this RMS (a
+    # fraction of the width; a camera moved by 0.5 m 40 m from the building leaves 3x more).
+    homography_max_rms_frac: float = 0.0015
+    # Standard deviation of the prior holding an inherited lens's k1, k2 (ImageState.lens_source) in adjustments.
+    inherited_distortion_sigma: float = 0.01
     # True: a photo registered through a rotation homography keeps its anchor's camera centre (only rotation
     # and intrinsics are solved, and adjusted while that anchor's pose is held fixed). Off by default: a fixed
     # camera bumped by half a metre 40 m from the building still passes the rotation test (synthetic site, east
@@ -29,6 +32,24 @@ class MapperConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     fallback_min_track_matches: int = 25
     pnp_inlier_frac: float = 0.01
     min_pnp_inliers: int = 20
+    # A PnP pose must keep this fraction of the image's matches to triangulated tracks as inliers.
+    min_pnp_inlier_fraction: float = 0.3
+    # ... and, where the focal prior is trusted (EXIF / user), a focal within this fraction of it.
+    max_focal_change: float = 0.3
+    # Automatic poses whose image-up direction is further than this from world +z are refused (None: off; only a
+    # z-up model frame, as a BIM's, makes it meaningful).
+    max_tilt_from_upright_deg: float | None = None
+    # Model points (BIM depth) serve only the camera that looked them up until a second view confirms them; True:
+    # every photo (only where nothing unmodelled stands in front of the model).
+    trust_model_points: bool = False
+    # Plausibility of a registered camera (mapper.implausible): |k1|, |k2| at most this ...
+    max_abs_distortion: float = 1.0
+    # ... a focal within this fraction of a trusted prior (EXIF / user) ...
+    max_focal_deviation: float = 0.2
+    # ... and a reprojection RMS below this fraction of the width.
+    max_rms_frac: float = 0.01
+    # A model point is confirmed when a triangulation lands within this fraction of its distance to the camera.
+    model_point_tolerance: float = 0.02
     # A PnP pose must explain this fraction of the verified matches to registered images (epipolar check).
     min_pose_pair_agreement: float = 0.7
     epipolar_weight: float = 1.0

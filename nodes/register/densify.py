@@ -31,12 +31,14 @@ Pure numpy/OpenCV; inputs and outputs are arrays (see :class:`View`, :class:`Den
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from constructaide import camera as cam
+from nodes.register.recon import Reconstruction
 from schemas.messages import Intrinsics
 
 
@@ -606,3 +608,69 @@ def densify(
     ov = np.array([v for o in obs for v, _ in o], np.int64)
     of = np.array([f for o in obs for _, f in o], np.int64)
     return DensePoints(points, op, ov, of, pairs, num_matches, np.array(known_new, np.int64).reshape(-1, 3), verified)
+
+
+def densify_reconstruction(
+    recon: Reconstruction,
+    params: DensifyParams | None = None,
+    capture_times_ns: list[int] | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    only: int | None = None,
+) -> dict:
+    """Densify a reconstruction in place (:func:`densify`): new tracks for the guided matches and new observations
+    of the existing tracks in the registered images, and ``point_verified`` for the tracks guided matching
+    confirms. ``only`` (streaming: an image just registered): only its pairs, see :func:`densify`'s ``only_view``;
+    earlier verifications are kept. ``capture_times_ns`` per image (None: each image's own). Returns counts for the
+    report."""
+    t0 = time.perf_counter()
+    reg = recon.registered_indices()
+    if len(reg) < 2:
+        return {"new_points": 0, "new_observations": 0, "pairs": 0, "secs": 0.0}
+    local = {i: k for k, i in enumerate(reg)}
+    views = [
+        View(
+            recon.images[i].intrinsics,  # type: ignore[arg-type]
+            np.asarray(recon.images[i].world_from_camera, np.float64),
+            recon.images[i].features.keypoints_px.astype(np.float64),
+            recon.images[i].features.descriptors,
+            recon.images[i].features.scales,
+            capture_times_ns[i] if capture_times_ns else recon.images[i].capture_time_ns,
+        )
+        for i in reg
+    ]
+    known = np.flatnonzero(np.all(np.isfinite(recon.points), axis=1))
+    known_obs = [[(local[i], f) for i, f in recon.track_obs[t].items() if i in local] for t in known]
+    if only is not None and only not in local:
+        return {"new_points": 0, "new_observations": 0, "pairs": 0, "secs": 0.0}
+    only_view = None if only is None else local[only]
+    dense = densify(views, params, recon.points[known], known_obs, progress=progress, only_view=only_view)
+    first = len(recon.points)
+    recon._add_tracks(dense.num_points)
+    recon.points[first:] = dense.points_m
+    new_tracks: list[dict[int, int]] = [{} for _ in range(dense.num_points)]
+    for p, v, f in zip(dense.obs_point, dense.obs_view, dense.obs_feature, strict=True):
+        new_tracks[p][reg[v]] = int(f)
+        recon.feature_track[reg[v]][f] = first + p
+    for p, obs in enumerate(new_tracks):
+        i, f = next(iter(obs.items()))
+        colors = recon.images[i].colors_rgb_u8
+        if colors is not None:
+            recon.colors[first + p] = colors[f]
+    recon.track_obs.extend(new_tracks)
+    for k, v, f in dense.known_new_obs:
+        t = int(known[k])
+        recon.track_obs[t][reg[v]] = int(f)
+        recon.feature_track[reg[v]][f] = t
+    recon.point_verified[known] |= dense.known_verified
+    recon.point_verified[first:] = True
+    recon.densified = True
+    secs = time.perf_counter() - t0
+    recon.timings_secs["densify"] = secs
+    return {
+        "confirmed_registration_points": int(dense.known_verified.sum()),
+        "registration_points": len(known),
+        "new_points": dense.num_points,
+        "new_observations": int(len(dense.obs_point) + len(dense.known_new_obs)),
+        "pairs": len(dense.pairs),
+        "secs": secs,
+    }

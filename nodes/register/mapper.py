@@ -21,9 +21,18 @@ from nodes.register.pose import (
     rotation_deviation,
     rotation_from_homography,
     solve_pose_epipolar,
+    tilt_deg,
     with_focal,
 )
-from nodes.register.recon import Clicks, ImageState, Reconstruction, anchor_focal_kwargs, focal_prior, focal_sigma_frac
+from nodes.register.recon import (
+    Clicks,
+    ImageState,
+    Reconstruction,
+    anchor_focal_kwargs,
+    focal_prior,
+    focal_sigma_frac,
+    obs_threshold_px,
+)
 from schemas.messages import Intrinsics
 
 
@@ -104,7 +113,7 @@ def try_homography_transfer(recon: Reconstruction, src: int, idx: int, cfg: Mapp
     if len(inl) >= cfg.homography_min_matches:
         R, intr, res = fit_rotation_about_centre(rays[inl], pn[inl], intr, R, True, prior)
     rms = float(np.sqrt(np.mean(res**2))) if len(res) else float("inf")
-    if len(inl) < cfg.homography_min_matches or rms > cfg.homography_max_rms_px:
+    if len(inl) < cfg.homography_min_matches or rms > cfg.homography_max_rms_frac * im.width_px:
         im.message = f"homography from {a.name}: rotation about its centre leaves {rms:.1f} px (a moved camera?)"
         return False
     world_from_camera = cam.rigid(R.T, a.world_from_camera[:3, 3])
@@ -115,6 +124,7 @@ def try_homography_transfer(recon: Reconstruction, src: int, idx: int, cfg: Mapp
     im.intrinsics, im.world_from_camera = intr, world_from_camera
     im.status, im.method = "auto", "homography"
     im.centre_source = src if cfg.homography_shares_centre else None
+    im.lens_source = src if intr0.k1 == a.intrinsics.k1 and intr0.k2 == a.intrinsics.k2 else None
     im.num_inliers, im.rms_px = len(inl), rms
     n_warped = 0
     if a.clicks is not None:
@@ -312,15 +322,42 @@ def try_relative_pose(recon: Reconstruction, ref: int, idx: int, cfg: MapperConf
     return True
 
 
-def register_image_pnp(recon: Reconstruction, idx: int, cfg: MapperConfig) -> bool:
-    """Register image ``idx`` from its matches to triangulated tracks: PnP-RANSAC (inliers within
-    ``pnp_inlier_frac`` of the width) then the epipolar-constrained refinement. Returns True on success."""
+def camera_lens(recon: Reconstruction, idx: int, cfg: MapperConfig) -> Intrinsics:
+    """Starting lens of image ``idx``: that of the latest registered photo of the same fixed camera and size (its
+    distortion, principal point, aspect), else a centred pinhole; the focal is ``idx``'s prior."""
     im = recon.images[idx]
+    if im.camera_id is not None:
+        for j in range(len(recon.images) - 1, -1, -1):
+            o = recon.images[j]
+            if j != idx and o.registered and o.camera_id == im.camera_id and o.intrinsics is not None:
+                if (o.width_px, o.height_px) == (im.width_px, im.height_px):
+                    return with_focal(o.intrinsics, focal_prior(im, cfg))
+    return cam.centered_intrinsics(im.width_px, im.height_px, focal_prior(im, cfg))
+
+
+def usable_track_matches(recon: Reconstruction, idx: int, cfg: MapperConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Features of image ``idx`` (K,) and their tracks (K,) whose points image ``idx`` may be registered on: the
+    triangulated ones, and model points (BIM depth) that no second view has confirmed only for a photo of the
+    camera that looked them up (a fence or crane in front of the model gives its features the wrong depth; from
+    the same centre the depth does not matter) or with ``cfg.trust_model_points``."""
     ft = recon.feature_track[idx]
     feats = np.nonzero(ft >= 0)[0]
     tr = ft[feats]
     ok = np.all(np.isfinite(recon.points[tr]), axis=1)
-    feats, tr = feats[ok], tr[ok]
+    doubtful = ok & recon.point_from_model[tr] & ~recon.point_confirmed[tr]
+    if doubtful.any() and not cfg.trust_model_points:
+        cam_id = recon.images[idx].camera_id
+        for k in np.nonzero(doubtful)[0]:
+            others = [i for i in recon.track_obs[tr[k]] if i != idx and recon.images[i].registered]
+            ok[k] = cam_id is not None and bool(others) and all(recon.images[i].camera_id == cam_id for i in others)
+    return feats[ok], tr[ok]
+
+
+def register_image_pnp(recon: Reconstruction, idx: int, cfg: MapperConfig) -> bool:
+    """Register image ``idx`` from its matches to triangulated tracks: PnP-RANSAC (inliers within
+    ``pnp_inlier_frac`` of the width) then the epipolar-constrained refinement. Returns True on success."""
+    im = recon.images[idx]
+    feats, tr = usable_track_matches(recon, idx, cfg)
     im.num_matched_tracks = len(feats)
     if len(feats) < max(cfg.min_pnp_inliers, 6):
         im.message = f"only {len(feats)} matches to triangulated tracks"
@@ -328,17 +365,29 @@ def register_image_pnp(recon: Reconstruction, idx: int, cfg: MapperConfig) -> bo
     obj = recon.points[tr].astype(np.float64)
     img = im.features.keypoints_px[feats].astype(np.float64)
     f0 = focal_prior(im, cfg)
-    intr = cam.centered_intrinsics(im.width_px, im.height_px, f0)
+    lens = camera_lens(recon, idx, cfg)
+    intr = with_focal(lens, f0)
     K = cam.K_matrix(intr)
+    dist = np.array([intr.k1, intr.k2, 0.0, 0.0])  # OpenCV's k1, k2 = the project's radial model
     thr = cfg.pnp_inlier_frac * im.width_px
     best = None
     # Try the prior focal and, if that registers poorly, a few alternatives (a wrong prior breaks RANSAC).
     for f_try in (f0, f0 * 0.7, f0 * 1.4, f0 * 2.0, f0 * 0.5):
         Kt = K.copy()
-        Kt[0, 0] = Kt[1, 1] = f_try
-        ok_r, rvec, tvec, inl = cv2.solvePnPRansac(
-            obj, img, Kt, None, iterationsCount=2000, reprojectionError=thr, confidence=0.999, flags=cv2.SOLVEPNP_SQPNP
-        )
+        Kt[0, 0], Kt[1, 1] = f_try, f_try * intr.fy_over_fx
+        try:
+            ok_r, rvec, tvec, inl = cv2.solvePnPRansac(
+                obj,
+                img,
+                Kt,
+                dist,
+                iterationsCount=2000,
+                reprojectionError=thr,
+                confidence=0.999,
+                flags=cv2.SOLVEPNP_SQPNP,
+            )
+        except cv2.error:  # degenerate points (all nearly on one spot)
+            ok_r, rvec, tvec, inl = False, None, None, None
         n_inl = 0 if (not ok_r or inl is None) else len(inl)
         if best is None or n_inl > best[0]:
             best = (n_inl, f_try, rvec, tvec, inl)
@@ -349,7 +398,7 @@ def register_image_pnp(recon: Reconstruction, idx: int, cfg: MapperConfig) -> bo
         im.message = f"PnP found {n_inl} inliers among {len(obj)} track matches (< {cfg.min_pnp_inliers})"
         return False
     inl = inl.ravel()
-    intr = cam.centered_intrinsics(im.width_px, im.height_px, f_try)
+    intr = with_focal(lens, f_try)
     cpts, clines = epipolar_constraints(recon, idx)
     rv, tv, f = solve_pose_epipolar(
         intr,
@@ -363,15 +412,23 @@ def register_image_pnp(recon: Reconstruction, idx: int, cfg: MapperConfig) -> bo
         solve_focal=n_inl >= 50 and not np.isfinite(focal_sigma_frac(im, cfg)),
         loss_scale_px=cfg.loss_scale_px,
     )
-    intr = cam.centered_intrinsics(im.width_px, im.height_px, f)
+    intr = with_focal(lens, f)
     proj = project_pose(intr, rv, tv, f, obj)
     err = np.linalg.norm(proj - img, axis=1)
     R = cam.rodrigues_to_matrix(rv)
     z = obj @ R.T[:, 2] + tv[2]
     inliers = (err < thr) & (z > 0)
-    if inliers.sum() < cfg.min_pnp_inliers:
-        im.message = f"refined pose keeps {int(inliers.sum())} inliers (< {cfg.min_pnp_inliers})"
+    if inliers.sum() < max(cfg.min_pnp_inliers, cfg.min_pnp_inlier_fraction * len(obj)):
+        im.message = f"refined pose keeps {int(inliers.sum())} of {len(obj)} track matches as inliers"
         return False
+    if np.isfinite(focal_sigma_frac(im, cfg)) and abs(f / f0 - 1) > cfg.max_focal_change:
+        im.message = f"PnP pose needs a focal of {f:.0f} px, {abs(f / f0 - 1):.0%} off its prior {f0:.0f} px"
+        return False
+    if cfg.max_tilt_from_upright_deg is not None:
+        tilt = tilt_deg(cam.invert_rigid(cam.rigid(R, tv)))
+        if tilt > cfg.max_tilt_from_upright_deg:
+            im.message = f"PnP pose tilted {tilt:.0f} deg from upright (> {cfg.max_tilt_from_upright_deg:g})"
+            return False
     agree = pose_pair_agreement(recon, idx, intr, cam.invert_rigid(cam.rigid(R, tv)), 2 * thr)
     if agree < cfg.min_pose_pair_agreement:
         im.message = (
@@ -425,3 +482,71 @@ def bootstrap_next(recon: Reconstruction, unreg: list[int], cfg: MapperConfig) -
         if os.environ.get("CA_DEBUG"):
             print("bootstrap fail", recon.images[r].name, recon.images[u].name, recon.images[u].message)
     return -1
+
+
+def add_model_points(recon: Reconstruction, idx: int, points_in_world: np.ndarray) -> int:
+    """Give the features (N,) of registered image ``idx`` model points (N, 3) world, NaN rows for none (BIM depth
+    at its pose: :func:`nodes.register.bimdepth.points_from_depth`): features without a triangulated track get
+    them, on a new one-view track or on their untriangulated one, flagged ``point_from_model`` (held fixed in the
+    adjustments, serving other photos once confirmed). Returns how many were added."""
+    im = recon.images[idx]
+    pts = np.asarray(points_in_world, np.float64).reshape(-1, 3)
+    ft = recon.feature_track[idx]
+    has = ft >= 0
+    has[has] = np.all(np.isfinite(recon.points[ft[has]]), axis=1)
+    todo = np.nonzero(~has & np.all(np.isfinite(pts), axis=1))[0]
+    if len(todo) == 0:
+        return 0
+    fresh = todo[ft[todo] < 0]
+    first = len(recon.track_obs)
+    recon._add_tracks(len(fresh))
+    for k, f in enumerate(fresh.tolist()):
+        recon.track_obs.append({idx: f})
+        ft[f] = first + k
+    tr = ft[todo]
+    recon.points[tr] = pts[todo]
+    recon.point_from_model[tr] = True
+    recon.point_confirmed[tr] = False
+    if im.colors_rgb_u8 is not None:
+        recon.colors[tr] = im.colors_rgb_u8[todo]
+    return len(todo)
+
+
+def implausible(im: ImageState, cfg: MapperConfig) -> str:
+    """Why a registered image's camera is implausible ("" when it is not): lens distortion beyond
+    ``cfg.max_abs_distortion``, a focal further than ``cfg.max_focal_deviation`` from a trusted prior (EXIF or
+    user; not when the image's own clicks contradicted it) or a reprojection RMS above ``cfg.max_rms_frac`` of the
+    width."""
+    i = im.intrinsics
+    if i is None or im.world_from_camera is None:
+        return "no camera"
+    if not (abs(i.k1) <= cfg.max_abs_distortion and abs(i.k2) <= cfg.max_abs_distortion):
+        return f"lens distortion k1 = {i.k1:.3g}, k2 = {i.k2:.3g} (|k| > {cfg.max_abs_distortion:g})"
+    if np.isfinite(focal_sigma_frac(im, cfg)):
+        f0 = focal_prior(im, cfg)
+        if not abs(i.f_px / f0 - 1) <= cfg.max_focal_deviation:
+            return f"focal {i.f_px:.0f} px is {abs(i.f_px / f0 - 1):.0%} off its prior {f0:.0f} px"
+    if np.isfinite(im.rms_px) and im.rms_px > cfg.max_rms_frac * im.width_px:
+        return f"reprojection RMS {im.rms_px:.1f} px (> {cfg.max_rms_frac:.1%} of the width)"
+    return ""
+
+
+def prune_observations(recon: Reconstruction, idx: int, cfg: MapperConfig) -> int:
+    """Detach registered image ``idx`` from the triangulated tracks (and model points) its camera does not see
+    where they are: behind it, or reprojecting further than the observation threshold from its feature (matches
+    on repeated texture chain a photo's features into other places' tracks). Returns how many were detached."""
+    im = recon.images[idx]
+    ft = recon.feature_track[idx]
+    feats = np.nonzero(ft >= 0)[0]
+    tr = ft[feats]
+    fin = np.all(np.isfinite(recon.points[tr]), axis=1)
+    feats, tr = feats[fin], tr[fin]
+    if len(feats) == 0:
+        return 0
+    proj, z = cam.project_points(im.intrinsics, cam.invert_rigid(im.world_from_camera), recon.points[tr])
+    err = np.linalg.norm(proj - im.features.keypoints_px[feats], axis=1)
+    bad = ~(np.isfinite(err) & (err < obs_threshold_px(im, cfg)) & (z > 0))
+    for f, t in zip(feats[bad].tolist(), tr[bad].tolist(), strict=True):
+        recon.track_obs[t].pop(idx, None)
+        ft[f] = -1
+    return int(bad.sum())

@@ -47,31 +47,64 @@ def verify_pair(a: Features, b: Features, cfg: MapperConfig) -> PairGeometry | N
     return PairGeometry(m[inl], F, len(m))
 
 
+class Vocabulary:
+    """Bag of visual words over (RootSIFT, unit) descriptors: k-means centres (k, 128) and inverse document
+    frequencies (k,); :meth:`histogram` gives an image's unit tf-idf vector for cosine-similarity retrieval."""
+
+    def __init__(self, centres: np.ndarray, idf: np.ndarray | None = None) -> None:
+        c = np.asarray(centres, np.float32)
+        self.centres = c / np.maximum(np.linalg.norm(c, axis=1, keepdims=True), 1e-12)
+        self.idf = np.ones(len(c)) if idf is None else np.asarray(idf, np.float64)
+
+    @classmethod
+    def build(
+        cls, descriptor_sets: list[np.ndarray], max_words: int = 1024, per_image: int = 300, seed: int = 0
+    ) -> Vocabulary | None:
+        """Vocabulary of at most ``max_words`` words (a quarter of the sampled descriptors at most) from up to
+        ``per_image`` descriptors of each set, with idf over the sets; None when there are too few descriptors."""
+        rng = np.random.default_rng(seed)
+        sample = [d[rng.choice(len(d), min(len(d), per_image), replace=False)] for d in descriptor_sets if len(d)]
+        if not sample:
+            return None
+        data = np.vstack(sample).astype(np.float32)
+        k = int(min(max_words, len(data) // 4))
+        if k < 8:
+            return None
+        criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 20, 1e-3)
+        cv2.setRNGSeed(seed)
+        _, _, centres = cv2.kmeans(data, k, None, criteria, 2, cv2.KMEANS_PP_CENTERS)
+        voc = cls(centres)
+        counts = np.array([voc.words(d) for d in descriptor_sets], dtype=object)
+        df = np.zeros(k)
+        for w in counts:
+            df[np.unique(w)] += 1
+        voc.idf = np.log(len(descriptor_sets) / np.maximum(df, 1))
+        return voc
+
+    def words(self, descriptors: np.ndarray) -> np.ndarray:
+        """Nearest word (N,) of each descriptor (N, 128) by dot product (unit vectors)."""
+        d = np.asarray(descriptors, np.float32)
+        out = np.zeros(len(d), np.int64)
+        for s0 in range(0, len(d), 4096):
+            out[s0 : s0 + 4096] = np.argmax(d[s0 : s0 + 4096] @ self.centres.T, axis=1)
+        return out
+
+    def histogram(self, descriptors: np.ndarray) -> np.ndarray:
+        """Unit tf-idf vector (k,) of an image's descriptors (zeros without any)."""
+        h = np.bincount(self.words(descriptors), minlength=len(self.centres)).astype(np.float64) * self.idf
+        return h / max(float(np.linalg.norm(h)), 1e-12)
+
+
 def select_pairs(features: list[Features], cfg: MapperConfig, seed: int = 0) -> list[tuple[int, int]]:
     """All pairs for small sets; for more than ``max_exhaustive_images`` a bag-of-words shortlist (each image with
     its ``shortlist_size`` most similar images by tf-idf cosine over a k-means vocabulary of RootSIFT)."""
     n = len(features)
     if n <= cfg.max_exhaustive_images:
         return [(i, j) for i in range(n) for j in range(i + 1, n)]
-    rng = np.random.default_rng(seed)
-    sample = []
-    for f in features:
-        if len(f):
-            sample.append(f.descriptors[rng.choice(len(f), min(len(f), 300), replace=False)])
-    data = np.vstack(sample).astype(np.float32)
-    k = int(min(1024, max(16, len(data) // 4)))
-    criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 20, 1e-3)
-    cv2.setRNGSeed(seed)
-    _, _, centers = cv2.kmeans(data, k, None, criteria, 2, cv2.KMEANS_PP_CENTERS)
-    matcher = cv2.BFMatcher(cv2.NORM_L2)
-    hist = np.zeros((n, k))
-    for i, f in enumerate(features):
-        if len(f):
-            words = np.array([m.trainIdx for m in matcher.match(f.descriptors, centers)])
-            hist[i] = np.bincount(words, minlength=k)
-    idf = np.log(n / np.maximum((hist > 0).sum(0), 1))
-    h = hist * idf
-    h /= np.maximum(np.linalg.norm(h, axis=1, keepdims=True), 1e-12)
+    voc = Vocabulary.build([f.descriptors for f in features], seed=seed)
+    if voc is None:
+        return [(i, j) for i in range(n) for j in range(i + 1, n)]
+    h = np.stack([voc.histogram(f.descriptors) for f in features])
     sim = h @ h.T
     np.fill_diagonal(sim, -np.inf)
     pairs = set()

@@ -15,15 +15,9 @@ import numpy as np
 
 from constructaide.bimgeom import glb_to_meshes
 from constructaide.runtime import Input, NodeContext, NodeSpec, Output, run_node_cli
-from nodes.register.streaming import (
-    FrameImage,
-    MeshDepthLookup,
-    Outcome,
-    PhotoInput,
-    StreamConfig,
-    StreamingRegistrar,
-    standing_elements,
-)
+from nodes.register.bimdepth import MeshDepthLookup, standing_elements
+from nodes.register.photo import FrameImage, PhotoInput
+from nodes.register.streaming import Outcome, StreamConfig, StreamingRegistrar
 from schemas import keys
 from schemas.messages import (
     AnchorClicks,
@@ -86,6 +80,7 @@ class RegisterNode:
         self.meshes: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         self.ref_of: dict[str, str] = {}
         self.tasks: tuple = ()
+        self.terrain_height_m: float | None = None
         self.sparse_revision = 0
         self._map_changes = 0
 
@@ -111,6 +106,8 @@ class RegisterNode:
             self._enqueue(msg)
         else:
             self._remember(msg)
+            if out.map_changed:
+                self._retry_pending()
 
     def on_anchors(self, msg: AnchorClicks, key: str) -> None:
         if len(msg.points) < 4:
@@ -135,6 +132,7 @@ class RegisterNode:
         self.meshes = dict(glb_to_meshes(msg.geometry_glb))
         self.ref_of = {e.global_id: (e.geometry_ref or e.global_id) for e in msg.elements}
         self.tasks = msg.tasks
+        self.terrain_height_m = msg.terrain_height_m
         self._rebuild_depth()
 
     def on_bim_update(self, msg: BimUpdate, key: str) -> None:
@@ -167,7 +165,9 @@ class RegisterNode:
         if isinstance(old, MeshDepthLookup):
             old.close()
         try:
-            self.registrar.depth_lookup = MeshDepthLookup(self.meshes, elements_at=refs_at)
+            self.registrar.depth_lookup = MeshDepthLookup(
+                self.meshes, elements_at=refs_at, ground_height_m=self.terrain_height_m
+            )
         except ValueError as e:
             self.registrar.depth_lookup = None
             self.ctx.log.warning("no depth lookup: %s", e)
@@ -217,15 +217,20 @@ class RegisterNode:
             self.recent.popitem(last=False)
 
     def _retry_pending(self) -> None:
-        waiting = sorted(self.pending.values(), key=lambda p: p.capture_time_ns)
-        self.pending.clear()
-        for msg in waiting:
-            out = self.registrar.register(_photo_input(msg))
-            self._publish(out, ask=False)
-            if out.registration.status == "failed":
-                self.pending[msg.photo_id] = msg
-            else:
+        """Try the waiting photos again while the map grows (each registration can connect others)."""
+        grown = True
+        while grown and self.pending:
+            grown = False
+            for msg in sorted(self.pending.values(), key=lambda p: p.capture_time_ns):
+                out = self.registrar.retry(_photo_input(msg))
+                if out is None:
+                    continue
+                if out.registration.status == "failed":
+                    continue
+                del self.pending[msg.photo_id]
+                self._publish(out, ask=False)
                 self._remember(msg)
+                grown = grown or out.map_changed
 
     def _enqueue(self, msg: Photo) -> None:
         self.pending[msg.photo_id] = msg

@@ -59,8 +59,14 @@ class ImageState:
     focal_prior_rejected: bool = False
     # Image whose camera centre this one shares (a rotation homography to that anchor), or None.
     centre_source: int | None = None
+    # Image whose lens (distortion) this one inherited (a homography transfer from the same physical camera): the
+    # adjustments hold its k1, k2 near that image's unless its own data pin them. None: its own lens.
+    lens_source: int | None = None
     # EXIF GPS position, None when absent.
     gps: GeoPoint | None = None
+    # Fixed camera the photo comes from (None: a phone or an unknown camera) and its capture time (UTC ns).
+    camera_id: str | None = None
+    capture_time_ns: int = 0
     # Median GPS distance residual (m) of the automatic registration (see gps_check), NaN when not checked.
     gps_residual_m: float = float("nan")
     # Standard deviation of the camera centre (model units; sqrt of the trace of its 3x3 covariance) from the final
@@ -89,8 +95,12 @@ class Reconstruction:
     pairs: dict[tuple[int, int], PairGeometry] = field(default_factory=dict)
     track_obs: list[dict[int, int]] = field(default_factory=list)
     feature_track: list[np.ndarray] = field(default_factory=list)
-    points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    colors: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.uint8))
+    # Per-track arrays live in buffers that grow by doubling (tracks are added one at a time while streaming); the
+    # properties below (points (T, 3), colors (T, 3) u8, point_from_model / point_confirmed / point_verified (T,))
+    # are views of their first T rows.
+    _buf: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
+    _n_tracks: int = 0
+    _index: dict[str, int] = field(default_factory=dict, repr=False)
     needs_anchor: list[tuple[str, str, int]] = field(default_factory=list)
     timings_secs: dict[str, float] = field(default_factory=dict)
     # Statistic of the final anchor-release test (see release_anchors_if_significant), NaN when not run, and
@@ -107,17 +117,22 @@ class Reconstruction:
     release_settings: dict = field(default_factory=dict)
     # Images given clicks to meet MapperConfig.target_centre_sigma, in order.
     accuracy_anchors: list[str] = field(default_factory=list)
-    # (T,) bool per track once densified (nodes.register.batch.densify_reconstruction): confirmed by epipolar-guided
-    # matching (the densified tracks are by construction); None before. Occlusion reasoning uses confirmed ones only.
-    point_verified: np.ndarray | None = None
+    # Whether point_verified has been computed (densification ran): until then it is all False and means unknown.
+    densified: bool = False
     # Same for the aspect ratios (fy / fx, one per camera group) in the release, NaN if not refined there.
     aspect_wald: float = float("nan")
 
     def index(self, name: str) -> int:
-        for i, im in enumerate(self.images):
-            if im.name == name:
-                return i
-        raise KeyError(name)
+        if len(self._index) != len(self.images):
+            self._index = {im.name: i for i, im in enumerate(self.images)}
+        return self._index[name]
+
+    def __contains__(self, name: str) -> bool:
+        try:
+            self.index(name)
+        except KeyError:
+            return False
+        return True
 
     def registered_indices(self) -> list[int]:
         return [i for i, im in enumerate(self.images) if im.registered]
@@ -146,9 +161,65 @@ class Reconstruction:
         px = np.array(ox, np.float64).reshape(-1, 2)
         return self.points[ok], self.colors[ok], np.array(op, int), np.array(oi, int), px
 
+    _TRACK_ARRAYS = {
+        "points": ((3,), np.float64, np.nan),
+        "colors": ((3,), np.uint8, 0),
+        "point_from_model": ((), bool, False),
+        "point_confirmed": ((), bool, False),
+        "point_verified": ((), bool, False),
+    }
+
+    def _array(self, name: str) -> np.ndarray:
+        buf = self._buf.get(name)
+        if buf is None:
+            shape, dtype, fill = self._TRACK_ARRAYS[name]
+            buf = self._buf[name] = np.full((max(self._n_tracks, 16), *shape), fill, dtype)
+        return buf[: self._n_tracks]
+
+    def _set_array(self, name: str, value: np.ndarray) -> None:
+        shape, dtype, _ = self._TRACK_ARRAYS[name]
+        value = np.asarray(value, dtype).reshape(-1, *shape)
+        if len(value) != self._n_tracks:
+            raise ValueError(f"{name}: {len(value)} rows for {self._n_tracks} tracks")
+        self._array(name)  # allocate
+        self._buf[name][: self._n_tracks] = value
+
+    points = property(lambda self: self._array("points"), lambda self, v: self._set_array("points", v))
+    colors = property(lambda self: self._array("colors"), lambda self, v: self._set_array("colors", v))
+    point_from_model = property(
+        lambda self: self._array("point_from_model"), lambda self, v: self._set_array("point_from_model", v)
+    )
+    """(T,) bool: the point was looked up on the BIM (depth of the model at an anchor's feature) and is held there."""
+    point_confirmed = property(
+        lambda self: self._array("point_confirmed"), lambda self, v: self._set_array("point_confirmed", v)
+    )
+    """(T,) bool: a model point that a triangulation from two views reproduced (nothing unmodelled in front)."""
+    point_verified = property(
+        lambda self: self._array("point_verified"), lambda self, v: self._set_array("point_verified", v)
+    )
+    """(T,) bool: confirmed by epipolar-guided matching (densification; the densified tracks are by construction).
+    Occlusion reasoning uses verified points only (see ``densified``)."""
+
+    def reset_tracks(self, n: int) -> None:
+        """``n`` empty tracks (untriangulated, no flags); clears the per-track arrays."""
+        self._buf, self._n_tracks = {}, n
+
     def _add_tracks(self, n: int) -> None:
-        self.points = np.vstack([self.points, np.full((n, 3), np.nan)])
-        self.colors = np.vstack([self.colors, np.zeros((n, 3), np.uint8)])
+        """Append ``n`` untriangulated tracks' rows to the per-track arrays (amortised growth)."""
+        need = self._n_tracks + n
+        for name, (shape, dtype, fill) in self._TRACK_ARRAYS.items():
+            buf = self._buf.get(name)
+            if buf is not None and len(buf) < need:
+                grown = np.full((max(2 * len(buf), need), *shape), fill, dtype)
+                grown[: self._n_tracks] = buf[: self._n_tracks]
+                self._buf[name] = grown
+            elif buf is not None:
+                buf[self._n_tracks : need] = fill
+        self._n_tracks = need
+
+    def truncate_tracks(self, n: int) -> None:
+        """Keep the first ``n`` tracks' rows (the caller restores ``track_obs`` to match)."""
+        self._n_tracks = min(self._n_tracks, n)
 
 
 def focal_prior(im: ImageState, cfg: MapperConfig) -> float:
@@ -187,12 +258,18 @@ def add_image(
     colors_rgb_u8: np.ndarray | None = None,
     focal_prior_px: float | None = None,
     gps: GeoPoint | None = None,
+    camera_id: str | None = None,
+    capture_time_ns: int = 0,
 ) -> int:
     """Append an unregistered image; returns its index. ``colors_rgb_u8`` (N, 3): colour at each keypoint;
     ``gps``: its EXIF position (None when absent)."""
-    if any(im.name == name for im in recon.images):
+    if name in recon:
         raise ValueError(f"image {name!r} is already in the reconstruction")
-    recon.images.append(ImageState(name, features, colors_rgb_u8, focal_prior_px, gps=gps))
+    recon.images.append(
+        ImageState(
+            name, features, colors_rgb_u8, focal_prior_px, gps=gps, camera_id=camera_id, capture_time_ns=capture_time_ns
+        )
+    )
     recon.feature_track.append(-np.ones(len(features), dtype=np.int64))
     return len(recon.images) - 1
 
@@ -236,8 +313,7 @@ def build_tracks(recon: Reconstruction) -> None:
         for i, f in d.items():
             recon.feature_track[i][f] = t
     n = len(recon.track_obs)
-    recon.points = np.full((n, 3), np.nan)
-    recon.colors = np.zeros((n, 3), np.uint8)
+    recon.reset_tracks(n)
 
 
 def link_image_tracks(recon: Reconstruction, idx: int) -> int:
@@ -325,6 +401,8 @@ def restore(recon: Reconstruction, snap: tuple) -> None:
     ims, points, track_obs, feature_track = snap
     for im, (intr, T, rms, n_inl, sig) in zip(recon.images, ims, strict=True):
         im.intrinsics, im.world_from_camera, im.rms_px, im.num_inliers, im.centre_sigma_m = intr, T, rms, n_inl, sig
+    if len(points) < len(recon.points):
+        recon.truncate_tracks(len(points))
     recon.points, recon.track_obs, recon.feature_track = points, track_obs, feature_track
 
 

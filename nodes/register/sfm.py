@@ -50,6 +50,7 @@ from nodes.register.mapper import (
     anchor_request_order,
     bootstrap_next,
     click_disagreement_px,
+    prune_observations,
     register_anchor,
     register_image_pnp,
     try_homography_transfer,
@@ -170,6 +171,7 @@ def reconstruct(
     checked_h: set[tuple[int, int]] = set()
     failed_pnp: set[int] = set()
     dirty = True  # something was added since the last full bundle adjustment
+    pruned: set[int] = set()  # registered images detached from the tracks their camera does not explain
     since_full = 0
     while True:
         # Homography transfer from every clicked image to unregistered images.
@@ -187,6 +189,10 @@ def reconstruct(
                         if not recheck_with_clicks(u):
                             note(f"homography {recon.images[u].name}")
         if dirty:
+            for i in recon.registered_indices():
+                if i not in pruned:
+                    prune_observations(recon, i, cfg)
+                    pruned.add(i)
             triangulate_tracks(recon, cfg)
             bundle(recon, cfg)
             triangulate_tracks(recon, cfg)

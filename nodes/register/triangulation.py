@@ -23,29 +23,24 @@ def pixel_rays(recon: Reconstruction, img_idx: np.ndarray, px: np.ndarray) -> tu
     return centers, dirs
 
 
-def triangulate_tracks(
-    recon: Reconstruction, cfg: MapperConfig, retriangulate: bool = False, only: list[int] | None = None
-) -> int:
-    """Triangulate untriangulated tracks seen by >= 2 registered images (midpoint of rays, all at once), keeping
-    those whose rays span >= ``min_triangulation_angle_deg`` and that reproject within threshold in front of
-    every camera. ``retriangulate`` redoes triangulated ones too; ``only`` restricts to these tracks. Returns the
-    number of points (re)made."""
+def _midpoints(
+    recon: Reconstruction, candidates: np.ndarray, cfg: MapperConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Midpoint triangulation of ``candidates`` (tracks) from their observations in registered images: (tracks
+    with >= 2 such views (n,), points (n, 3), accepted (n,): rays spanning >= ``min_triangulation_angle_deg``,
+    reprojecting within threshold in front of every camera)."""
     reg = np.array([im.registered for im in recon.images], dtype=bool)
-    candidates = np.arange(len(recon.track_obs)) if only is None else np.asarray(only, dtype=np.int64)
-    if len(candidates) == 0 or not reg.any():
-        return 0
-    if not retriangulate:
-        candidates = candidates[~np.all(np.isfinite(recon.points[candidates]), axis=1)]
+    empty = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, bool))
     tids_a, iids_a, fids_a = flat_obs(recon, candidates)
     keep = reg[iids_a] if len(iids_a) else np.zeros(0, bool)
     tids_a, iids_a, fids_a = tids_a[keep], iids_a[keep], fids_a[keep]
     if len(tids_a) == 0:
-        return 0
+        return empty
     uniq, inv, cnt = np.unique(tids_a, return_inverse=True, return_counts=True)
     two = cnt[inv] >= 2
     tids_a, iids_a, fids_a = tids_a[two], iids_a[two], fids_a[two]
     if len(tids_a) == 0:
-        return 0
+        return empty
     px = obs_pixels(recon, iids_a, fids_a)
     C, D = pixel_rays(recon, iids_a, px)
     uniq, inv = np.unique(tids_a, return_inverse=True)
@@ -76,7 +71,26 @@ def triangulate_tracks(
         e = np.linalg.norm(proj - px[sel], axis=1)
         fail = ~(np.isfinite(e) & (e < thr[i]) & (z > 0))
         np.logical_or.at(bad, inv[sel], fail)
-    accept = good & wide & ~bad
+    return uniq, X, good & wide & ~bad
+
+
+def triangulate_tracks(
+    recon: Reconstruction, cfg: MapperConfig, retriangulate: bool = False, only: list[int] | None = None
+) -> int:
+    """Triangulate untriangulated tracks seen by >= 2 registered images (midpoint of rays, all at once), keeping
+    those whose rays span >= ``min_triangulation_angle_deg`` and that reproject within threshold in front of
+    every camera. ``retriangulate`` redoes triangulated ones too (never model points); ``only`` restricts to these
+    tracks. Returns the number of points (re)made."""
+    candidates = np.arange(len(recon.track_obs)) if only is None else np.asarray(only, dtype=np.int64)
+    if len(candidates) == 0 or not recon.registered_indices():
+        return 0
+    if retriangulate:
+        candidates = candidates[~recon.point_from_model[candidates]]
+    else:
+        candidates = candidates[~np.all(np.isfinite(recon.points[candidates]), axis=1)]
+    uniq, X, accept = _midpoints(recon, candidates, cfg)
+    if len(uniq) == 0:
+        return 0
     if retriangulate:
         recon.points[uniq[~accept]] = np.nan
     acc_t = uniq[accept]
@@ -90,6 +104,29 @@ def triangulate_tracks(
             sel = first_obs[:, 0] == i
             recon.colors[acc_t[sel]] = cols[first_obs[sel, 1]]
     return new
+
+
+def confirm_model_points(recon: Reconstruction, tracks: list[int] | np.ndarray, cfg: MapperConfig) -> int:
+    """Confirm the model points (BIM depth) among ``tracks`` that a triangulation from their registered views
+    reproduces within ``cfg.model_point_tolerance`` of their distance to the nearest observing camera (something
+    unmodelled in front of the model gives a feature the wrong depth; such a point stays unconfirmed). Returns how
+    many were confirmed."""
+    t = np.asarray(tracks, np.int64).ravel()
+    t = t[recon.point_from_model[t] & ~recon.point_confirmed[t]] if len(t) else t
+    uniq, X, accept = _midpoints(recon, t, cfg)
+    if not accept.any():
+        return 0
+    uniq, X = uniq[accept], X[accept]
+    P = recon.points[uniq]
+    rng = np.full(len(uniq), np.inf)
+    for k, tr in enumerate(uniq.tolist()):
+        for i in recon.track_obs[tr]:
+            im = recon.images[i]
+            if im.registered:
+                rng[k] = min(rng[k], float(np.linalg.norm(P[k] - im.world_from_camera[:3, 3])))
+    ok = np.linalg.norm(X - P, axis=1) < cfg.model_point_tolerance * rng
+    recon.point_confirmed[uniq[ok]] = True
+    return int(ok.sum())
 
 
 def drop_runaway_points(recon: Reconstruction, tracks: np.ndarray, factor: float = 1e3) -> int:
