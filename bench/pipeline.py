@@ -228,10 +228,12 @@ def main(argv: list[str] | None = None) -> int:
     print(tab)
     if not args.no_write:
         anchors = (
-            "anchors from the site's anchors.json, and every NeedsAnchor request answered by the demo's simulated "
-            "user with 12 clicks simulated from truth (1 px noise), as a person at the browser page would"
+            "up-front anchors from the site's anchors.json (first usable photo per fixed camera and phone visit, no "
+            "knock anchor), and every NeedsAnchor request answered by the demo's simulated user: up to 12 visible "
+            "element corners, 1.5 px noise, about 1 gross mis-click in 20, as a person at the browser page would"
             if args.answer_anchor_requests
-            else "anchors from the site's anchors.json only; photos that asked for an anchor stay unregistered"
+            else "up-front anchors from the site's anchors.json only (first usable photo per fixed camera and phone "
+            "visit, corner clicks with mis-clicks, no knock anchor); photos that asked for an anchor stay unregistered"
         )
         body = f"""Synthetic site `{site.name}`, scored from {ran}. What the nodes published over the bus and the
 recorder stored, as a user sees it: streaming registrations ({anchors}), the last dynamic / static mask

@@ -35,6 +35,14 @@ def small_site() -> Path:
     return ensure_site("small", 0, CACHE / "synth")
 
 
+@pytest.fixture(scope="session")
+def small_site_seed7() -> Path:
+    """The `small` synthetic site generated with seed 7 (no threshold is tuned on it), cached like seed 0."""
+    from constructaide.synth import ensure_site
+
+    return ensure_site("small", 7, CACHE / "synth")
+
+
 @pytest.fixture()
 def hub_port() -> int:
     from constructaide.runtime import free_port

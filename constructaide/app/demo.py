@@ -1,9 +1,11 @@
 """``constructaide demo``: the main job on embedded defaults.
 
 Generates (once, cached) the synthetic construction site, starts every node in its own process on
-a loopback zenoh bus, publishes the site's BIM (through the ingest node), the simulated anchor clicks
-and every photo in capture order as the cameras would (with ``--answer-anchor-requests`` a simulated user
-also answers each NeedsAnchor request with clicks, as a person at the browser page would), waits until the
+a loopback zenoh bus, publishes the site's BIM (through the ingest node), the up-front anchor clicks of the
+site's ``anchors.json`` (the first usable photo of each fixed camera and phone visit, clicked by the simulated
+user of ``constructaide.synth.clicker``; nothing tells the nodes that a camera was knocked) and every photo in
+capture order as the cameras would (with ``--answer-anchor-requests`` the same simulated user also answers each
+NeedsAnchor request with clicks, as a person at the browser page would), waits until the
 nodes have processed them and settled (every registered photo's latest overlay is newer than its latest
 combined occlusion mask, and no mask or overlay for a few seconds), stops the nodes cleanly and prints a
 summary with the paths of the MCAP recording and the rerun file.
@@ -86,7 +88,7 @@ class _Arrivals:
 
 
 def _anchor_messages(site: str, site_dir: Path, photos: dict[str, Photo]) -> list[AnchorClicks]:
-    """AnchorClicks for every anchor in the site's anchor file whose photo exists (what a user clicked)."""
+    """AnchorClicks for every anchor in the site's anchor file whose photo exists (what the user clicked up front)."""
     doc = json.loads((site_dir / "anchors.json").read_text())
     out = []
     for a in doc.get("anchors", []):
@@ -103,23 +105,26 @@ def _anchor_messages(site: str, site_dir: Path, photos: dict[str, Photo]) -> lis
 
 
 class _SimulatedUser:
-    """Answers NeedsAnchor requests on the bus with clicks simulated from the synthetic site's truth
-    (:func:`constructaide.synth.clicker.simulated_clicks`: 12 BIM-element pixels, 1 px noise), once per photo, on
-    its own thread (the bus callback only queues); a photo registered meanwhile is not clicked. ``requested``,
-    ``answered`` and ``unanswerable`` (too few clickable pixels) are sets of photo ids."""
+    """Answers NeedsAnchor requests on the bus as a person would (:class:`constructaide.synth.clicker.SiteClicker`:
+    up to 12 visible element corners, 1.5 px noise, about one gross mis-click in 20; reads the site's truth), once
+    per photo, on its own thread (the bus callback only queues); a photo registered meanwhile is not clicked.
+    ``requested``, ``answered``, ``few`` (answered with fewer than 6 clickable corners) and ``unanswerable`` (fewer
+    than 4) are sets of photo ids; ``mis_clicks`` counts the gross mis-clicks sent."""
 
     def __init__(self, bus, site: str, site_dir: Path, photos: dict[str, Photo], registrations) -> None:
-        from constructaide.synth.truth import load_cameras
+        from constructaide.synth.clicker import SiteClicker
 
         self._bus, self._site, self._site_dir = bus, site, site_dir
         self._rel = {p.photo_id: rel for rel, p in photos.items()}
-        self._cameras = load_cameras(site_dir)
+        self._clicker = SiteClicker(site_dir)
         self._regs = registrations
         self._queue: queue.Queue[str | None] = queue.Queue()
         self._lock = threading.Lock()
         self.requested: set[str] = set()
         self.answered: set[str] = set()
         self.unanswerable: set[str] = set()
+        self.few: set[str] = set()
+        self.mis_clicks = 0
         self._thread = threading.Thread(target=self._run, name="simulated-user", daemon=True)
 
     def __enter__(self) -> _SimulatedUser:
@@ -140,7 +145,7 @@ class _SimulatedUser:
             self._queue.put(msg.photo_id)
 
     def _run(self) -> None:
-        from constructaide.synth.clicker import simulated_clicks
+        from constructaide.synth.clicker import TooFewCorners
 
         while (photo_id := self._queue.get()) is not None:
             rel = self._rel.get(photo_id)
@@ -150,17 +155,20 @@ class _SimulatedUser:
             if _latest_status(self._regs.items).get(photo_id, "failed") != "failed":
                 continue  # registered meanwhile (a later photo brought enough tracks): nothing to click
             try:
-                px, world = simulated_clicks(self._site_dir, rel, cameras=self._cameras)
-            except ValueError:
+                clicks = self._clicker.clicks(rel)
+            except TooFewCorners:
                 with self._lock:
                     self.unanswerable.add(photo_id)
                 continue
             pts = tuple(
                 AnchorPoint(pixel_px=(float(u), float(v)), point_in_world_m=(float(x), float(y), float(z)))
-                for (u, v), (x, y, z) in zip(px, world, strict=True)
+                for (u, v), (x, y, z) in zip(clicks.pixels_px, clicks.points_in_world_m, strict=True)
             )
             with self._lock:
                 self.answered.add(photo_id)
+                self.mis_clicks += len(clicks.mis_clicked)
+                if clicks.few:
+                    self.few.add(photo_id)
             msg = AnchorClicks(site=self._site, photo_id=photo_id, image_name=rel, points=pts)
             self._bus.publish(keys.key(keys.ANCHORS, site=self._site, photo=photo_id), msg)
 
@@ -191,7 +199,8 @@ def main(argv: list[str]) -> int:
     ap.add_argument(
         "--answer-anchor-requests",
         action="store_true",
-        help="a simulated user answers every NeedsAnchor request with clicks simulated from the site's truth",
+        help="a simulated user answers every NeedsAnchor request, clicking visible element corners as a person would "
+        "(1.5 px noise, about one gross mis-click in 20; simulated from the site's truth)",
     )
     ap.add_argument("--workbench-port", type=int, default=8770, help="port of the browser workbench (0: any free)")
     ap.add_argument(
@@ -264,7 +273,7 @@ def main(argv: list[str]) -> int:
         user = None
         if args.answer_anchor_requests:
             user = stack.enter_context(_SimulatedUser(bus, args.site, site_dir, photos, regs))
-        print(f"[3/5] publishing {len(anchors)} anchor click sets and {len(order)} photos", file=sys.stderr)
+        print(f"[3/5] publishing {len(anchors)} up-front anchor click sets and {len(order)} photos", file=sys.stderr)
         for a in anchors:
             bus.publish(keys.key(keys.ANCHORS, site=args.site, photo=a.photo_id), a)
         for rel in tqdm(order, desc="push", unit="photo", file=sys.stderr):
@@ -320,13 +329,22 @@ def main(argv: list[str]) -> int:
     unanswered = len({photos[r].photo_id for r in order} - final.keys())
     summary = [
         ("photos pushed", len(order)),
-        ("anchor click sets", len(anchors)),
+        ("up-front anchor click sets", len(anchors)),
         ("registered (anchor)", counts["registration anchor"]),
         ("registered (auto)", counts["registration auto"]),
         ("registration failed", counts["registration failed"]),
         ("no registration yet", unanswered),
         ("needs anchor requests", len(needs.items)),
         ("requests answered (simulated user)", len(user.answered) if user is not None else "off"),
+        *(
+            [
+                ("answered with < 6 corners visible", len(user.few)),
+                ("requests not clickable (< 4 corners)", len(user.unanswerable)),
+                ("gross mis-clicks sent", user.mis_clicks),
+            ]
+            if user is not None
+            else []
+        ),
         ("occlusion masks", len(masks.items)),
         ("overlays", len(overlays.items)),
         ("overlays behind latest mask", f"{len(stale)}" + ("" if settled == "settled" else f" ({settled})")),

@@ -4,6 +4,7 @@
 site's ``truth/`` folder; only tests and benchmarks may (``constructaide.synth.truth`` loads it).
 """
 
-from .site import GENERATOR_VERSION, build_site, ensure_site, truth_rel
+from .site import GENERATOR_VERSION, build_site, ensure_site
+from .truth import truth_rel
 
 __all__ = ["GENERATOR_VERSION", "build_site", "ensure_site", "truth_rel"]

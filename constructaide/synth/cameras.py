@@ -34,7 +34,7 @@ PHONE_SENSOR_WIDTH_MM = 6.17  # 1/2.3" sensor
 @dataclass(frozen=True)
 class PhotoPlan:
     """One photo to render. ``rel_path`` is relative to ``photos/``; ``pose_segment`` changes when a fixed
-    camera is knocked (the anchor photo choice uses it); ``visit`` is the phone visit number or None."""
+    camera is knocked (truth: the anchor file does not use it); ``visit`` is the phone visit number or None."""
 
     rel_path: str
     camera_id: str | None

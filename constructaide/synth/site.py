@@ -17,9 +17,9 @@ from constructaide.bimgeom import meshes_to_glb
 from constructaide.camera import K_matrix
 from constructaide.errors import UserError
 
-from .anchors import choose_clicks, visible_corners
 from .building import design_building
 from .cameras import fixed_camera_plans, phone_visit_plans
+from .clicker import MIN_CLICKS, ModelCorners, click_points, photo_rng
 from .config import ALT_M, LAT_DEG, LON_DEG, SITE_NAME, SIZES, TZ
 from .ifcwrite import write_ifc
 from .photo_io import write_jpeg, write_npz, write_png
@@ -28,8 +28,9 @@ from .scene import clear_trees, dynamic_poses, dynamic_solids, make_layout, stat
 from .schedule import hours_to_datetime, make_schedule
 from .sun import sun_azimuth_elevation_deg, sun_direction_world
 from .textures import make_textures, site_ground
+from .truth import truth_rel
 
-GENERATOR_VERSION = 8
+GENERATOR_VERSION = 9
 """Bump whenever outputs change; part of the ``ensure_site`` cache key."""
 
 _MATERIAL_RGBA = {
@@ -39,13 +40,6 @@ _MATERIAL_RGBA = {
     "steel": (70, 90, 120, 255),
     "roof": (150, 70, 45, 255),
 }
-
-
-def truth_rel(kind: str, photo_rel: str) -> str:
-    """Path of a per-photo truth file relative to ``truth/``: ``ids``/``masks/static``/``masks/dynamic`` are
-    ``<kind>/<photo_rel without .jpg>.png``, ``depth`` is ``depth/<photo_rel without .jpg>.npz``."""
-    stem = photo_rel[: -len(".jpg")] if photo_rel.endswith(".jpg") else photo_rel
-    return f"{kind}/{stem}.npz" if kind == "depth" else f"{kind}/{stem}.png"
 
 
 def _lighting(seed: int, day: int, when: dt.datetime) -> Lighting:
@@ -65,6 +59,20 @@ def _lighting(seed: int, day: int, when: dt.datetime) -> Lighting:
         cloud_seed=int(rng.integers(0, 2**31)),
         cloudiness=cloudiness,
     )
+
+
+FIXED_GPS_BIAS_M = (3.5, 4.5)  # a fixed camera's GPS fix is off by this much (a constant direction per camera)
+FIXED_GPS_JITTER_M = 0.5  # plus a different offset within this radius per frame: 3-5 m in all
+
+
+def _gps_error_m(seed: int, camera_id: str, i: int) -> np.ndarray:
+    """Horizontal GPS error (3,) m of frame ``i`` of a fixed camera: a per-camera bias of 3.5-4.5 m plus up to
+    0.5 m per frame (so 3-5 m), drawn from their own generators (the renders stay as they were)."""
+    cam_rng = np.random.default_rng([seed, 300, sum(map(ord, camera_id))])
+    a, r = cam_rng.uniform(0.0, 2.0 * math.pi), cam_rng.uniform(*FIXED_GPS_BIAS_M)
+    frame_rng = np.random.default_rng([seed, 301, i])
+    b, q = frame_rng.uniform(0.0, 2.0 * math.pi), FIXED_GPS_JITTER_M * math.sqrt(frame_rng.uniform())
+    return np.array([r * math.cos(a) + q * math.cos(b), r * math.sin(a) + q * math.sin(b), 0.0])
 
 
 def _iso(d: dt.datetime | None) -> str | None:
@@ -117,7 +125,9 @@ def build_site(out_dir: Path, seed: int = 0, size: str = "default", progress: bo
     cameras_json: dict[str, dict] = {}
     built_json: dict[str, list[str]] = {}
     anchors: list[dict] = []
+    anchor_truth: dict[str, dict] = {}
     anchored: set[tuple] = set()
+    corners = ModelCorners.from_meshes({index[e.key]: (e.vertices_m, e.triangles()) for e in building.elements})
     photos_dir, truth_dir = out_dir / "photos", out_dir / "truth"
     try:
         for i, plan in enumerate(tqdm(plans, desc=f"synth {size}", unit="photo", disable=not progress)):
@@ -135,6 +145,8 @@ def build_site(out_dir: Path, seed: int = 0, size: str = "default", progress: bo
             gps_pos = plan.world_from_camera[:3, 3]
             if plan.camera_id is None:  # phone GPS is a few metres off
                 gps_pos = gps_pos + np.array([*prng.normal(0.0, 3.0, 2), 0.0])
+            else:  # so is a fixed camera's
+                gps_pos = gps_pos + _gps_error_m(seed, plan.camera_id, i)
             write_jpeg(
                 photos_dir / plan.rel_path,
                 res.color,
@@ -159,14 +171,21 @@ def build_site(out_dir: Path, seed: int = 0, size: str = "default", progress: bo
                 "camera_id": plan.camera_id,
             }
             built_json[plan.rel_path] = sorted(guids[k] for k in built)
-            group = (plan.camera_id, plan.pose_segment, plan.visit)
+            # The user anchors the first usable photo of each fixed camera and of each phone visit (not a knocked
+            # camera's new pose: nobody knows it was knocked), clicking visible corners (constructaide.synth.clicker).
+            group = (plan.camera_id, plan.visit)
             if group not in anchored:
-                els = [e for e in building.elements if e.key in built]
-                px, world = visible_corners(els, index, intr, plan.world_from_camera, res.element_index, res.depth_m)
-                clicks = choose_clicks(px, world, np.random.default_rng([seed, 200, i]))
-                if clicks is not None:
+                px, world = corners.visible(intr, plan.world_from_camera, res.element_index, res.depth_m)
+                if len(px) >= MIN_CLICKS:
+                    clicks = click_points(px, world, photo_rng(seed, plan.rel_path), (intr.width_px, intr.height_px))
                     anchored.add(group)
-                    anchors.append({"image": plan.rel_path, "points": clicks})
+                    anchors.append({"image": plan.rel_path, "points": clicks.anchor_points()})
+                    anchor_truth[plan.rel_path] = {
+                        "target_px": np.round(clicks.target_px, 4).tolist(),
+                        "mis_clicked": clicks.mis_clicked.tolist(),
+                        "miss_kinds": list(clicks.miss_kinds),
+                        "n_clickable": clicks.n_clickable,
+                    }
     finally:
         renderer.close()
 
@@ -176,6 +195,7 @@ def build_site(out_dir: Path, seed: int = 0, size: str = "default", progress: bo
 
     dump(out_dir / "anchors.json", {"anchors": anchors, "focal_px": None})
     dump(truth_dir / "cameras.json", cameras_json)
+    dump(truth_dir / "anchor_clicks.json", anchor_truth)
     dump(truth_dir / "element_index.json", {"0": None, **{str(index[e.key]): guids[e.key] for e in building.elements}})
     elements_json = {}
     for e in building.elements:

@@ -12,7 +12,12 @@ from numpy.typing import NDArray
 from constructaide.camera import centered_intrinsics
 from schemas.messages import Intrinsics
 
-from .site import truth_rel
+
+def truth_rel(kind: str, photo_rel: str) -> str:
+    """Path of a per-photo truth file relative to ``truth/``: ``ids``/``masks/static``/``masks/dynamic`` are
+    ``<kind>/<photo_rel without .jpg>.png``, ``depth`` is ``depth/<photo_rel without .jpg>.npz``."""
+    stem = photo_rel[: -len(".jpg")] if photo_rel.endswith(".jpg") else photo_rel
+    return f"{kind}/{stem}.npz" if kind == "depth" else f"{kind}/{stem}.png"
 
 
 def load_cameras(site_dir: Path) -> dict[str, dict]:
