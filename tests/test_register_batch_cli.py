@@ -145,9 +145,9 @@ def test_register_cli_on_temple(tmp_path, capsys):
         assert 0.0 < pred["centre_sigma"] < 0.01  # model units (m); the cameras are ~0.6 m from the temple
         assert 0.3 < pred["centre_z_rms"] < 3.0
         assert "camera centres known to" in printed
-    # Anchors were requested only when needed (not all 16).
+    # Anchors were requested only when needed (not all 16; the first one alone bootstraps the ring).
     anchors_used = sum(1 for im in report["images"] if im["status"] == "anchor")
-    assert 2 <= anchors_used <= 5
+    assert 1 <= anchors_used <= 5
     pycolmap = pytest.importorskip("pycolmap")
     rec = pycolmap.Reconstruction(str(out))
     assert rec.num_reg_images() == 16

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 
+import msgspec
 import numpy as np
 import pytest
 from test_register_stream_scene import PlaneScene, anchor_clicks, encode_jpeg, mast_camera
@@ -50,7 +51,8 @@ def test_homography_transfer_refused_between_far_apart_gps_positions(scene) -> N
     out, _ = _reaimed(scene, np.array([0.0, 40.0]))
     assert out.registration.status == "failed" and out.needs_anchor
     assert "GPS positions 40 m apart" in out.registration.message
-    out, _ = _reaimed(scene, np.array([0.0, 40.0]), StreamConfig(gps_max_homography_distance_m=None))
+    no_gps = msgspec.structs.replace(StreamConfig().mapper, gps_max_homography_distance_m=None)
+    out, _ = _reaimed(scene, np.array([0.0, 40.0]), StreamConfig(mapper=no_gps))
     assert out.registration.method == "homography"
 
 
@@ -75,8 +77,10 @@ def test_pnp_refused_when_gps_contradicts_it(scene) -> None:
     # The photo's GPS says 40 m further south: its PnP pose is refused, an anchor is asked for with the reason.
     out, _ = _two_anchors_then_pnp(scene, np.array([0.0, -40.0]))
     assert out.registration.status == "failed" and out.needs_anchor
-    assert "PnP solution was rejected" in out.registration.message and "GPS" in out.registration.message
-    out, _ = _two_anchors_then_pnp(scene, np.array([0.0, -40.0]), StreamConfig(gps_max_residual_m=None))
+    assert "PnP pose" in out.registration.message and "refused" in out.registration.message
+    assert "GPS" in out.registration.message
+    no_gps = msgspec.structs.replace(StreamConfig().mapper, gps_max_residual_m=None)
+    out, _ = _two_anchors_then_pnp(scene, np.array([0.0, -40.0]), StreamConfig(mapper=no_gps))
     assert out.registration.method == "pnp"
 
 

@@ -107,6 +107,7 @@ def bundle(
     obs_track, obs_img = obs_track_a, obs_img_a
     intr = [recon.images[i].intrinsics for i in reg]
     click_c, click_w, click_x = [], [], []
+    click_s: list[float] = []
     for i in reg:
         im = recon.images[i]
         if im.clicks is not None:
@@ -114,6 +115,7 @@ def bundle(
             click_c += [cam_of[i]] * int(keep.sum())
             click_w.append(im.clicks[1][keep])
             click_x.append(im.clicks[0][keep])
+            click_s += [im.click_sigma_px] * int(keep.sum())
     point_ref = ref_cam
     # In a local window, points fixed when they are not seen by a movable image (already filtered), anchors'
     # rays are used only for movable anchors.
@@ -140,6 +142,7 @@ def bundle(
         click_cam=np.array(click_c, int),
         click_world=np.vstack(click_w) if click_w else np.zeros((0, 3)),
         click_px=np.vstack(click_x) if click_x else np.zeros((0, 2)),
+        click_sigma_px=np.array(click_s, np.float64),
         centre_fixed=centre_fixed,
         pp_group=principal_point_groups(recon, reg) if cfg.share_principal_point else None,
         intr_group=principal_point_groups(recon, reg) if cfg.share_intrinsics else None,

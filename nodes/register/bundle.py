@@ -127,6 +127,9 @@ class BundleProblem:
     # (C,) int or None: cameras with free intrinsics and the same non-negative id share one focal and one k1, k2
     # (one physical camera at one zoom setting); -1 or None: each camera its own.
     intr_group: np.ndarray | None = None
+    # (K,) standard deviation (px) of each click relative to a user's click (None: 1 each); clicks carried into a
+    # photo by image matching are less sure than clicked ones.
+    click_sigma_px: np.ndarray | None = None
 
 
 @dataclass
@@ -333,7 +336,7 @@ def _camera_covariance(system: tuple, w: np.ndarray, var: np.ndarray) -> np.ndar
 
 
 def _noise_variances(
-    r: np.ndarray, w: np.ndarray, n_obs: int, n_clk: int, n_params: int, click_weight: float
+    r: np.ndarray, w: np.ndarray, n_obs: int, n_clk: int, n_params: int, click_weight: np.ndarray | float
 ) -> tuple[float, float]:
     """Noise variances (px^2) of the feature observations and of the clicks from the final residuals ``r`` and
     their robust-loss weights ``w`` (the feature rows first, 2 per observation, then 2 per click, scaled by
@@ -349,7 +352,8 @@ def _noise_variances(
     s2_obs = float(np.sum(w[:m_obs] * r[:m_obs] ** 2)) / max(m_obs - n_params, 1)
     if not m_clk:
         return s2_obs, s2_obs
-    r_clk = r[m_obs : m_obs + m_clk] / (click_weight or 1.0)
+    cw = np.asarray(click_weight, np.float64)
+    r_clk = r[m_obs : m_obs + m_clk] / np.where(cw > 0, cw, 1.0)
     s2_clk = float(np.sum(r_clk**2)) / max(m_clk - 7, m_clk / 2)
     return s2_obs, max(s2_clk, s2_obs)
 
@@ -449,6 +453,9 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
     t0 = prob.camera_from_world[:, :3, 3].copy()
     obs_cam, obs_point, obs_px = prob.obs_cam, prob.obs_point, prob.obs_px
     n_obs, n_clk = len(obs_cam), len(prob.click_cam)
+    click_w = np.full(n_clk, float(opts.click_weight))
+    if prob.click_sigma_px is not None and n_clk:
+        click_w = click_w / np.asarray(prob.click_sigma_px, np.float64)
     distortion_cams = lay.intr_lead if opts.refine_distortion else np.zeros(0, int)
     dist_centre = np.zeros((C, 2))
     dist_sigma = np.full(C, float(opts.distortion_prior_px))
@@ -590,7 +597,7 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
         parts = [(project_full(T, f, k1, k2, cx, cy, a, obs_cam, pts[obs_point])[0] - obs_px).ravel()]
         if n_clk:
             r_clk = project_full(T, f, k1, k2, cx, cy, a, prob.click_cam, prob.click_world)[0] - prob.click_px
-            parts.append(opts.click_weight * r_clk.ravel())
+            parts.append((click_w[:, None] * r_clk).ravel())
         parts.append(prior_residuals(f, k1, k2, cx, cy, a))
         return np.concatenate(parts)
 
@@ -598,11 +605,11 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
         """(C, 3, 3) camera-centre covariances at the solution ``x`` with residuals ``r``, IRLS weights ``w`` and
         their reduced system (NaN where the centre does not move)."""
         m = 2 * (n_obs + n_clk)
-        s2_obs, s2_clk = _noise_variances(r, w, n_obs, n_clk, lay.n, opts.click_weight)
+        s2_obs, s2_clk = _noise_variances(r, w, n_obs, n_clk, lay.n, np.repeat(click_w, 2))
         # Residual variances: the features' and the (weighted) clicks' as estimated; priors are in sigmas.
         var = np.ones_like(r)
         var[: 2 * n_obs] = s2_obs
-        var[2 * n_obs : m] = s2_clk * (opts.click_weight or 1.0) ** 2
+        var[2 * n_obs : m] = s2_clk * np.repeat(click_w, 2) ** 2
         with single_thread_blas():
             cov = _camera_covariance(system, w, var)
         out = np.full((C, 3, 3), np.nan)
@@ -616,7 +623,9 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
 
     def jac_block(T, f, k1, k2, a, cams, X, weight):
         """Rows/cols/vals of the Jacobian of 2 residuals per (cams, X) w.r.t. pose, intrinsics, aspect; plus
-        dpix/dX."""
+        dpix/dX. ``weight``: a scalar or one per residual pair (M,)."""
+        wv = np.asarray(weight, np.float64)
+        w3, w2 = (wv.reshape(-1, 1, 1), wv.reshape(-1, 1)) if wv.ndim else (wv, wv)
         _, p, z, xn, yn, r2, D = project_full(T, f, k1, k2, prob.cx_px, prob.cy_px, a, cams, X)
         fc = f[cams]
         ac = a[cams]
@@ -632,19 +641,19 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
         J_xy_p[:, 0, 2] = -xn / z
         J_xy_p[:, 1, 1] = 1 / z
         J_xy_p[:, 1, 2] = -yn / z
-        J_uv_p = weight * (J_uv_xy @ J_xy_p)  # (M, 2, 3)
+        J_uv_p = w3 * (J_uv_xy @ J_xy_p)  # (M, 2, 3)
         # Rotation columns: p = R X + t with R = exp(w) R0, so dp/dw = -[R X]x; for a fixed centre C,
         # p = R (X - C) and dp/dw = -[p]x. Translation columns (unused for fixed centres): identity.
         rot_only = lay.rot_only[cams]
         Rp = np.where(rot_only[:, None], p, p - T[cams, :3, 3])
         J_pose = np.concatenate([J_uv_p @ -_skew(Rp), J_uv_p], axis=2)  # (M, 2, 6)
-        J_intr = [weight * np.stack([xn * D, ac * yn * D], axis=1)]
+        J_intr = [w2 * np.stack([xn * D, ac * yn * D], axis=1)]
         if opts.refine_distortion:
-            J_intr += [weight * fc[:, None] * np.stack([xn * r2, ac * yn * r2], axis=1)]
-            J_intr += [weight * fc[:, None] * np.stack([xn * r2 * r2, ac * yn * r2 * r2], axis=1)]
+            J_intr += [w2 * fc[:, None] * np.stack([xn * r2, ac * yn * r2], axis=1)]
+            J_intr += [w2 * fc[:, None] * np.stack([xn * r2 * r2, ac * yn * r2 * r2], axis=1)]
         J_intr_a = np.stack(J_intr, axis=2)  # (M, 2, n_intr)
         J_X = J_uv_p @ T[cams, :3, :3]  # (M, 2, 3)
-        J_asp = weight * np.stack([np.zeros_like(yn), fc * yn * D], axis=1)[:, :, None]  # (M, 2, 1)
+        J_asp = w3 * np.stack([np.zeros_like(yn), fc * yn * D], axis=1)[:, :, None]  # (M, 2, 1)
         return J_pose, J_intr_a, J_X, J_asp
 
     def emit(rows, cols, vals, row0, col_start, J):
@@ -686,11 +695,11 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
                 J_d = J_X[is_depth] @ ray_dir[obs_point[is_depth]][:, :, None]
                 emit(rows, cols, vals, ar[is_depth], lay.point_col[obs_point[is_depth]], J_d)
         if n_clk:
-            J_pose, J_intr, _, J_asp = jac_block(T, f, k1, k2, a, prob.click_cam, prob.click_world, opts.click_weight)
+            J_pose, J_intr, _, J_asp = jac_block(T, f, k1, k2, a, prob.click_cam, prob.click_world, click_w)
             ar = np.arange(n_clk) + n_obs
             emit_pose(rows, cols, vals, ar, prob.click_cam, J_pose)
             emit(rows, cols, vals, ar, lay.intr_col[prob.click_cam], J_intr)
-            J_pp = np.broadcast_to(opts.click_weight * np.eye(2), (n_clk, 2, 2))
+            J_pp = click_w[:, None, None] * np.eye(2)[None]
             emit(rows, cols, vals, ar, lay.pp_col[prob.click_cam], J_pp)
             emit(rows, cols, vals, ar, lay.asp_col[prob.click_cam], J_asp)
         if len(distortion_cams):
@@ -815,7 +824,7 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
     fin = np.isfinite(obs_err)
     final_rms = float(np.sqrt(np.mean(obs_err[fin] ** 2))) if fin.any() else 0.0
     r0_px = r0[: 2 * (n_obs + n_clk)].copy()
-    r0_px[2 * n_obs :] /= opts.click_weight if opts.click_weight else 1.0
+    r0_px[2 * n_obs :] /= np.where(np.repeat(click_w, 2) > 0, np.repeat(click_w, 2), 1.0)
     init_sse = float(np.sum(np.nan_to_num(r0_px, nan=0.0, posinf=0.0, neginf=0.0) ** 2))
     final_sse = float(np.sum(obs_err[fin] ** 2) + np.sum(clk_err[np.isfinite(clk_err)] ** 2))
     return BundleResult(

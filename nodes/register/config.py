@@ -22,11 +22,10 @@ class MapperConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     homography_max_rms_frac: float = 0.0015
     # Standard deviation of the prior holding an inherited lens's k1, k2 (ImageState.lens_source) in adjustments.
     inherited_distortion_sigma: float = 0.01
-    # True: a photo registered through a rotation homography keeps its anchor's camera centre (only rotation
-    # and intrinsics are solved, and adjusted while that anchor's pose is held fixed). Off by default: a fixed
-    # camera bumped by half a metre 40 m from the building still passes the rotation test (synthetic site, east
-    # camera) and then inherits a wrong centre; on that site the mean centre error was 0.48 m with it vs 0.39 m
-    # without (0.24 vs 0.29 m after a similarity): no clear gain.
+    # True: a photo registered through a rotation homography keeps its source's camera centre in the adjustments
+    # (only its rotation and intrinsics move). Off: the centre starts at the source's and moves with the data (its
+    # warped clicks, its tracks); held, it made the release refine a spurious principal point on a seeded scene
+    # (tests/test_register_batch_sfm.py: 0.25 vs 0.13 deg).
     homography_shares_centre: bool = False
     min_track_matches: int = 60
     fallback_min_track_matches: int = 25
@@ -125,7 +124,9 @@ class MapperConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     match_pca_dims: int = 64
     max_exhaustive_images: int = 40
     shortlist_size: int = 15
-    use_all_anchors: bool = False
+    # Clicks given up front (the anchor file's, not answers to requests) all anchor their photos at the start; False:
+    # only the first (the paper's Algorithm 1), the others when their photo is reached or asked for.
+    use_all_anchors: bool = True
     workers: int = 2
     # GPS safeguards (EXIF positions; phones ~3 m error, sometimes much worse). Distances between registered centres
     # are horizontal distances in the model frame, taken to be metric and z-up (the BIM's site-local metres).
@@ -173,3 +174,7 @@ class MapperConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     bootstrap_min_matches: int = 100
     bootstrap_min_parallax_deg: float = 2.0
     bootstrap_click_radius_frac: float = 0.05
+    bootstrap_max_scale_spread: float = 0.1
+    # Standard deviation (px, relative to a user's click) of clicks carried into a bootstrapped photo by local
+    # homographies of the matches around them: they hold the baseline's length, not the pose.
+    carried_click_sigma_px: float = 5.0

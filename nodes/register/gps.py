@@ -155,10 +155,13 @@ def gps_refusal(
     return "", residual
 
 
-def gps_check(recon: Reconstruction, idx: int, world_from_camera: np.ndarray, cfg: MapperConfig) -> str:
+def gps_check(
+    recon: Reconstruction, idx: int, world_from_camera: np.ndarray, cfg: MapperConfig, min_references: int | None = None
+) -> str:
     """Why a candidate automatic pose of image ``idx`` contradicts GPS (:func:`gps_refusal` against the registered
     images with GPS; "" when it does not, or cannot be told: no GPS, fewer than ``cfg.gps_min_references``
-    registered photos with GPS, or the check is off). Records the residual in ``gps_residual_m``."""
+    registered photos with GPS (``min_references`` overrides that), or the check is off). Records the residual in
+    ``gps_residual_m``."""
     im = recon.images[idx]
     if cfg.gps_max_residual_m is None or im.gps is None:
         return ""
@@ -167,7 +170,7 @@ def gps_check(recon: Reconstruction, idx: int, world_from_camera: np.ndarray, cf
         for j, o in enumerate(recon.images)
         if j != idx and o.registered and o.gps is not None and o.world_from_camera is not None
     ]
-    if len(refs) < max(1, cfg.gps_min_references):
+    if len(refs) < max(1, cfg.gps_min_references if min_references is None else min_references):
         return ""
     why, im.gps_residual_m = gps_refusal(
         world_from_camera[:3, 3],

@@ -48,6 +48,7 @@ def register_anchor(recon: Reconstruction, idx: int, clicks: Clicks, cfg: Mapper
     im.solved_focal_px = sol.intrinsics.f_px if sol.focal_solved else None
     im.focal_prior_rejected = sol.focal_prior_rejected
     im.clicks, im.click_inliers = (px, world), ~sol.outlier_mask
+    im.click_sigma_px = 1.0
     im.num_inliers = int(np.sum(~sol.outlier_mask))
     im.rms_px = sol.rms_px
     n_out = int(sol.outlier_mask.sum())
@@ -105,6 +106,11 @@ def try_homography_transfer(recon: Reconstruction, src: int, idx: int, cfg: Mapp
         return False
     sigma = focal_sigma_frac(im, cfg)
     prior = (focal_prior(im, cfg), float(sigma)) if np.isfinite(sigma) else None
+    if prior is not None and abs(np.log(f_h / prior[0])) > 3 * prior[1] + 0.005:
+        # The homography measures the zoom against a registered photo (the focal is well determined from the
+        # many rays): a prior it contradicts is dropped, as when clicks contradict it.
+        prior = None
+        im.focal_prior_rejected = True
     T_a = cam.invert_rigid(a.world_from_camera)
     rays = rays_from_pixels(a.intrinsics, a.world_from_camera, pk)
     R0 = rotation_from_homography(H, a.intrinsics, intr0, T_a)
@@ -135,6 +141,7 @@ def try_homography_transfer(recon: Reconstruction, src: int, idx: int, cfg: Mapp
         )
         if inside.sum() >= 4:
             im.clicks, im.click_inliers = (warped[inside], a.clicks[1][keep][inside]), np.ones(int(inside.sum()), bool)
+            im.click_sigma_px = a.click_sigma_px
             n_warped = int(inside.sum())
     im.message = (
         f"homography from {a.name} ({ratio:.0%} inliers), rotation about its centre on {len(inl)} rays, "
@@ -228,15 +235,42 @@ def _transfer_clicks(
     return out, ok
 
 
+def _relative_motions(
+    x_r: np.ndarray, x_u: np.ndarray, thr: float, rotation_only_deviation: float
+) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Candidate motions (R (3, 3), unit t (3,), inlier mask (M,)) from normalised matches (M, 2) of a reference
+    and a new image: the essential matrix's (RANSAC, cheirality) and, since a (nearly) planar scene leaves it
+    ambiguous, the decompositions of the homography of the matches; none when that homography is a rotation
+    (deviation below ``rotation_only_deviation``, :func:`~nodes.register.pose.rotation_deviation`)."""
+    out = []
+    E, mask = cv2.findEssentialMat(x_r, x_u, np.eye(3), cv2.RANSAC, 0.999, thr)
+    if E is not None and E.shape == (3, 3):
+        _, R, t, mask = cv2.recoverPose(E, x_r, x_u, np.eye(3), mask=mask)
+        out.append((R, t.ravel() / max(np.linalg.norm(t), 1e-12), mask.ravel() > 0))
+    H, hmask = cv2.findHomography(x_r, x_u, cv2.RANSAC, thr)
+    if H is not None and hmask is not None and hmask.sum() >= 0.5 * len(x_r):
+        unit = Intrinsics(width_px=2, height_px=2, f_px=1.0, cx_px=0.0, cy_px=0.0)
+        if rotation_deviation(H, unit, 0.0, 0.0)[1] <= rotation_only_deviation:
+            return []  # one rotation explains the matches: the same viewpoint, no baseline to measure
+        _, Rs, ts, _ = cv2.decomposeHomographyMat(H, np.eye(3))
+        for R, t in zip(Rs, ts, strict=True):
+            n = np.linalg.norm(t)
+            if n > 1e-9:
+                out.append((R, t.ravel() / n, hmask.ravel() > 0))
+    return out
+
+
 def try_relative_pose(recon: Reconstruction, ref: int, idx: int, cfg: MapperConfig) -> bool:
     """Register image ``idx`` from its verified matches with registered image ``ref`` when too few of them reach
-    triangulated tracks: the relative pose from the essential matrix (``ref``'s intrinsics, ``idx``'s focal prior,
-    RANSAC, cheirality), ``ref``'s pose held, and the baseline's length from what is known in ``ref``'s view:
-    the triangulated points among the matches (depth ratios, median), else ``ref``'s clicks (each click's model
-    depth against the unit-baseline depths of the matches around it; median over clicks, so a mis-click does not
-    count), which are then carried into ``idx`` by local homographies of their neighbouring matches and keep the
-    baseline in the adjustments. Needs a median ray angle of ``bootstrap_min_parallax_deg``. Returns True when
-    registered."""
+    triangulated tracks: the relative motion of the two cameras (:func:`_relative_motions`, ``ref``'s intrinsics,
+    ``idx``'s focal prior), ``ref``'s pose held, and the baseline's length from what is known in ``ref``'s view:
+    the triangulated points among the matches (their depth over the unit-baseline depth), else ``ref``'s clicks
+    (each click's model depth over the unit-baseline depths of the matches around it). The motion whose length
+    ratios agree best is taken; they must agree within ``bootstrap_max_scale_spread`` (median relative deviation:
+    the wrong motion of a planar scene gives a tilted plane, whose ratios drift across the image). The clicks are
+    then carried into ``idx`` by local homographies of their neighbouring matches (checked against the pose and
+    kept as constraints that hold the baseline in the adjustments). Needs a median ray angle of
+    ``bootstrap_min_parallax_deg``. Returns True when registered."""
     r, im = recon.images[ref], recon.images[idx]
     p = recon.pair(ref, idx)
     if p is None or len(p[0]) < cfg.bootstrap_min_matches or r.intrinsics is None:
@@ -244,94 +278,120 @@ def try_relative_pose(recon: Reconstruction, ref: int, idx: int, cfg: MapperConf
     m, _ = p
     px_r = r.features.keypoints_px[m[:, 0]].astype(np.float64)
     px_u = im.features.keypoints_px[m[:, 1]].astype(np.float64)
-    intr_u = cam.centered_intrinsics(im.width_px, im.height_px, focal_prior(im, cfg))
+    intr_u = camera_lens(recon, idx, cfg)
     x_r = cam.pixels_to_normalized(r.intrinsics, px_r)
     x_u = cam.pixels_to_normalized(intr_u, px_u)
-    thr = cfg.fundamental_threshold_frac * im.width_px / intr_u.f_px
-    E, mask = cv2.findEssentialMat(x_r, x_u, np.eye(3), cv2.RANSAC, 0.999, max(thr, 1e-4))
-    if E is None or E.shape != (3, 3):
-        return False
-    n_ok, R, t, mask = cv2.recoverPose(E, x_r, x_u, np.eye(3), mask=mask)
-    inl = mask.ravel() > 0
-    if n_ok < cfg.bootstrap_min_matches // 2:
-        return False
-    t = t.ravel()
-    # Unit-baseline triangulation in ref's camera frame.
-    P0 = np.hstack([np.eye(3), np.zeros((3, 1))])
-    P1 = np.hstack([R, t[:, None]])
-    Xh = cv2.triangulatePoints(P0, P1, x_r[inl].T, x_u[inl].T)
-    X = (Xh[:3] / Xh[3]).T
-    z0 = X[:, 2]
-    z1 = X @ R[2] + t[2]
-    front = (z0 > 0) & (z1 > 0)
-    if front.sum() < cfg.bootstrap_min_matches // 2:
-        return False
-    X, idx_inl = X[front], np.nonzero(inl)[0][front]
-    c1 = -R.T @ t
-    a0 = X / np.linalg.norm(X, axis=1, keepdims=True)
-    a1 = (X - c1) / np.linalg.norm(X - c1, axis=1, keepdims=True)
-    parallax = np.degrees(np.arccos(np.clip(np.sum(a0 * a1, axis=1), -1, 1)))
-    if float(np.median(parallax)) < cfg.bootstrap_min_parallax_deg:
-        im.message = f"relative pose from {r.name}: median parallax {np.median(parallax):.1f} deg too small"
-        return False
+    thr = max(cfg.fundamental_threshold_frac * im.width_px / intr_u.f_px, 1e-4)
     T_r = cam.invert_rigid(r.world_from_camera)  # ref camera from world
-    # Baseline length: triangulated tracks among the matches ...
-    tracks = recon.feature_track[ref][m[idx_inl, 0]]
-    known = tracks >= 0
-    known[known] = np.all(np.isfinite(recon.points[tracks[known]]), axis=1)
-    scale, how = float("nan"), ""
-    transferred = None
-    if known.sum() >= 5:
-        z_known = (recon.points[tracks[known]] @ T_r[:3, :3].T + T_r[:3, 3])[:, 2]
-        ratios = z_known / X[known, 2]
-        scale, how = float(np.median(ratios)), f"{int(known.sum())} triangulated points"
-    elif r.clicks is not None:
+    tracks_all = recon.feature_track[ref][m[:, 0]]
+    clicks = None
+    if r.clicks is not None:
         keep = r.click_inliers if r.click_inliers is not None else np.ones(len(r.clicks[0]), bool)
-        cpx, cw = r.clicks[0][keep], r.clicks[1][keep]
-        d = (cw @ T_r[:3, :3].T + T_r[:3, 3])[:, 2]
-        radius = cfg.bootstrap_click_radius_frac * r.width_px
-        ratios = _neighbour_scale_ratios(cpx, d, px_r[idx_inl], X[:, 2], radius, 8)
-        good = np.isfinite(ratios)
-        if good.sum() >= 3:
-            scale, how = float(np.median(ratios[good])), f"{int(good.sum())} clicks"
-            q, ok = _transfer_clicks(cpx, px_r[idx_inl], px_u[idx_inl], radius, 2.0)
-            if ok.sum() >= 3:
-                transferred = (q[ok], cw[ok])
-    if not (np.isfinite(scale) and scale > 0):
-        im.message = f"relative pose from {r.name}: no known depth in {r.name} to fix the baseline"
+        cw = r.clicks[1][keep]
+        clicks = (r.clicks[0][keep], cw, (cw @ T_r[:3, :3].T + T_r[:3, 3])[:, 2])
+    radius = cfg.bootstrap_click_radius_frac * r.width_px
+    best = None
+    why = f"relative pose from {r.name}: no motion with enough matches in front of both cameras"
+    motions = _relative_motions(x_r, x_u, thr, cfg.homography_max_rotation_deviation)
+    if not motions:
+        why = f"relative pose from {r.name}: one rotation explains the matches (the same viewpoint, no baseline)"
+    for R, t, inl in motions:
+        if inl.sum() < cfg.bootstrap_min_matches // 2:
+            continue
+        P1 = np.hstack([R, t[:, None]])
+        Xh = cv2.triangulatePoints(np.hstack([np.eye(3), np.zeros((3, 1))]), P1, x_r[inl].T, x_u[inl].T)
+        X = (Xh[:3] / Xh[3]).T
+        front = (X[:, 2] > 0) & (X @ R[2] + t[2] > 0)
+        if front.sum() < cfg.bootstrap_min_matches // 2:
+            continue
+        X, sel = X[front], np.nonzero(inl)[0][front]
+        c1 = -R.T @ t
+        cosang = np.sum(X * (X - c1), axis=1) / (np.linalg.norm(X, axis=1) * np.linalg.norm(X - c1, axis=1))
+        parallax = float(np.median(np.degrees(np.arccos(np.clip(cosang, -1, 1)))))
+        if parallax < cfg.bootstrap_min_parallax_deg:
+            why = f"relative pose from {r.name}: median parallax {parallax:.1f} deg too small"
+            continue
+        # Baseline length: triangulated tracks among the matches, else the clicks.
+        tr = tracks_all[sel]
+        known = tr >= 0
+        known[known] = np.all(np.isfinite(recon.points[tr[known]]), axis=1)
+        if known.sum() >= 5:
+            ratios = (recon.points[tr[known]] @ T_r[:3, :3].T + T_r[:3, 3])[:, 2] / X[known, 2]
+            how = f"{int(known.sum())} triangulated points"
+        elif clicks is not None:
+            ratios = _neighbour_scale_ratios(clicks[0], clicks[2], px_r[sel], X[:, 2], radius, 8)
+            ratios = ratios[np.isfinite(ratios)]
+            how = f"{len(ratios)} clicks"
+        else:
+            ratios = np.zeros(0)
+        if len(ratios) < 3 or not np.all(ratios > 0):
+            why = f"relative pose from {r.name}: no known depth in {r.name} to fix the baseline"
+            continue
+        scale = float(np.median(ratios))
+        spread = float(np.median(np.abs(ratios / scale - 1)))
+        import os
+
+        if os.environ.get("CA_DEBUG"):
+            print(
+                "cand",
+                len(sel),
+                f"par {parallax:.2f} scale {scale:.3f} spread {spread:.3f}",
+                np.round(ratios, 2),
+                np.round(-R.T @ t * scale, 2),
+            )
+        if best is None or spread < best[0]:
+            best = (spread, R, t, scale, sel, parallax, how)
+    if best is None:
+        im.message = why
         return False
+    spread, R, t, scale, sel, parallax, how = best
+    if spread > cfg.bootstrap_max_scale_spread:
+        im.message = f"relative pose from {r.name}: baseline lengths from {how} disagree by {spread:.0%}"
+        return False
+    transferred = None
+    if clicks is not None:
+        q, ok = _transfer_clicks(clicks[0], px_r[sel], px_u[sel], radius, 2.0)
+        if ok.sum() >= 3:
+            transferred = (q[ok], clicks[1][ok])
+    front = sel
     T_u = cam.rigid(R, scale * t) @ T_r  # idx camera from world
     world_from_camera = cam.invert_rigid(T_u)
+    if transferred is not None:
+        # The carried clicks are an independent check: their model points must land where the matches put them.
+        off = cam.median_click_error_px(intr_u, world_from_camera, transferred[0], transferred[1])
+        if not off <= cfg.click_check_max_frac * im.width_px:
+            im.message = f"relative pose from {r.name} puts the carried clicks {off:.0f} px off (median)"
+            return False
     agree = pose_pair_agreement(recon, idx, intr_u, world_from_camera, 2 * cfg.pnp_inlier_frac * im.width_px)
     if agree < cfg.min_pose_pair_agreement:
         im.message = f"relative pose from {r.name} explains only {agree:.0%} of the verified matches"
         return False
-    why = gps_check(recon, idx, world_from_camera, cfg)
+    # One registered photo with GPS already checks the baseline's length (the distance between the two centres).
+    why = gps_check(recon, idx, world_from_camera, cfg, min_references=1)
     if why:
         im.message = f"relative pose from {r.name} refused: {why}"
         return False
     im.intrinsics, im.world_from_camera = intr_u, world_from_camera
     im.status, im.method = "auto", "relative"
-    im.num_inliers = int(front.sum())
+    im.num_inliers = len(front)
     if transferred is not None:
         im.clicks, im.click_inliers = transferred, np.ones(len(transferred[0]), bool)
-    im.message = (
-        f"relative pose from {r.name}: {int(front.sum())} matches, parallax {np.median(parallax):.1f} deg, "
-        f"baseline from {how}"
-    )
+    im.message = f"relative pose from {r.name}: {len(front)} matches, parallax {parallax:.1f} deg, baseline from {how}"
     return True
 
 
 def camera_lens(recon: Reconstruction, idx: int, cfg: MapperConfig) -> Intrinsics:
     """Starting lens of image ``idx``: that of the latest registered photo of the same fixed camera and size (its
-    distortion, principal point, aspect), else a centred pinhole; the focal is ``idx``'s prior."""
+    distortion, principal point, aspect; its focal too unless ``idx`` has a focal prior of its own), else a centred
+    pinhole at ``idx``'s focal prior."""
     im = recon.images[idx]
     if im.camera_id is not None:
         for j in range(len(recon.images) - 1, -1, -1):
             o = recon.images[j]
             if j != idx and o.registered and o.camera_id == im.camera_id and o.intrinsics is not None:
                 if (o.width_px, o.height_px) == (im.width_px, im.height_px):
-                    return with_focal(o.intrinsics, focal_prior(im, cfg))
+                    known = cfg.focal_px is not None or im.focal_prior_px is not None
+                    return with_focal(o.intrinsics, focal_prior(im, cfg)) if known else o.intrinsics
     return cam.centered_intrinsics(im.width_px, im.height_px, focal_prior(im, cfg))
 
 

@@ -74,10 +74,9 @@ class Vocabulary:
         cv2.setRNGSeed(seed)
         _, _, centres = cv2.kmeans(data, k, None, criteria, 2, cv2.KMEANS_PP_CENTERS)
         voc = cls(centres)
-        counts = np.array([voc.words(d) for d in descriptor_sets], dtype=object)
         df = np.zeros(k)
-        for w in counts:
-            df[np.unique(w)] += 1
+        for d in descriptor_sets:
+            df[np.unique(voc.words(d))] += 1
         voc.idf = np.log(len(descriptor_sets) / np.maximum(df, 1))
         return voc
 

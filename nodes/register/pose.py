@@ -206,13 +206,18 @@ def pose_pair_agreement(
 ) -> float:
     """Fraction of the verified matches between image ``idx`` and registered images whose epipolar distance (px,
     in image ``idx``) under the candidate pose is below ``thr_px`` (1.0 without such pairs; pairs sharing the
-    camera centre are not counted). A pose fitted to matches on repeated texture (the same lettering on two sides
-    of a site) disagrees with the other matches."""
+    camera centre are not counted; a fixed camera with registered frames of its own is checked against those). A
+    pose fitted to matches on repeated texture (the same lettering on two sides of a site) disagrees with the other
+    matches."""
     n_ok, n_all = 0, 0
     this_from_world = cam.invert_rigid(world_from_camera)
-    for j in recon.registered_indices():
-        if j == idx:
-            continue
+    partners = [j for j in recon.registered_indices() if j != idx and recon.pair(j, idx) is not None]
+    own = recon.images[idx].camera_id
+    if own is not None and any(recon.images[j].camera_id == own for j in partners):
+        # A fixed camera's own earlier frames overlap its view for sure; other cameras' pairs may be matches of
+        # repeated texture only, which no pose explains.
+        partners = [j for j in partners if recon.images[j].camera_id == own]
+    for j in partners:
         p = recon.pair(j, idx)
         if p is None:
             continue

@@ -51,6 +51,9 @@ class ImageState:
     message: str = ""
     clicks: Clicks | None = None
     click_inliers: np.ndarray | None = None
+    # Standard deviation of the clicks relative to a user's (1: clicked or warped by a rotation homography; more
+    # for clicks carried into the photo by local image matching).
+    click_sigma_px: float = 1.0
     anchor: AnchorSolution | None = None
     num_matched_tracks: int = 0
     # Focal solved from this image's own clicks (None when the prior was kept); informational.

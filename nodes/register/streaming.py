@@ -320,10 +320,14 @@ class StreamingRegistrar:
                 f"no verified geometry connects it to the {len(r.registered_indices())} registered photos "
                 f"(matched with {len(self._tried.get(idx, ()))})"
             )
-        notes = []
+        notes: list[str] = []
+        im = r.images[idx]
         for j in partners:
+            im.message = ""
             if mapper.try_homography_transfer(r, j, idx, cfg):
                 return ""
+            if "refused" in im.message and im.message not in notes:
+                notes.append(im.message)
         if mapper.register_image_pnp(r, idx, cfg):
             return ""
         notes.append(r.images[idx].message)
