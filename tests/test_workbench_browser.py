@@ -214,12 +214,17 @@ def _polygon_mask(polys, shape) -> np.ndarray:
 
 def test_select_annotate_and_find_it_on_another_camera_and_date(page, site) -> None:
     a_rel = "cam-north/20260316T1126.jpg"
-    b_rel = "cam-east/20260312T1215.jpg"
+    b_rel = "cam-south/20260313T1258.jpg"
     index = {v: int(k) for k, v in truth.element_index(site.site_dir).items() if v}
     ids_a, occ_a = _element_pixels(site, a_rel)
     ids_b, occ_b = _element_pixels(site, b_rel)
-    area = lambda ids, occ, i: int(np.sum((ids == i) & ~occ))  # noqa: E731
-    gid = max(index, key=lambda g: min(area(ids_a, occ_a, index[g]), area(ids_b, occ_b, index[g])))
+    # The element a person would click in both photos: the one whose visible part is widest in both (the largest
+    # distance from its outline), so that a click in its middle hits it whatever the registration's last pixel.
+    def depth(ids, occ, i):
+        m = ((ids == i) & ~occ).astype(np.uint8)
+        return float(cv2.distanceTransform(m, cv2.DIST_L2, 5).max()) if m.any() else 0.0
+
+    gid = max(index, key=lambda g: min(depth(ids_a, occ_a, index[g]), depth(ids_b, occ_b, index[g])))
     mask_a = ((ids_a == index[gid]) & ~occ_a).astype(np.uint8)
     v, u = np.unravel_index(np.argmax(cv2.distanceTransform(mask_a, cv2.DIST_L2, 5)), mask_a.shape)
     a, b = site.photos[a_rel], site.photos[b_rel]
@@ -235,7 +240,7 @@ def test_select_annotate_and_find_it_on_another_camera_and_date(page, site) -> N
     page.click("#ann-save")
     page.wait_for_function("wb.annotations.some(a => a.text === 'check this element on site')")
     # Another camera, another day: the annotation is there, drawn over the element's visible part.
-    page.click("#cameras li[data-group='cam-east']")
+    page.click("#cameras li[data-group='cam-south']")
     page.click(f"#timeline figure[data-photo='{b.photo_id}']")
     page.wait_for_function(f"wb.annotationsFor === '{b.photo_id}' && wb.annotations.length > 0")
     ann = page.evaluate("wb.annotations.find(a => a.text === 'check this element on site')")

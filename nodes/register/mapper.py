@@ -329,16 +329,7 @@ def try_relative_pose(recon: Reconstruction, ref: int, idx: int, cfg: MapperConf
             continue
         scale = float(np.median(ratios))
         spread = float(np.median(np.abs(ratios / scale - 1)))
-        import os
 
-        if os.environ.get("CA_DEBUG"):
-            print(
-                "cand",
-                len(sel),
-                f"par {parallax:.2f} scale {scale:.3f} spread {spread:.3f}",
-                np.round(ratios, 2),
-                np.round(-R.T @ t * scale, 2),
-            )
         if best is None or spread < best[0]:
             best = (spread, R, t, scale, sel, parallax, how)
     if best is None:
@@ -537,10 +528,6 @@ def bootstrap_next(recon: Reconstruction, unreg: list[int], cfg: MapperConfig) -
         tried.add(u)
         if try_relative_pose(recon, r, u, cfg):
             return u
-        import os
-
-        if os.environ.get("CA_DEBUG"):
-            print("bootstrap fail", recon.images[r].name, recon.images[u].name, recon.images[u].message)
     return -1
 
 
