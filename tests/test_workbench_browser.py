@@ -218,6 +218,7 @@ def test_select_annotate_and_find_it_on_another_camera_and_date(page, site) -> N
     index = {v: int(k) for k, v in truth.element_index(site.site_dir).items() if v}
     ids_a, occ_a = _element_pixels(site, a_rel)
     ids_b, occ_b = _element_pixels(site, b_rel)
+
     # The element a person would click in both photos: the one whose visible part is widest in both (the largest
     # distance from its outline), so that a click in its middle hits it whatever the registration's last pixel.
     def depth(ids, occ, i):
