@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy.optimize._numdiff import approx_derivative
 
-import nodes.register.bundle as bundle_mod
 from constructaide import camera as cam
+from nodes.register import schur
 from nodes.register.bundle import BundleOptions, BundleProblem, bundle_adjust
 
 W, H, F = 800, 600, 700.0
@@ -308,8 +308,8 @@ def test_click_noise_is_estimated_apart_from_the_features():
     rng = np.random.default_rng(0)
     n_obs, n_clk = 5000, 24
     r = np.r_[rng.normal(0, 0.3, 2 * n_obs), rng.normal(0, 1.0, 2 * n_clk)]
-    s2_obs, s2_clk = bundle_mod._noise_variances(r, np.ones_like(r), n_obs, n_clk, n_params=0, click_weight=1.0)
+    s2_obs, s2_clk = schur.noise_variances(r, np.ones_like(r), n_obs, n_clk, n_params=0, click_weight=1.0)
     assert s2_obs == pytest.approx(0.09, rel=0.1)
     assert s2_clk == pytest.approx(1.0 * 48 / 41, rel=0.35)
     r[2 * n_obs :] *= 0.01
-    assert bundle_mod._noise_variances(r, np.ones_like(r), n_obs, n_clk, 0, 1.0)[1] == s2_obs
+    assert schur.noise_variances(r, np.ones_like(r), n_obs, n_clk, 0, 1.0)[1] == s2_obs

@@ -168,6 +168,10 @@ class MapperConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     # --variants 'default,collection order'). Later ties keep collection order (templeSparseRing, 18 draws:
     # breaking them the same way cost 0.2 mm). 0 = collection order throughout.
     anchor_request_min_shared_matches: int = 100
+    # When fewer photos than this carry clicks once everything is registered, clicks are asked for one more (the
+    # widest view from the anchors; frame_anchor_order): one anchor's dozen clicks fix the model frame less well
+    # than two far apart. Unanswered, the registration stands. 0 or 1: never asked.
+    min_anchors: int = 2
     # One-anchor bootstrap (try_relative_pose): when no image has enough matched tracks, the unregistered image
     # with the most verified matches to a registered one is placed by their relative pose.
     bootstrap: bool = True

@@ -511,6 +511,24 @@ def click_disagreement_px(im: ImageState, clicks: Clicks) -> float:
     return cam.median_click_error_px(im.intrinsics, im.world_from_camera, clicks[0], clicks[1])
 
 
+def frame_anchor_order(recon: Reconstruction, anchored: list[int]) -> list[int]:
+    """Registered images without clicks, best first as the next anchor for the model frame: the most verified
+    matches to an anchor times sin^2 of the angle between their viewing directions (two anchors far apart in
+    direction fix the frame's rotation and scale best); images without a pair with an anchor last."""
+
+    def strength(i: int) -> float:
+        best = 0.0
+        for a in anchored:
+            p = recon.pair(a, i)
+            if p is not None:
+                ang = cam.viewing_angle_deg(recon.images[a].world_from_camera, recon.images[i].world_from_camera)
+                best = max(best, len(p[0]) * np.sin(np.radians(min(ang, 90.0))) ** 2)
+        return best
+
+    cands = [i for i in recon.registered_indices() if recon.images[i].status != "anchor"]
+    return sorted(cands, key=lambda i: -strength(i))
+
+
 def bootstrap_next(recon: Reconstruction, unreg: list[int], cfg: MapperConfig) -> int:
     """Try :func:`try_relative_pose` on (registered, unregistered) pairs, most verified matches first; returns the
     image registered, or -1."""

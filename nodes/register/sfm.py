@@ -40,7 +40,6 @@ from nodes.register.adjust import (
     bundle,
     release_anchors_if_significant,
 )
-from nodes.register.bundle import single_thread_blas
 from nodes.register.config import MapperConfig
 from nodes.register.features import (
     pca_basis,
@@ -50,6 +49,7 @@ from nodes.register.mapper import (
     anchor_request_order,
     bootstrap_next,
     click_disagreement_px,
+    frame_anchor_order,
     prune_observations,
     register_anchor,
     register_image_pnp,
@@ -65,6 +65,7 @@ from nodes.register.recon import (
     local_window,
     matched_track_count,
 )
+from nodes.register.schur import single_thread_blas
 from nodes.register.triangulation import triangulate_tracks
 
 
@@ -266,6 +267,30 @@ def reconstruct(
             break
     if since_full:
         bundle(recon, cfg)
+    # A model frame resting on fewer than min_anchors photos' clicks: one more is asked for, where it fixes the frame
+    # best (unanswered, nothing changes: the one-anchor registration stands).
+    anchored = [i for i in recon.registered_indices() if recon.images[i].status == "anchor"]
+    if anchored and len(anchored) < cfg.min_anchors:
+        for i in frame_anchor_order(recon, anchored)[:1]:
+            reason = f"accuracy: the model frame rests on {len(anchored)} photo's clicks; clicks here fix it better"
+            recon.needs_anchor = [r for r in recon.needs_anchor if r[0] != recon.images[i].name]
+            recon.needs_anchor.append((recon.images[i].name, reason, matched_track_count(recon, i)))
+            clicks = clicks_for(i, reason, matched_track_count(recon, i))
+            if clicks is None:
+                continue
+            im = recon.images[i]
+            kept = (im.status, im.method, im.world_from_camera, im.intrinsics, im.clicks, im.click_inliers, im.message)
+            try:
+                register_anchor(recon, i, clicks, cfg)
+            except DegenerateAnchors as e:
+                im.status, im.method, im.world_from_camera, im.intrinsics, im.clicks, im.click_inliers = kept[:6]
+                im.message = f"{kept[6]}; its accuracy clicks were rejected: {e}"
+                continue
+            im.message += "; clicked for accuracy (second anchor)"
+            note(f"anchor {im.name} (accuracy)")
+            prune_observations(recon, i, cfg)
+            bundle(recon, cfg)
+            triangulate_tracks(recon, cfg)
     if cfg.fix_anchor_poses and cfg.release_anchors:
         recon.anchor_release_score = release_anchors_if_significant(recon, cfg)
         recon.anchors_released = bool(recon.anchor_release_score > ANCHOR_RELEASE_THRESHOLD)
