@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from scipy.optimize._numdiff import approx_derivative
 
+import nodes.register.bundle as bundle_mod
 from constructaide import camera as cam
 from nodes.register import schur
 from nodes.register.bundle import BundleOptions, BundleProblem, bundle_adjust
