@@ -172,6 +172,9 @@ class MapperConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     # widest view from the anchors; frame_anchor_order): one anchor's dozen clicks fix the model frame less well
     # than two far apart. Unanswered, the registration stands. 0 or 1: never asked.
     min_anchors: int = 2
+    # Clicks the anchor solve keeps after flagging mis-clicks must number at least this many (else the clicks are
+    # refused with the reason and asked again).
+    min_anchor_inliers: int = 6
     # One-anchor bootstrap (try_relative_pose): when no image has enough matched tracks, the unregistered image
     # with the most verified matches to a registered one is placed by their relative pose.
     bootstrap: bool = True

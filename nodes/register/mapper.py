@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 
 from constructaide import camera as cam
-from constructaide.anchorsolve import AnchorSolution, solve_anchor
+from constructaide.anchorsolve import AnchorSolution, DegenerateAnchors, solve_anchor
 from nodes.register.config import MapperConfig
 from nodes.register.features import (
     homography_inlier_ratio,
@@ -43,6 +43,13 @@ def register_anchor(recon: Reconstruction, idx: int, clicks: Clicks, cfg: Mapper
     sol = solve_anchor(
         px, world, im.width_px, im.height_px, solve_distortion=cfg.anchor_distortion, **anchor_focal_kwargs(im, cfg)
     )
+    n_out = int(sol.outlier_mask.sum())
+    if n_out and len(px) - n_out < cfg.min_anchor_inliers:
+        # A few clicks of which some are wrong leave the camera ambiguous (several poses fit 4-5 points).
+        raise DegenerateAnchors(
+            f"{n_out} of {len(px)} clicks look mis-placed and {len(px) - n_out} are not enough to be sure of the "
+            f"camera (at least {cfg.min_anchor_inliers}); please check or add clicks"
+        )
     im.intrinsics, im.world_from_camera = sol.intrinsics, sol.world_from_camera
     im.status, im.method, im.anchor = "anchor", "anchor", sol
     im.solved_focal_px = sol.intrinsics.f_px if sol.focal_solved else None
@@ -51,7 +58,6 @@ def register_anchor(recon: Reconstruction, idx: int, clicks: Clicks, cfg: Mapper
     im.click_sigma_px = 1.0
     im.num_inliers = int(np.sum(~sol.outlier_mask))
     im.rms_px = sol.rms_px
-    n_out = int(sol.outlier_mask.sum())
     im.message = f"{len(px)} clicks, rms {sol.rms_px:.2f} px" + (f", {n_out} flagged as mis-clicks" if n_out else "")
     return sol
 
