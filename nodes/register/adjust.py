@@ -105,7 +105,7 @@ def bundle(
         ref_px[obs_p_a[r]] = obs_x_a[r]
     obs_c = cam_arr[obs_img_a]
     obs_track, obs_img = obs_track_a, obs_img_a
-    intr = [recon.images[i].intrinsics for i in reg]
+    intr = [recon.images[i].camera for i in reg]
     click_c, click_w, click_x = [], [], []
     click_s: list[float] = []
     for i in reg:
@@ -123,7 +123,7 @@ def bundle(
     centre_fixed = np.array([recon.images[i].centre_source in anchors for i in reg])
     intr_fixed = np.array([i not in movable for i in reg])
     prob = BundleProblem(
-        camera_from_world=np.stack([cam.invert_rigid(recon.images[i].world_from_camera) for i in reg]),
+        camera_from_world=np.stack([cam.invert_rigid(recon.images[i].pose) for i in reg]),
         f_px=np.array([x.f_px for x in intr]),
         cx_px=np.array([x.cx_px for x in intr]),
         cy_px=np.array([x.cy_px for x in intr]),
@@ -158,7 +158,7 @@ def bundle(
     for c, i in enumerate(reg):
         src = recon.images[i].lens_source
         if src is not None and recon.images[src].intrinsics is not None:
-            d_centre[c] = (recon.images[src].intrinsics.k1, recon.images[src].intrinsics.k2)
+            d_centre[c] = (recon.images[src].camera.k1, recon.images[src].camera.k2)
             d_sigma[c] = cfg.inherited_distortion_sigma
     opts = BundleOptions(
         distortion_prior_centre=d_centre,
@@ -201,7 +201,7 @@ def bundle(
             cy_px=float(res.cy_px[c]),
             k1=float(res.k1[c]),
             k2=float(res.k2[c]),
-            fy_over_fx=float(res.fy_over_fx[c]) if res.fy_over_fx is not None else im.intrinsics.fy_over_fx,
+            fy_over_fx=float(res.fy_over_fx[c]) if res.fy_over_fx is not None else im.camera.fy_over_fx,
         )
         if i not in anchors:
             im.world_from_camera = cam.invert_rigid(res.camera_from_world[c])

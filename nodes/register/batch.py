@@ -227,10 +227,10 @@ def reconstruction_to_colmap(recon: Reconstruction) -> ColmapModel:
             continue
         t = recon.feature_track[i]
         p3 = np.where(t >= 0, remap[np.maximum(t, 0)], -1)
-        images.append(ColmapImage(im.name, im.intrinsics, im.world_from_camera, im.features.keypoints_px, p3))
+        images.append(ColmapImage(im.name, im.camera, im.pose, im.features.keypoints_px, p3))
         sel = p3 >= 0
         if sel.any():
-            proj, _ = cam.project_points(im.intrinsics, cam.invert_rigid(im.world_from_camera), pts[p3[sel]])
+            proj, _ = cam.project_points(im.camera, cam.invert_rigid(im.pose), pts[p3[sel]])
             e = np.linalg.norm(proj - im.features.keypoints_px[sel], axis=1)
             np.add.at(err_sum, p3[sel], np.nan_to_num(e, nan=0.0))
             np.add.at(err_n, p3[sel], 1)
@@ -245,12 +245,12 @@ def image_report(recon: Reconstruction) -> list[dict]:
         d["message"] = im.message
         if im.registered:
             d.update(
-                f_px=im.intrinsics.f_px,
-                fy_over_fx=im.intrinsics.fy_over_fx,
-                cx_px=im.intrinsics.cx_px,
-                cy_px=im.intrinsics.cy_px,
-                k1=im.intrinsics.k1,
-                k2=im.intrinsics.k2,
+                f_px=im.camera.f_px,
+                fy_over_fx=im.camera.fy_over_fx,
+                cx_px=im.camera.cx_px,
+                cy_px=im.camera.cy_px,
+                k1=im.camera.k1,
+                k2=im.camera.k2,
                 num_inliers=im.num_inliers,
                 rms_px=None if not math.isfinite(im.rms_px) else im.rms_px,
             )

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import cv2
 import numpy as np
@@ -77,9 +78,9 @@ class MeshDepthLookup:
             e = ground_extent_m
             gv = np.array([[cx - e, cy - e], [cx + e, cy - e], [cx + e, cy + e], [cx - e, cy + e]])
             self.ground = (np.c_[gv, np.full(4, ground_height_m)], np.array([[0, 1, 2], [0, 2, 3]]))
-        self._scene = None
+        self._scene: Any = None
         self._scene_key: frozenset[str] | None = None
-        self._renderer = None
+        self._renderer: Any = None
         self._size = (0, 0)
 
     def _scene_for(self, names: frozenset[str]):

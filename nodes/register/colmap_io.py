@@ -92,7 +92,8 @@ def write_text_model(model: ColmapModel, out_dir: Path) -> None:
         cid = iid = k + 1
         x = im.intrinsics
         if x.fy_over_fx == 1.0:
-            model_name, vals = "RADIAL", (x.f_px, x.cx_px + 0.5, x.cy_px + 0.5, x.k1, x.k2)
+            vals: tuple[float, ...] = (x.f_px, x.cx_px + 0.5, x.cy_px + 0.5, x.k1, x.k2)
+            model_name = "RADIAL"
         else:
             fx, fy = cam.focal_xy(x)
             model_name, vals = "OPENCV", (fx, fy, x.cx_px + 0.5, x.cy_px + 0.5, x.k1, x.k2, 0.0, 0.0)

@@ -552,10 +552,10 @@ def densify(
     clusters = viewpoint_clusters(views, depths)
     if only_view is None:
         verified = verify_tracks(views, known_obs, clusters, params)
-        for vi, v in enumerate(views):  # scene depths again from the confirmed points only
+        for vi, view in enumerate(views):  # scene depths again from the confirmed points only
             own = [p for p in seen_by[vi] if verified[p]]
             if len(own) >= 5:
-                depths[vi] = scene_depth(v, known[own])
+                depths[vi] = scene_depth(view, known[own])
     else:  # the new view's tracks only
         verified = np.zeros(len(known), bool)
         mine = np.array(seen_by[only_view], np.int64)

@@ -151,13 +151,14 @@ class FastPath:
         p0 = ((st.pixels_px + 0.5) * to_small - 0.5).astype(np.float32).reshape(-1, 1, 2)
         if len(p0) < c.min_inliers:
             return None, f"only {len(p0)} corners to track"
-        lk = {
-            "winSize": (c.klt_window_small_px, c.klt_window_small_px),
-            "maxLevel": c.klt_levels,
-            "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
-        }
-        p1, st1, _ = cv2.calcOpticalFlowPyrLK(st.gray_small, small, p0, None, **lk)
-        p0b, st2, _ = cv2.calcOpticalFlowPyrLK(small, st.gray_small, p1, None, **lk)
+        win = (c.klt_window_small_px, c.klt_window_small_px)
+        crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
+        p1, st1, _ = cv2.calcOpticalFlowPyrLK(
+            st.gray_small, small, p0, None, winSize=win, maxLevel=c.klt_levels, criteria=crit
+        )
+        p0b, st2, _ = cv2.calcOpticalFlowPyrLK(
+            small, st.gray_small, p1, None, winSize=win, maxLevel=c.klt_levels, criteria=crit
+        )
         fb = np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1) / sx
         ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < c.klt_fb_max_px)
         px1 = (p1.reshape(-1, 2).astype(np.float64) + 0.5) / to_small - 0.5

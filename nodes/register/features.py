@@ -63,7 +63,9 @@ def extract_features(
     if max_side_px is not None and max(h, w) > max_side_px:
         scale = max_side_px / max(h, w)
         work = cv2.resize(gray, (round(w * scale), round(h * scale)), interpolation=cv2.INTER_AREA)
-    sift = cv2.SIFT_create(nfeatures=max_features, contrastThreshold=contrast_threshold)
+    sift = cv2.SIFT_create(  # type: ignore[attr-defined]
+        nfeatures=max_features, contrastThreshold=contrast_threshold
+    )
     kps, desc = sift.detectAndCompute(work, None)
     if desc is None or len(kps) == 0:
         return Features(np.zeros((0, 2), np.float32), np.zeros((0, 128), np.float32), np.zeros(0, np.float32), w, h)

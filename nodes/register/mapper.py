@@ -101,7 +101,7 @@ def try_homography_transfer(recon: Reconstruction, src: int, idx: int, cfg: Mapp
     intr0 = inherited_intrinsics(a, im, cfg)
     # A plane (a facade) also gives one homography for most matches from far-apart viewpoints; only rotation
     # (+ zoom) homographies mean the same viewpoint.
-    f_h, dev = rotation_deviation(H, a.intrinsics, intr0.cx_px, intr0.cy_px)
+    f_h, dev = rotation_deviation(H, a.camera, intr0.cx_px, intr0.cy_px)
     if not dev <= cfg.homography_max_rotation_deviation:
         return False
     intr0 = with_focal(intr0, f_h)
@@ -117,9 +117,9 @@ def try_homography_transfer(recon: Reconstruction, src: int, idx: int, cfg: Mapp
         # many rays): a prior it contradicts is dropped, as when clicks contradict it.
         prior = None
         im.focal_prior_rejected = True
-    T_a = cam.invert_rigid(a.world_from_camera)
-    rays = rays_from_pixels(a.intrinsics, a.world_from_camera, pk)
-    R0 = rotation_from_homography(H, a.intrinsics, intr0, T_a)
+    T_a = cam.invert_rigid(a.pose)
+    rays = rays_from_pixels(a.camera, a.pose, pk)
+    R0 = rotation_from_homography(H, a.camera, intr0, T_a)
     R, intr, res = fit_rotation_about_centre(rays[good], pn[good], intr0, R0, True, prior)
     inl = np.nonzero(good)[0][res < thr]
     if len(inl) >= cfg.homography_min_matches:
@@ -128,7 +128,7 @@ def try_homography_transfer(recon: Reconstruction, src: int, idx: int, cfg: Mapp
     if len(inl) < cfg.homography_min_matches or rms > cfg.homography_max_rms_frac * im.width_px:
         im.message = f"homography from {a.name}: rotation about its centre leaves {rms:.1f} px (a moved camera?)"
         return False
-    world_from_camera = cam.rigid(R.T, a.world_from_camera[:3, 3])
+    world_from_camera = cam.rigid(R.T, a.pose[:3, 3])
     why = gps_check(recon, idx, world_from_camera, cfg)
     if why:
         im.message = f"homography from {a.name} refused: {why}"
@@ -136,7 +136,7 @@ def try_homography_transfer(recon: Reconstruction, src: int, idx: int, cfg: Mapp
     im.intrinsics, im.world_from_camera = intr, world_from_camera
     im.status, im.method = "auto", "homography"
     im.centre_source = src if cfg.homography_shares_centre else None
-    im.lens_source = src if intr0.k1 == a.intrinsics.k1 and intr0.k2 == a.intrinsics.k2 else None
+    im.lens_source = src if intr0.k1 == a.camera.k1 and intr0.k2 == a.camera.k2 else None
     im.num_inliers, im.rms_px = len(inl), rms
     n_warped = 0
     if a.clicks is not None:
@@ -252,7 +252,7 @@ def _relative_motions(
     E, mask = cv2.findEssentialMat(x_r, x_u, np.eye(3), cv2.RANSAC, 0.999, thr)
     if E is not None and E.shape == (3, 3):
         _, R, t, mask = cv2.recoverPose(E, x_r, x_u, np.eye(3), mask=mask)
-        out.append((R, t.ravel() / max(np.linalg.norm(t), 1e-12), mask.ravel() > 0))
+        out.append((R, t.ravel() / max(float(np.linalg.norm(t)), 1e-12), mask.ravel() > 0))
     H, hmask = cv2.findHomography(x_r, x_u, cv2.RANSAC, thr)
     if H is not None and hmask is not None and hmask.sum() >= 0.5 * len(x_r):
         unit = Intrinsics(width_px=2, height_px=2, f_px=1.0, cx_px=0.0, cy_px=0.0)
@@ -288,7 +288,7 @@ def try_relative_pose(recon: Reconstruction, ref: int, idx: int, cfg: MapperConf
     x_r = cam.pixels_to_normalized(r.intrinsics, px_r)
     x_u = cam.pixels_to_normalized(intr_u, px_u)
     thr = max(cfg.fundamental_threshold_frac * im.width_px / intr_u.f_px, 1e-4)
-    T_r = cam.invert_rigid(r.world_from_camera)  # ref camera from world
+    T_r = cam.invert_rigid(r.pose)  # ref camera from world
     tracks_all = recon.feature_track[ref][m[:, 0]]
     clicks = None
     if r.clicks is not None:
@@ -450,8 +450,9 @@ def register_image_pnp(recon: Reconstruction, idx: int, cfg: MapperConfig) -> bo
             best = (n_inl, f_try, rvec, tvec, inl)
         if n_inl >= 0.5 * len(obj):
             break
+    assert best is not None
     n_inl, f_try, rvec, tvec, inl = best
-    if n_inl < cfg.min_pnp_inliers:
+    if n_inl < cfg.min_pnp_inliers or rvec is None or tvec is None or inl is None:
         im.message = f"PnP found {n_inl} inliers among {len(obj)} track matches (< {cfg.min_pnp_inliers})"
         return False
     inl = inl.ravel()
@@ -514,7 +515,7 @@ def register_image_pnp(recon: Reconstruction, idx: int, cfg: MapperConfig) -> bo
 def click_disagreement_px(im: ImageState, clicks: Clicks) -> float:
     """Median distance (px) between clicked pixels and their model points projected under image ``im``'s current
     pose and intrinsics (points behind the camera count as infinitely far)."""
-    return cam.median_click_error_px(im.intrinsics, im.world_from_camera, clicks[0], clicks[1])
+    return cam.median_click_error_px(im.camera, im.pose, clicks[0], clicks[1])
 
 
 def frame_anchor_order(recon: Reconstruction, anchored: list[int]) -> list[int]:
@@ -527,7 +528,7 @@ def frame_anchor_order(recon: Reconstruction, anchored: list[int]) -> list[int]:
         for a in anchored:
             p = recon.pair(a, i)
             if p is not None:
-                ang = cam.viewing_angle_deg(recon.images[a].world_from_camera, recon.images[i].world_from_camera)
+                ang = cam.viewing_angle_deg(recon.images[a].pose, recon.images[i].pose)
                 best = max(best, len(p[0]) * np.sin(np.radians(min(ang, 90.0))) ** 2)
         return best
 
@@ -614,7 +615,7 @@ def prune_observations(recon: Reconstruction, idx: int, cfg: MapperConfig) -> in
     feats, tr = feats[fin], tr[fin]
     if len(feats) == 0:
         return 0
-    proj, z = cam.project_points(im.intrinsics, cam.invert_rigid(im.world_from_camera), recon.points[tr])
+    proj, z = cam.project_points(im.camera, cam.invert_rigid(im.pose), recon.points[tr])
     err = np.linalg.norm(proj - im.features.keypoints_px[feats], axis=1)
     bad = ~(np.isfinite(err) & (err < obs_threshold_px(im, cfg)) & (z > 0))
     for f, t in zip(feats[bad].tolist(), tr[bad].tolist(), strict=True):

@@ -53,7 +53,7 @@ def rotation_deviation(
     f1, f2 = n1 / n3, n2 / n3
     f = 0.5 * (f1 + f2)
     dev = max(
-        abs(f1 - f2) / max(f, 1e-12),
+        abs(f1 - f2) / max(float(f), 1e-12),
         abs(r1 @ r2) / (n1 * n2 + 1e-18),
         abs(r1 @ r3) / (n1 * n3 + 1e-18),
         abs(r2 @ r3) / (n2 * n3 + 1e-18),
@@ -223,9 +223,9 @@ def pose_pair_agreement(
             continue
         m, _ = p
         o = recon.images[j]
-        xj = cam.pixels_to_normalized(o.intrinsics, o.features.keypoints_px[m[:, 0]].astype(np.float64))
+        xj = cam.pixels_to_normalized(o.camera, o.features.keypoints_px[m[:, 0]].astype(np.float64))
         xi = cam.pixels_to_normalized(intr, recon.images[idx].features.keypoints_px[m[:, 1]].astype(np.float64))
-        ok, n = epipolar_agreement(xj, xi, this_from_world @ o.world_from_camera, intr.f_px, thr_px)
+        ok, n = epipolar_agreement(xj, xi, this_from_world @ o.pose, intr.f_px, thr_px)
         n_ok, n_all = n_ok + ok, n_all + n
     return n_ok / n_all if n_all else 1.0
 

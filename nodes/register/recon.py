@@ -86,6 +86,20 @@ class ImageState:
         return self.features.height_px
 
     @property
+    def camera(self) -> Intrinsics:
+        """Intrinsics of a registered image (ValueError when it has none)."""
+        if self.intrinsics is None:
+            raise ValueError(f"image {self.name} has no camera")
+        return self.intrinsics
+
+    @property
+    def pose(self) -> np.ndarray:
+        """``world_from_camera`` (4, 4) of a registered image (ValueError when it has none)."""
+        if self.world_from_camera is None:
+            raise ValueError(f"image {self.name} has no pose")
+        return self.world_from_camera
+
+    @property
     def registered(self) -> bool:
         return self.status in ("anchor", "auto")
 

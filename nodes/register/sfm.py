@@ -161,10 +161,10 @@ def reconstruct(
     # Initial anchors.
     first = list(pending)[: (len(pending) if cfg.use_all_anchors else 1)]
     for name in first:
-        clicks = pending.pop(name)
+        given = pending.pop(name)
         idx = recon.index(name)
         try:
-            register_anchor(recon, idx, clicks, cfg)
+            register_anchor(recon, idx, given, cfg)
         except DegenerateAnchors as e:
             recon.images[idx].status, recon.images[idx].message = "failed", f"anchor clicks rejected: {e}"
         note(f"anchor {name}")
@@ -275,13 +275,13 @@ def reconstruct(
             reason = f"accuracy: the model frame rests on {len(anchored)} photo's clicks; clicks here fix it better"
             recon.needs_anchor = [r for r in recon.needs_anchor if r[0] != recon.images[i].name]
             recon.needs_anchor.append((recon.images[i].name, reason, matched_track_count(recon, i)))
-            clicks = clicks_for(i, reason, matched_track_count(recon, i))
-            if clicks is None:
+            extra = clicks_for(i, reason, matched_track_count(recon, i))
+            if extra is None:
                 continue
             im = recon.images[i]
             kept = (im.status, im.method, im.world_from_camera, im.intrinsics, im.clicks, im.click_inliers, im.message)
             try:
-                register_anchor(recon, i, clicks, cfg)
+                register_anchor(recon, i, extra, cfg)
             except DegenerateAnchors as e:
                 im.status, im.method, im.world_from_camera, im.intrinsics, im.clicks, im.click_inliers = kept[:6]
                 im.message = f"{kept[6]}; its accuracy clicks were rejected: {e}"

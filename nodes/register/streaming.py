@@ -345,7 +345,7 @@ class StreamingRegistrar:
         r, cfg, c = self.recon, self.mcfg, self.config
         im = r.images[idx]
         if im.status == "anchor" and self.depth_lookup is not None:
-            pts = self._lookup(im.world_from_camera, im.intrinsics, im.features.keypoints_px, im.capture_time_ns)
+            pts = self._lookup(im.pose, im.camera, im.features.keypoints_px, im.capture_time_ns)
             mapper.add_model_points(r, idx, pts)
         mapper.prune_observations(r, idx, cfg)
         tracks = image_tracks(r, [idx])
@@ -367,12 +367,12 @@ class StreamingRegistrar:
         if c.densify and len(r.registered_indices()) >= 2:
             densify_reconstruction(r, DensifyParams(pairs_per_view=c.densify_pairs), only=idx)
         changed = self._viewpoint_edges(idx)
-        self.fast.init_track(photo, im.intrinsics, im.world_from_camera)
-        changed += self._record(photo, im.intrinsics, im.world_from_camera, im.method)
+        self.fast.init_track(photo, im.camera, im.pose)
+        changed += self._record(photo, im.camera, im.pose, im.method)
         for j in r.registered_indices():  # adjustments moved other photos too
             rec = self.poses.get(r.images[j].name)
             if rec is not None and j != idx:
-                rec.world_from_camera, rec.intrinsics = r.images[j].world_from_camera, r.images[j].intrinsics
+                rec.world_from_camera, rec.intrinsics = r.images[j].pose, r.images[j].camera
         return sorted(set(changed), key=changed.index)
 
     def _lookup(self, world_from_camera: np.ndarray, intr: Intrinsics, px: np.ndarray, t_ns: int) -> np.ndarray:
@@ -469,7 +469,7 @@ class StreamingRegistrar:
             H, ratio = homography_inlier_ratio(o.features.keypoints_px, im.features.keypoints_px, p[0], thr)
             if H is None:
                 continue
-            _, dev = rotation_deviation(H, o.intrinsics, im.intrinsics.cx_px, im.intrinsics.cy_px)
+            _, dev = rotation_deviation(H, o.camera, im.camera.cx_px, im.camera.cy_px)
             if dev <= cfg.homography_max_rotation_deviation and self.viewpoints.add_pair(
                 im.name, o.name, H, ratio, len(p[0])
             ):

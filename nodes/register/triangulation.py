@@ -142,7 +142,7 @@ def drop_runaway_points(recon: Reconstruction, tracks: np.ndarray, factor: float
     t_ids, i_ids, _ = flat_obs(recon, tracks)
     on = reg[i_ids] if len(i_ids) else np.zeros(0, bool)
     t_ids, i_ids = t_ids[on], i_ids[on]
-    centres = np.array([im.world_from_camera[:3, 3] if im.registered else np.zeros(3) for im in recon.images])
+    centres = np.array([im.pose[:3, 3] if im.registered else np.zeros(3) for im in recon.images])
     with np.errstate(over="ignore", invalid="ignore"):
         dist_m = np.linalg.norm(recon.points[t_ids] - centres[i_ids], axis=1)
     dist_m = np.where(np.isfinite(dist_m), dist_m, np.inf)

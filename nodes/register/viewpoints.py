@@ -71,7 +71,7 @@ def rotation_deviation(
     f1, f2 = n1 / n3, n2 / n3
     f = 0.5 * (f1 + f2)
     dev = max(
-        abs(f1 - f2) / max(f, 1e-12),
+        abs(f1 - f2) / max(float(f), 1e-12),
         abs(r1 @ r2) / (n1 * n2 + 1e-18),
         abs(r1 @ r3) / (n1 * n3 + 1e-18),
         abs(r2 @ r3) / (n2 * n3 + 1e-18),
