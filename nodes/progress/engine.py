@@ -68,6 +68,15 @@ class EngineParams:
     """Weight of sparse points triangulated from blind matches (guided ones: 1, looked up on the model: 0)."""
     max_frames_per_camera: int = 400
     material_learn_probability: float = 0.95
+    confirm_llr: float = 3.0
+    """A transition this strong (and standing since) makes an element's pixels a sample of its material's look."""
+    sure_probability: float = 0.9
+    """Elements at least this likely to stand before a photo are drawn as built; the rest of the schedule window
+    are candidates (their change and looks are read)."""
+    peel_passes: int = 1
+    """Extra evidence passes without the elements a photo shows absent (reads what stands behind them)."""
+    peel_llr: float = 1.5
+    """Evidence below minus this (appearance + points + a negative change) counts as absent for peeling."""
     evidence: EvidenceParams = field(default_factory=EvidenceParams)
     fusion: FusionParams = field(default_factory=FusionParams)
 
@@ -356,7 +365,7 @@ class ProgressEngine:
             if tr.observations.pop(photo_id, None) is not None:
                 self.posteriors.pop(tr.global_id, None)
         present = self._present(t - 1)
-        built = present >= 0.5
+        built = present >= self.params.sure_probability
         built[0] = False
         horizon = t + int(self.params.lookahead_days * NS_PER_DAY)
         cand = np.zeros_like(built)
@@ -364,11 +373,29 @@ class ProgressEngine:
             wdw = self.windows.get(g)
             start = None if wdw is None else (wdw.build_start_ns if wdw.build_start_ns is not None else wdw.build_finish_ns)
             cand[i] = not built[i] and (start is None or start <= horizon)
-        layers = self.renderer.render(intr, T, built, cand)
         plate = self._plate(photo.camera_id, t, T) if photo.camera_id else None
         reference = plate.warp_to(intr, T) if plate is not None else None
         points = self._points(photo_id, reg, W / w)
-        cues = photo_evidence(lab, occluded, layers, self.material_of, self.params.evidence, reference, points, self.materials)
+        ev = self.params.evidence
+        confirmed = self._confirmed(t - 1)
+        cues_by_index: dict[int, ElementCue] = {}
+        layers = None
+        for _ in range(self.params.peel_passes + 1):
+            # later passes drop the elements this photo shows absent, so what stands behind them is read too
+            layers = self.renderer.render(intr, T, built, cand)
+            cues = photo_evidence(
+                lab, occluded, layers, self.material_of, ev, reference, points, self.materials, present, confirmed
+            )
+            gone = [c.index for c in cues if c.status == "seen" and c.llr_appearance + c.llr_points + min(c.llr_change, 0.0) < -self.params.peel_llr]
+            for c in cues:
+                if c.index not in cues_by_index or cues_by_index[c.index].status != "seen":
+                    cues_by_index[c.index] = c
+            if not gone:
+                break
+            built[gone] = False
+            cand[gone] = False
+        assert layers is not None
+        cues = [cues_by_index[i] for i in sorted(cues_by_index)]
         touched = self._observe(photo_id, t, cues)
         self.as_of_ns = max(self.as_of_ns, t)
         self._learn_materials(lab, occluded, layers.ids_all, t)
@@ -409,13 +436,23 @@ class ProgressEngine:
             touched.append(gid)
         return touched
 
+    def _confirmed(self, t_ns: int) -> NDArray[np.float64]:
+        """(n + 1,) 1.0 for elements seen appearing (a strong transition) and standing at ``t_ns``: their pixels
+        show what their material looks like."""
+        out = np.zeros(len(self.global_ids) + 1)
+        for i, g in enumerate(self.global_ids, start=1):
+            obs = self.tracks[g].observations.values()
+            if any(o.llr_change >= self.params.confirm_llr for o in obs) or any(
+                o.llr_state >= ANNOTATION_LLR for o in obs
+            ):
+                out[i] = float(self.posterior(g).present_at(t_ns) >= self.params.material_learn_probability)
+        return out
+
     def _learn_materials(self, lab: NDArray[np.float32], occluded: NDArray[np.bool_], ids: NDArray[np.uint32], t: int) -> None:
         bins = colour_bins(lab)
+        confirmed = self._confirmed(t)
         for gid in list(self.global_ids):
-            tr = self.tracks[gid]
-            if len(tr.observations) < 2:
-                continue
-            if self.posterior(gid).present_at(t) < self.params.material_learn_probability:
+            if not confirmed[self.index_of[gid]]:
                 continue
             sel = (ids == self.index_of[gid]) & ~occluded
             if sel.sum() >= self.params.evidence.min_pixels:

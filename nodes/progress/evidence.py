@@ -46,20 +46,25 @@ class EvidenceParams:
     """... and an element whose region is covered by the mask beyond this fraction is ``occluded``."""
     change_threshold: float = 0.5
     """Per-pixel change score above which a pixel counts as changed."""
-    change_prior_fraction: float = 0.3
+    change_hit: float = 0.85
+    """Changed fraction of an element's pixels where it appeared."""
+    change_noise: float = 0.1
+    """Changed fraction where nothing appeared (lighting, unmasked movers, registration error)."""
+    change_neutral: float = 0.35
     """Changed fraction at which the change cue is neutral (LLR 0)."""
     change_slope: float = 12.0
     """LLR per unit of changed fraction."""
     interior_px: int = 2
     """The change cue uses pixels at least this far inside an element's region."""
-    change_full_pixels: int = 150
-    """Exclusive pixels for the full change LLR (fewer scale it down)."""
+    change_full_pixels: int = 60
+    """Pixels for the full change LLR (fewer scale it down)."""
     max_llr: float = 5.0
     point_margin_m: float = 0.15
     point_margin_rel: float = 0.02
     """A point within ``margin_m + margin_rel * depth`` of a surface lies on it."""
     point_llr: float = 0.7
     """LLR per (verified) point, saturating at ``max_llr``."""
+    appearance: bool = True
     appearance_scale: float = 1.5
     """LLR per unit of mean per-pixel log ratio."""
     appearance_max_llr: float = 2.5
@@ -163,12 +168,16 @@ def photo_evidence(
     reference: tuple[F32, BoolA, NDArray[np.int64]] | None = None,
     points: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]] | None = None,
     materials: MaterialModel | None = None,
+    present: NDArray[np.float64] | None = None,
+    confirmed: NDArray[np.float64] | None = None,
 ) -> list[ElementCue]:
     """Cues for every element with pixels in this photo's candidate or built layers.
 
     ``material_of[i]`` is the material of element index i (row 0 unused). ``reference`` = (plate Lab, plate valid,
     plate time ns per pixel), warped onto this photo. ``points`` = (pixels (N, 2) at working size, camera depths
-    (N,) m, weights (N,)). Returns one :class:`ElementCue` per element, ascending index.
+    (N,) m, weights (N,)). ``present`` (n,): P(element stands) before this photo; ``confirmed`` (n,): 1 for
+    elements seen appearing and standing since, whose pixels show their material's look. Returns one
+    :class:`ElementCue` per element, ascending index.
     """
     n = len(material_of)
     ids_all = layers.ids_all.astype(np.int64)
@@ -183,10 +192,11 @@ def photo_evidence(
             status = "occluded" if occ >= params.occluded_fraction else "unknown"
         cues[int(i)] = ElementCue(int(i), int(region[i]), int(visible[i]), float(occ), status=status)
     if reference is not None:
-        _change_cue(lab, free, layers, reference, params, cues, n)
+        _change_cue(lab, free, layers, reference, params, cues, n, present)
     if points is not None and len(points[0]):
         _points_cue(layers, points, params, cues, n)
-    _appearance_cue(lab, free, layers, material_of, params, cues, materials)
+    if params.appearance:
+        _appearance_cue(lab, free, layers, material_of, params, cues, materials, confirmed)
     return [cues[i] for i in sorted(cues)]
 
 
@@ -198,33 +208,48 @@ def _change_cue(
     p: EvidenceParams,
     cues: dict[int, ElementCue],
     n: int,
+    present: NDArray[np.float64] | None,
 ) -> None:
+    """Transition evidence per element from the changed fraction of its front-most interior pixels against the
+    plate: ``change_slope * (fraction - change_neutral)``, clipped, scaled down below ``change_full_pixels``.
+
+    A pixel counts as much as nothing else could have changed it: where a candidate stands behind the element,
+    the change may be that candidate appearing while the element was absent; how likely that candidate appeared
+    is read from its own exclusive pixels (where nothing else could change it).
+    """
     ref_lab, ref_valid, ref_time = reference
     valid = free & ref_valid
     changed = change_score(lab, ref_lab, valid) > p.change_threshold
-    # the pixels an element alone can change: it is the front-most candidate and no other candidate lies between
-    # it and the believed-built surface; for believed-built elements, where no candidate stands in front
     front = layers.ids_front.astype(np.int64)
     built = layers.ids_built.astype(np.int64)
-    owner = np.where(front > 0, np.where(layers.ids_second == 0, front, 0), built)
+    second = layers.ids_second.astype(np.int64)
+    owner = np.where(front > 0, front, built)
+    behind = np.where(front > 0, second, 0)
     # the change score looks at a neighbourhood: pixels near another element's region would see that one change
     sel = valid & (owner > 0) & interior(owner, p.interior_px)
-    ids = owner[sel]
-    tot = np.bincount(ids, minlength=n)[:n]
-    chg = np.bincount(ids, weights=changed[sel], minlength=n)[:n]
-    times = ref_time[sel]
+    ids, beh, chg, times = owner[sel], behind[sel], changed[sel], ref_time[sel]
+    excl = beh == 0
+    n_excl = np.bincount(ids[excl], minlength=n)[:n]
+    f_excl = np.bincount(ids[excl], weights=chg[excl], minlength=n)[:n] / np.maximum(n_excl, 1)
+    appeared = np.where(n_excl >= p.min_pixels, np.clip((f_excl - p.change_noise) / (p.change_hit - p.change_noise), 0.02, 0.98), 0.3)
+    stood = np.full(n, 0.5) if present is None else np.clip(np.asarray(present, np.float64), 0.0, 1.0)
+    # a pixel speaks for its owner as much as nothing else could have changed it: the candidate behind it may have
+    # appeared while the owner was absent
+    wx = 1.0 - np.where(beh > 0, appeared[beh] * (1.0 - stood[ids]), 0.0)
+    tot = np.bincount(ids, weights=wx, minlength=n)[:n]
+    s_chg = np.bincount(ids, weights=wx * chg, minlength=n)[:n]
     order = np.argsort(ids, kind="stable")
     ids_sorted, times_sorted = ids[order], times[order]
     starts = np.searchsorted(ids_sorted, np.arange(n))
     ends = np.searchsorted(ids_sorted, np.arange(n), side="right")
     for i, cue in cues.items():
-        if cue.status != "seen" or tot[i] == 0:
+        if cue.status != "seen" or tot[i] < p.min_pixels // 2:
             continue
-        f = chg[i] / tot[i]
-        cue.exclusive_px = int(tot[i])
+        f = s_chg[i] / tot[i]
+        cue.exclusive_px = int(round(tot[i]))
         cue.changed_fraction = float(f)
         weight = min(1.0, tot[i] / p.change_full_pixels)
-        cue.llr_change = float(np.clip(p.change_slope * (f - p.change_prior_fraction), -p.max_llr, p.max_llr) * weight)
+        cue.llr_change = float(np.clip(p.change_slope * (f - p.change_neutral), -p.max_llr, p.max_llr) * weight)
         cue.reference_ns = int(np.median(times_sorted[starts[i] : ends[i]]))
 
 
@@ -268,11 +293,13 @@ def _appearance_cue(
     p: EvidenceParams,
     cues: dict[int, ElementCue],
     materials: MaterialModel | None,
+    present: NDArray[np.float64] | None,
 ) -> None:
-    """Colours of each element's pixels: present model = its material's look (this photo's other believed-built
-    elements of that material, plus what confident detections taught), mixed with a uniform "something else is
-    there" model while that look is unknown; absent model = what would show instead (the believed-built surface
-    behind it, or the background around it: pixels within ``appearance_ring_px`` that show no model)."""
+    """Colours of each element's front-most pixels: the element's material (as this photo shows it on the other
+    elements of that material, weighted by how likely each stands, plus what confident detections taught) against
+    what would show if it were absent (half the believed-built surface behind it or the background around it,
+    half anything else this photo shows). ``present`` weights each element's pixels in its material's look (the
+    confirmed elements). Without a known look of its material an element gets no appearance evidence."""
     bins = colour_bins(lab)
     front = layers.ids_front.astype(np.int64)
     built = layers.ids_built.astype(np.int64)
@@ -281,49 +308,47 @@ def _appearance_cue(
     mats = sorted(set(material_of[1:]))
     mat_index = {m: k for k, m in enumerate(mats)}
     mat_of_id = np.array([-1] + [mat_index[m] for m in material_of[1:]], np.int64)
-    uniform = np.full(NUM_BINS, 1.0 / NUM_BINS)
-    # this photo's look of each material: believed-built pixels with no candidate in front
-    shown = free & (built > 0) & (front == 0)
-    flat_ids = np.where(shown, built, 0).ravel()
+    weight = np.ones(n) if present is None else np.clip(np.asarray(present, np.float64), 0.0, 1.0)
+    shown = free & (ids_all > 0)
+    flat_ids, flat_bins = ids_all[shown], bins[shown]
     per_el = np.zeros((n, NUM_BINS))
-    np.add.at(per_el, (flat_ids[flat_ids > 0], bins.ravel()[flat_ids > 0]), 1.0)
+    np.add.at(per_el, (flat_ids, flat_bins), 1.0)
     local = np.zeros((len(mats), NUM_BINS))
-    np.add.at(local, mat_of_id[1:], per_el[1:])
+    np.add.at(local, mat_of_id[1:], per_el[1:] * weight[1:, None])
     background_ok = free & (ids_all == 0)
     background = np.bincount(bins[background_ok], minlength=NUM_BINS).astype(np.float64)
     h, w = ids_all.shape
     r = p.appearance_ring_px
+    kernel = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
     for i, cue in cues.items():
         if cue.status != "seen":
             continue
-        is_front = bool(np.any(front == i)) if cue.region_px else False
-        mine = free & ((front == i) if is_front else ((built == i) & (front == 0)))
+        m = mat_of_id[i]
+        counts = local[m] - weight[i] * per_el[i]  # leave the element itself out of its material's look
+        if materials is not None:
+            counts = counts + 0.2 * materials.counts.get(mats[m], np.zeros(NUM_BINS))
+        if counts.sum() < p.appearance_min_reference_px:
+            continue
+        mine = shown & (ids_all == i)
         ys, xs = np.nonzero(mine)
         if len(ys) < p.min_pixels:
             continue
         y0, y1, x0, x1 = max(ys.min() - r, 0), min(ys.max() + r + 1, h), max(xs.min() - r, 0), min(xs.max() + r + 1, w)
-        sub = mine[y0:y1, x0:x1].astype(np.uint8)
-        ring = (cv2.dilate(sub, np.ones((2 * r + 1, 2 * r + 1), np.uint8)) > 0) & ~sub.astype(bool)
-        ring &= background_ok[y0:y1, x0:x1]
+        sub = mine[y0:y1, x0:x1]
+        ring = (cv2.dilate(sub.astype(np.uint8), kernel) > 0) & ~sub & background_ok[y0:y1, x0:x1]
         near = np.bincount(bins[y0:y1, x0:x1][ring], minlength=NUM_BINS).astype(np.float64)
         bg = normalised_hist(near + 0.25 * background * (near.sum() / max(background.sum(), 1.0)) + 1.0, 20.0)
         b = bins[ys, xs]
-        # absent: the believed-built material behind (front candidates only), else the background around it
-        log_absent = np.log(bg[b])
-        if is_front:
+        others = normalised_hist(local.sum(axis=0) - local[m] + background, 20.0)
+        absent = 0.5 * bg[b] + 0.5 * others[b]
+        if front[ys[0], xs[0]] == i:  # a candidate: what is believed built behind it shows when it is absent
             behind = mat_of_id[built[ys, xs]]
-            for k in np.unique(behind[behind >= 0]):
+            for k in np.unique(behind[(behind >= 0) & (behind != m)]):
                 use = behind == k
-                ref = local[k]
-                if ref.sum() >= p.appearance_min_reference_px:
-                    log_absent[use] = np.log(normalised_hist(ref, 20.0)[b[use]])
-        m = mat_of_id[i]
-        counts = local[m] - (0.0 if is_front else per_el[i])
-        if materials is not None:
-            counts = counts + 0.2 * materials.counts.get(mats[m], np.zeros(NUM_BINS))
-        alpha = counts.sum() / (counts.sum() + 4.0 * p.appearance_min_reference_px)
-        present = alpha * normalised_hist(counts, 20.0) + (1.0 - alpha) * uniform
-        ratio = np.clip(np.log(present[b]) - log_absent, -4.0, 4.0)
+                if local[k].sum() >= p.appearance_min_reference_px:
+                    absent[use] = 0.5 * normalised_hist(local[k], 20.0)[b[use]] + 0.5 * others[b[use]]
+        ratio = np.clip(np.log(normalised_hist(counts, 20.0)[b]) - np.log(absent), -4.0, 4.0)
+        alpha = counts.sum() / (counts.sum() + p.appearance_min_reference_px)
         cue.llr_appearance = float(
-            np.clip(p.appearance_scale * ratio.mean(), -p.appearance_max_llr, p.appearance_max_llr)
+            np.clip(alpha * p.appearance_scale * ratio.mean(), -p.appearance_max_llr, p.appearance_max_llr)
         )
