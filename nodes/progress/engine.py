@@ -74,9 +74,9 @@ class EngineParams:
     """Elements at least this likely to stand before a photo are drawn as built; the rest of the schedule window
     are candidates (their change and looks are read)."""
     peel_passes: int = 1
-    """Extra evidence passes without the elements a photo shows absent (reads what stands behind them)."""
-    peel_llr: float = 1.5
-    """Evidence below minus this (appearance + points + a negative change) counts as absent for peeling."""
+    """Extra evidence passes without the elements that, with this photo's evidence, most probably do not stand (reads
+    what stands behind them)."""
+
     evidence: EvidenceParams = field(default_factory=EvidenceParams)
     fusion: FusionParams = field(default_factory=FusionParams)
 
@@ -378,25 +378,32 @@ class ProgressEngine:
         points = self._points(photo_id, reg, W / w)
         ev = self.params.evidence
         confirmed = self._confirmed(t - 1)
-        cues_by_index: dict[int, ElementCue] = {}
+        seen: dict[int, ElementCue] = {}
+        touched: list[str] = []
         layers = None
-        for _ in range(self.params.peel_passes + 1):
-            # later passes drop the elements this photo shows absent, so what stands behind them is read too
+        for k in range(self.params.peel_passes + 1):
             layers = self.renderer.render(intr, T, built, cand)
             cues = photo_evidence(
                 lab, occluded, layers, self.material_of, ev, reference, points, self.materials, present, confirmed
             )
-            gone = [c.index for c in cues if c.status == "seen" and c.llr_appearance + c.llr_points + min(c.llr_change, 0.0) < -self.params.peel_llr]
-            for c in cues:
-                if c.index not in cues_by_index or cues_by_index[c.index].status != "seen":
-                    cues_by_index[c.index] = c
+            new = [c for c in cues if c.index not in seen or (seen[c.index].status != "seen" and c.status == "seen")]
+            for c in new:
+                seen[c.index] = c
+            touched += self._observe(photo_id, t, [c for c in new if c.status == "seen"])
+            if k == self.params.peel_passes:
+                break
+            # read again without what this photo now shows absent: what stands behind those shows through
+            gone = [
+                c.index
+                for c in cues
+                if c.status == "seen" and self.posterior(self.global_ids[c.index - 1]).present_at(t) < 0.5
+            ]
             if not gone:
                 break
             built[gone] = False
             cand[gone] = False
         assert layers is not None
-        cues = [cues_by_index[i] for i in sorted(cues_by_index)]
-        touched = self._observe(photo_id, t, cues)
+        cues = [seen[i] for i in sorted(seen)]
         self.as_of_ns = max(self.as_of_ns, t)
         self._learn_materials(lab, occluded, layers.ids_all, t)
         if photo.camera_id:

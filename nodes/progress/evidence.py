@@ -67,7 +67,7 @@ class EvidenceParams:
     appearance: bool = True
     appearance_scale: float = 1.5
     """LLR per unit of mean per-pixel log ratio."""
-    appearance_max_llr: float = 2.5
+    appearance_max_llr: float = 1.0
     appearance_min_reference_px: int = 150
     appearance_ring_px: int = 12
     """Background pixels this close to an element's region model what shows where it is absent."""
