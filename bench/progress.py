@@ -99,7 +99,9 @@ def _groups(boxes: list[tuple[int, int, int, int]]) -> list[list[int]]:
     return [g for g, _ in groups]
 
 
-def truth_population(site: Path, rel: str, gids: list[str], meshes: dict, renderer: LayerRenderer, cams: dict) -> set[str]:
+def truth_population(
+    site: Path, rel: str, gids: list[str], meshes: dict, renderer: LayerRenderer, cams: dict
+) -> set[str]:
     """Elements visible and unoccluded in truth at this photo (see the module docstring)."""
     intr, T = true_camera(site, rel, cams)
     h = round(intr.height_px * POP_WIDTH / intr.width_px)
@@ -222,9 +224,12 @@ def score(site: Path, recording: Path, out: Path) -> dict:
             if cls is None:
                 continue
             if right is None:
-                right = {"late (task)": ("behind", "not_built") if absent_at_end else ("behind",),
-                         "early (task)": ("ahead",), "on time (task)": ("on_time",),
-                         "not built (task)": ("not_built",)}[cls]  # fmt: skip
+                right = {
+                    "late (task)": ("behind", "not_built") if absent_at_end else ("behind",),
+                    "early (task)": ("ahead",),
+                    "on time (task)": ("on_time",),
+                    "not built (task)": ("not_built",),
+                }[cls]
             d = dev[cls]
             d[0] += 1
             d[1] += ours in right
@@ -288,25 +293,45 @@ def report(res: dict, label: str) -> tuple[str, str]:
 
 def tables(all_rows: list[dict]) -> str:
     b = table(
-        ["run / photos", "(photo, element) pairs", "precision", "recall", "F1", "schedule precision",
-         "schedule recall", "schedule F1"],  # fmt: skip
+        [
+            "run / photos",
+            "(photo, element) pairs",
+            "precision",
+            "recall",
+            "F1",
+            "schedule precision",
+            "schedule recall",
+            "schedule F1",
+        ],
         [r for x in all_rows for r in x["b"]],
     )
     f = table(
-        ["run", "elements (fixed camera sees, finished in period)", "ours within ±1 working day",
-         "ours median abs error (working days)", "schedule within ±1 day", "schedule median abs error"],  # fmt: skip
+        [
+            "run",
+            "elements (fixed camera sees, finished in period)",
+            "ours within ±1 working day",
+            "ours median abs error (working days)",
+            "schedule within ±1 day",
+            "schedule median abs error",
+        ],
         [r for x in all_rows for r in x["f"]],
     )
-    d = table(
-        ["run", "truth class", "elements", "ours right", "schedule right"], [r for x in all_rows for r in x["d"]]
-    )
+    d = table(["run", "truth class", "elements", "ours right", "schedule right"], [r for x in all_rows for r in x["d"]])
     t = table(
-        ["run", "photos with evidence", "photos", "1920x1080 photos", "evidence ms/photo (1920x1080, median)",
-         "evidence ms/photo (all, median)"],  # fmt: skip
+        [
+            "run",
+            "photos with evidence",
+            "photos",
+            "1920x1080 photos",
+            "evidence ms/photo (1920x1080, median)",
+            "evidence ms/photo (all, median)",
+        ],
         [r for x in all_rows for r in x["t"]],
     )
-    return f"Built per (photo, element):\n\n{b}\n\nFinish dates:\n\n{f}\n\nDeviation at the last photo:\n\n{d}\n\n" \
+    return (
+        f"Built per (photo, element):\n\n{b}\n\nFinish dates:\n\n{f}\n\nDeviation at the last photo:\n\n{d}\n\n"
         f"Evidence step time:\n\n{t}\n"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -57,7 +57,9 @@ def tiny(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
                 status="anchor",
             )
             occ = (load_mask(site, rel, "static") | load_mask(site, rel, "dynamic")).astype(np.uint8) * 255
-            mask = OcclusionMask(site="t", photo_id=photo.photo_id, kind="combined", mask_png=cv2.imencode(".png", occ)[1].tobytes())
+            mask = OcclusionMask(
+                site="t", photo_id=photo.photo_id, kind="combined", mask_png=cv2.imencode(".png", occ)[1].tobytes()
+            )
             w.write(keys.key(keys.PHOTO, site="t", camera=cam), codec.encode(photo))
             w.write(keys.key(keys.REGISTRATION, site="t", camera=cam, photo=photo.photo_id), codec.encode(reg))
             w.write(keys.key(keys.OCCLUSION, site="t", kind="combined", photo=photo.photo_id), codec.encode(mask))
@@ -131,7 +133,9 @@ def test_bcf_export_round_trip(tiny: tuple[Path, Path], tmp_path: Path, version:
     topics = list(doc.topics.values())
     assert sorted(t.topic.title for t in topics) == sorted(g[0] for g in groups)
     offset = np.asarray(inputs.model.origin_offset_m)  # type: ignore[union-attr]
-    centres = {pid: np.asarray(r.world_from_camera).reshape(4, 4)[:3, 3] + offset for pid, r in inputs.registrations.items()}
+    centres = {
+        pid: np.asarray(r.world_from_camera).reshape(4, 4)[:3, 3] + offset for pid, r in inputs.registrations.items()
+    }
     for topic, (_, _, gids) in zip(sorted(topics, key=lambda t: t.topic.title), sorted(groups), strict=True):
         vp = next(iter(topic.viewpoints.values()))
         info = vp.visualization_info

@@ -35,9 +35,15 @@ def daily(change_day: int | None, days: range, strength: float = 4.0) -> list[Ob
 def test_fusion_is_monotone_for_construction_and_demolition(seed: int) -> None:
     rng = np.random.default_rng(seed)
     obs = [
-        Observation(f"p{k}", int(t), llr_state=float(rng.normal(0, 2)), llr_change=float(rng.normal(0, 2)), reference_ns=int(t) - D)
+        Observation(
+            f"p{k}",
+            int(t),
+            llr_state=float(rng.normal(0, 2)),
+            llr_change=float(rng.normal(0, 2)),
+            reference_ns=int(t) - D,
+        )
         for k, t in enumerate(np.sort(rng.uniform(2 * D, 18 * D, 12)))
-    ]  # fmt: skip
+    ]
     times = np.linspace(0, 20 * D, 60).astype(np.int64)
     build = track(ElementWindow(build_start_ns=8 * D, build_finish_ns=9 * D), obs).posterior(FusionParams())
     p = [build.present_at(int(t)) for t in times]
@@ -45,7 +51,9 @@ def test_fusion_is_monotone_for_construction_and_demolition(seed: int) -> None:
     demolish = track(ElementWindow(remove_start_ns=8 * D, remove_finish_ns=9 * D), obs).posterior(FusionParams())
     q = [demolish.present_at(int(t)) for t in times]
     assert np.all(np.diff(q) <= 1e-9), "a demolished element never comes back"
-    temp = track(ElementWindow(build_start_ns=3 * D, build_finish_ns=4 * D, remove_start_ns=14 * D, remove_finish_ns=15 * D), obs).posterior(FusionParams())  # fmt: skip
+    temp = track(
+        ElementWindow(build_start_ns=3 * D, build_finish_ns=4 * D, remove_start_ns=14 * D, remove_finish_ns=15 * D), obs
+    ).posterior(FusionParams())
     r = np.array([temp.present_at(int(t)) for t in times])
     assert r[0] < r[len(r) // 2] and r[-1] < r[len(r) // 2], "a temporary element stands in between"
 
@@ -63,7 +71,9 @@ def test_fusion_places_the_change_and_the_evidence_overrules_the_plan() -> None:
     tr = track(ElementWindow(build_start_ns=9 * D, build_finish_ns=10 * D), daily(3, range(1, 16)))
     assert estimate(tr, tr.posterior(params), 15 * D, params).deviation == "ahead"
     # planned on day 5, never appears but looks absent every day: not built
-    absent = [Observation(f"p{d}", d * D, llr_state=-1.0, llr_change=-4.0, reference_ns=(d - 1) * D) for d in range(1, 16)]
+    absent = [
+        Observation(f"p{d}", d * D, llr_state=-1.0, llr_change=-4.0, reference_ns=(d - 1) * D) for d in range(1, 16)
+    ]
     tr = track(ElementWindow(build_start_ns=4 * D, build_finish_ns=5 * D), absent)
     e = estimate(tr, tr.posterior(params), 15 * D, params)
     assert e.state == "not_built" and e.deviation == "not_built"
@@ -113,7 +123,9 @@ def scene() -> tuple[LayerRenderer, np.ndarray]:
     return r, T
 
 
-def textured(rng: np.random.Generator, shape: tuple[int, int], rgb: tuple[int, int, int], amp: float = 25.0) -> np.ndarray:
+def textured(
+    rng: np.random.Generator, shape: tuple[int, int], rgb: tuple[int, int, int], amp: float = 25.0
+) -> np.ndarray:
     noise = rng.normal(0, amp, (*shape, 1))
     return np.clip(np.asarray(rgb, np.float64) + noise, 0, 255).astype(np.uint8)
 
@@ -133,14 +145,21 @@ def test_change_cue_attributes_appearance_to_the_right_element(scene, seed: int)
     after = np.clip(after.astype(int) + rng.normal(0, 2, after.shape), 0, 255).astype(np.uint8)  # sensor noise
     lab0, lab1 = to_lab(before), to_lab(after)
     ref = (lab0, np.ones((H, W), bool), np.zeros((H, W), np.int64))
-    cues = {c.index: c for c in photo_evidence(lab1, np.zeros((H, W), bool), layers, ["", "brick", "concrete", "concrete"], EvidenceParams(), reference=ref)}
+    cues = {
+        c.index: c
+        for c in photo_evidence(
+            lab1, np.zeros((H, W), bool), layers, ["", "brick", "concrete", "concrete"], EvidenceParams(), reference=ref
+        )
+    }
     assert cues[1].llr_change > 3.0, "the wall appeared"
     assert cues[3].llr_change < -2.0, "the slab did not"
     assert cues[2].llr_change < -2.0, "nor did the column"
     # occlusion: a mask over the wall makes it occluded, not evidence
     occ = np.zeros((H, W), bool)
     occ[wall] = True
-    masked = {c.index: c for c in photo_evidence(lab1, occ, layers, ["", "b", "c", "c"], EvidenceParams(), reference=ref)}
+    masked = {
+        c.index: c for c in photo_evidence(lab1, occ, layers, ["", "b", "c", "c"], EvidenceParams(), reference=ref)
+    }
     assert masked[1].status == "occluded" and masked[1].llr_change == 0.0
 
 
@@ -154,10 +173,22 @@ def test_points_cue_on_surface_and_seen_through(scene, seed: int) -> None:  # no
     pick = rng.choice(len(ys), 12, replace=False)
     px = np.column_stack([xs[pick], ys[pick]]).astype(np.float64)
     z_wall = layers.depth_front_m[ys[pick], xs[pick]].astype(np.float64)
-    on = photo_evidence(lab, np.zeros((H, W), bool), layers, ["", "a", "b", "c"], EvidenceParams(),
-                        points=(px, z_wall + rng.normal(0, 0.03, 12), np.ones(12)))  # fmt: skip
-    through = photo_evidence(lab, np.zeros((H, W), bool), layers, ["", "a", "b", "c"], EvidenceParams(),
-                             points=(px, z_wall + 3.0 + rng.uniform(0, 2, 12), np.ones(12)))  # fmt: skip
+    on = photo_evidence(
+        lab,
+        np.zeros((H, W), bool),
+        layers,
+        ["", "a", "b", "c"],
+        EvidenceParams(),
+        points=(px, z_wall + rng.normal(0, 0.03, 12), np.ones(12)),
+    )
+    through = photo_evidence(
+        lab,
+        np.zeros((H, W), bool),
+        layers,
+        ["", "a", "b", "c"],
+        EvidenceParams(),
+        points=(px, z_wall + 3.0 + rng.uniform(0, 2, 12), np.ones(12)),
+    )
     assert next(c for c in on if c.index == 1).llr_points > 3.0
     assert next(c for c in through if c.index == 1).llr_points < -3.0
 
@@ -179,7 +210,17 @@ def test_appearance_cue_against_its_material_and_what_is_behind(scene, seed: int
     mats = ["", "brick", "concrete", "concrete"]
     confirmed = np.array([0.0, 0.0, 0.0, 1.0])
     occ = ids == 1  # keep the wall out of it
-    yes = {c.index: c for c in photo_evidence(to_lab(present_img), occ, layers, mats, EvidenceParams(appearance_min_reference_px=30), confirmed=confirmed)}
-    no = {c.index: c for c in photo_evidence(to_lab(img), occ, layers, mats, EvidenceParams(appearance_min_reference_px=30), confirmed=confirmed)}
+    yes = {
+        c.index: c
+        for c in photo_evidence(
+            to_lab(present_img), occ, layers, mats, EvidenceParams(appearance_min_reference_px=30), confirmed=confirmed
+        )
+    }
+    no = {
+        c.index: c
+        for c in photo_evidence(
+            to_lab(img), occ, layers, mats, EvidenceParams(appearance_min_reference_px=30), confirmed=confirmed
+        )
+    }
     assert yes[2].llr_appearance > 0.5
     assert no[2].llr_appearance < -0.5

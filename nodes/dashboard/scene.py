@@ -486,7 +486,9 @@ class Scene:
         counts: dict[str, int] = {}
         for e in ev.elements:
             counts[e.state] = counts.get(e.state, 0) + 1
-        seen = ", ".join(f"{counts[k]} {k.replace('_', ' ')}" for k in ("built", "not_built", "occluded", "unknown") if counts.get(k))
+        seen = ", ".join(
+            f"{counts[k]} {k.replace('_', ' ')}" for k in ("built", "not_built", "occluded", "unknown") if counts.get(k)
+        )
         self._cam(camera).progress = f"latest progress: {seen or 'no elements in view'} ({len(ev.elements)} in view)"
         ops.append(self._status_op(camera, time_ns or ev.capture_time_ns))
         return ops
@@ -499,9 +501,15 @@ class Scene:
             if sp.storey not in self._storeys:
                 self._storeys.add(sp.storey)
                 for kind, rgba in (("planned", PLANNED_RGBA), ("detected", DETECTED_RGBA)):
-                    ops.append(self._op((*base, kind), "series_style", static=True, name=f"{sp.storey} {kind}", color=rgba))
-            ops.append(self._op((*base, "planned"), "scalars", time_ns=update.as_of_ns, value=100.0 * sp.planned_fraction))
-            ops.append(self._op((*base, "detected"), "scalars", time_ns=update.as_of_ns, value=100.0 * sp.detected_fraction))
+                    ops.append(
+                        self._op((*base, kind), "series_style", static=True, name=f"{sp.storey} {kind}", color=rgba)
+                    )
+            ops.append(
+                self._op((*base, "planned"), "scalars", time_ns=update.as_of_ns, value=100.0 * sp.planned_fraction)
+            )
+            ops.append(
+                self._op((*base, "detected"), "scalars", time_ns=update.as_of_ns, value=100.0 * sp.detected_fraction)
+            )
         return ops
 
     def on_annotation(self, ann: m.Annotation) -> list[LogOp]:

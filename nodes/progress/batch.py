@@ -129,7 +129,9 @@ def run_engine(inputs: RecordedInputs, params: EngineParams | None = None, progr
         engine.add_mask(m)
     if inputs.sparse is not None:
         engine.set_sparse(inputs.sparse)
-    todo = sorted((p for p in inputs.photos.values() if engine.ready(p.photo_id)), key=lambda p: (p.capture_time_ns, p.photo_id))
+    todo = sorted(
+        (p for p in inputs.photos.values() if engine.ready(p.photo_id)), key=lambda p: (p.capture_time_ns, p.photo_id)
+    )
     for k, p in enumerate(todo, start=1):
         engine.process(p.photo_id)
         if progress:

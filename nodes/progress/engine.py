@@ -109,7 +109,7 @@ def _decode_rgb(data: bytes, what: str) -> NDArray[np.uint8]:
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
     if img is None:
         raise ValueError(f"{what}: not a decodable JPEG/PNG image ({len(data)} bytes)")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    return np.asarray(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), np.uint8)
 
 
 def _decode_mask(msg: OcclusionMask, shape: tuple[int, int]) -> NDArray[np.bool_] | None:
@@ -206,7 +206,11 @@ class ProgressEngine:
                 tr.observations = old[g].observations
             self.tracks[g] = tr
         self.posteriors = {}
-        meshes = {e.global_id: self.meshes[e.geometry_ref or e.global_id] for e in els if (e.geometry_ref or e.global_id) in self.meshes}
+        meshes = {
+            e.global_id: self.meshes[e.geometry_ref or e.global_id]
+            for e in els
+            if (e.geometry_ref or e.global_id) in self.meshes
+        }
         if self.renderer is None:
             self.renderer = LayerRenderer()
         self.renderer.set_model(self.global_ids, meshes)
@@ -291,7 +295,9 @@ class ProgressEngine:
                 out |= m
         return out
 
-    def _points(self, photo_id: str, reg: Registration, scale: float) -> tuple[NDArray[np.float64], ...] | None:
+    def _points(
+        self, photo_id: str, reg: Registration, scale: float
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]] | None:
         cloud = self.sparse
         if cloud is None or photo_id not in cloud.photo_ids:
             return None
@@ -353,7 +359,7 @@ class ProgressEngine:
         h, w = rgb.shape[:2]
         W = min(self.params.working_width_px, w)
         H = max(1, round(h * W / w))
-        small = cv2.resize(rgb, (W, H), interpolation=cv2.INTER_AREA) if W != w else rgb
+        small = np.asarray(cv2.resize(rgb, (W, H), interpolation=cv2.INTER_AREA), np.uint8) if W != w else rgb
         assert reg.intrinsics is not None
         intr = scaled_intrinsics(reg.intrinsics, W, H)
         T = pose_from_tuple(reg.world_from_camera)
@@ -371,7 +377,9 @@ class ProgressEngine:
         cand = np.zeros_like(built)
         for i, g in enumerate(self.global_ids, start=1):
             wdw = self.windows.get(g)
-            start = None if wdw is None else (wdw.build_start_ns if wdw.build_start_ns is not None else wdw.build_finish_ns)
+            start = (
+                None if wdw is None else (wdw.build_start_ns if wdw.build_start_ns is not None else wdw.build_finish_ns)
+            )
             cand[i] = not built[i] and (start is None or start <= horizon)
         plate = self._plate(photo.camera_id, t, T) if photo.camera_id else None
         reference = plate.warp_to(intr, T) if plate is not None else None
@@ -455,7 +463,9 @@ class ProgressEngine:
                 out[i] = float(self.posterior(g).present_at(t_ns) >= self.params.material_learn_probability)
         return out
 
-    def _learn_materials(self, lab: NDArray[np.float32], occluded: NDArray[np.bool_], ids: NDArray[np.uint32], t: int) -> None:
+    def _learn_materials(
+        self, lab: NDArray[np.float32], occluded: NDArray[np.bool_], ids: NDArray[np.uint32], t: int
+    ) -> None:
         bins = colour_bins(lab)
         confirmed = self._confirmed(t)
         for gid in list(self.global_ids):
@@ -467,7 +477,9 @@ class ProgressEngine:
 
     # -- messages -------------------------------------------------------------------------------------
 
-    def photo_evidence_message(self, record: PhotoRecord, cues: list[ElementCue], size: tuple[int, int]) -> PhotoEvidence:
+    def photo_evidence_message(
+        self, record: PhotoRecord, cues: list[ElementCue], size: tuple[int, int]
+    ) -> PhotoEvidence:
         out = []
         for c in cues:
             gid = self.global_ids[c.index - 1]
@@ -540,7 +552,9 @@ class ProgressEngine:
         observed = [e for e in ests if e.num_observations]
         built = [e for e in ests if e.state == "built"]
         n = len(ests)
-        pct = 100.0 * sum(0.0 if np.isnan(e.present_probability) else e.present_probability for e in observed) / max(n, 1)
+        pct = (
+            100.0 * sum(0.0 if np.isnan(e.present_probability) else e.present_probability for e in observed) / max(n, 1)
+        )
         dur = max(task.planned_finish_ns - task.planned_start_ns, 1)
         planned = 100.0 * float(np.clip((t - task.planned_start_ns) / dur, 0.0, 1.0))
         starts = [e.last_absent_ns for e in built if e.last_absent_ns is not None]
@@ -585,7 +599,9 @@ class ProgressEngine:
             a[1] += p
             a[2] += 1
         return [
-            StoreyProgress(storey=s, planned_fraction=a[0] / a[2], detected_fraction=a[1] / a[2], num_elements=int(a[2]))
+            StoreyProgress(
+                storey=s, planned_fraction=a[0] / a[2], detected_fraction=a[1] / a[2], num_elements=int(a[2])
+            )
             for s, a in sorted(acc.items())
         ]
 

@@ -95,7 +95,7 @@ class ElementCue:
 
 def to_lab(rgb: NDArray[np.uint8]) -> F32:
     """(H, W, 3) float32 CIE Lab of an RGB uint8 image (L 0-100, a/b about -100..100)."""
-    return cv2.cvtColor(rgb.astype(np.float32) / 255.0, cv2.COLOR_RGB2LAB)
+    return np.asarray(cv2.cvtColor(rgb.astype(np.float32) / 255.0, cv2.COLOR_RGB2LAB), np.float32)
 
 
 def change_score(lab: F32, ref: F32, valid: BoolA, window_px: int = 5, light_scale: float = 0.5) -> F32:
@@ -231,7 +231,9 @@ def _change_cue(
     excl = beh == 0
     n_excl = np.bincount(ids[excl], minlength=n)[:n]
     f_excl = np.bincount(ids[excl], weights=chg[excl], minlength=n)[:n] / np.maximum(n_excl, 1)
-    appeared = np.where(n_excl >= p.min_pixels, np.clip((f_excl - p.change_noise) / (p.change_hit - p.change_noise), 0.02, 0.98), 0.3)
+    appeared = np.where(
+        n_excl >= p.min_pixels, np.clip((f_excl - p.change_noise) / (p.change_hit - p.change_noise), 0.02, 0.98), 0.3
+    )
     stood = np.full(n, 0.5) if present is None else np.clip(np.asarray(present, np.float64), 0.0, 1.0)
     # a pixel speaks for its owner as much as nothing else could have changed it: the candidate behind it may have
     # appeared while the owner was absent

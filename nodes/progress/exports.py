@@ -69,7 +69,7 @@ def export_ifc(engine: ProgressEngine, ifc_in: Path, ifc_out: Path) -> int:
         if st is None:
             continue
         tp = engine.task_progress(st)
-        tt = task.TaskTime or ifcopenshell.api.sequence.add_task_time(f, task=task)
+        tt = task.TaskTime or ifcopenshell.api.sequence.add_task_time(f, task=task)  # type: ignore[arg-type]
         tt.ActualStart = _local(tp.actual_start_ns, engine.tz) if tp.actual_start_ns is not None else None
         tt.ActualFinish = _local(tp.actual_finish_ns, engine.tz) if tp.actual_finish_ns is not None else None
         tt.Completion = float(np.clip(tp.percent_complete / 100.0, 0.0, 1.0))
@@ -163,12 +163,22 @@ def issue_groups(engine: ProgressEngine) -> list[tuple[str, str, list[str]]]:
     for tid, gids in groups.items():
         name = engine.tasks[tid].name if tid in engine.tasks else tid
         devs = sorted({engine.element_progress(g).deviation for g in gids})
-        out.append((f"{name}: {len(gids)} element(s) {' / '.join(d.replace('_', ' ') for d in devs)}",
-                    f"Detected from the photos as of {iso(engine.as_of_ns, engine.tz)} (task {tid}).", gids))  # fmt: skip
+        out.append(
+            (
+                f"{name}: {len(gids)} element(s) {' / '.join(d.replace('_', ' ') for d in devs)}",
+                f"Detected from the photos as of {iso(engine.as_of_ns, engine.tz)} (task {tid}).",
+                gids,
+            )
+        )
     for ann in engine.annotations:
         if ann.kind == "status" and ann.status == "needs_review" and ann.element_ids:
-            out.append((f"Needs review: {ann.text or ann.annotation_id}", f"Annotation by {ann.author or 'unknown'}.",
-                        list(ann.element_ids)))  # fmt: skip
+            out.append(
+                (
+                    f"Needs review: {ann.text or ann.annotation_id}",
+                    f"Annotation by {ann.author or 'unknown'}.",
+                    list(ann.element_ids),
+                )
+            )
     return out
 
 
@@ -208,7 +218,7 @@ def export_bcf(engine: ProgressEngine, inputs: RecordedInputs, recording: Path, 
             )
             if version == "3.0":
                 kw["aspect_ratio"] = c["aspect"]
-            cam = mdl.PerspectiveCamera(**kw)
+            cam = mdl.PerspectiveCamera(**kw)  # type: ignore[arg-type]
             ok, buf = cv2.imencode(".png", overlaid(inputs.photos[best].data, overlays.get(best)))
             snapshot = buf.tobytes() if ok else None
         info = mdl.VisualizationInfo(components=comps, perspective_camera=cam, guid=topic.guid)
@@ -216,7 +226,7 @@ def export_bcf(engine: ProgressEngine, inputs: RecordedInputs, recording: Path, 
         topic.add_visinfo_handler(handler, "snapshot.png" if snapshot else None)
         n += 1
     out.parent.mkdir(parents=True, exist_ok=True)
-    doc.save(str(out))
+    doc.save(out)
     return n
 
 
@@ -254,7 +264,8 @@ def export_mp4(inputs: RecordedInputs, recording: Path, out_dir: Path, overlay: 
             for p in photos:
                 img = overlaid(p.data, overlays.get(p.photo_id)) if overlay else _image(p.data)
                 img = cv2.resize(img, (W, H), interpolation=cv2.INTER_AREA)
-                frame = av.VideoFrame.from_ndarray(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), format="rgb24")
+                rgb = np.asarray(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), np.uint8)
+                frame = av.VideoFrame.from_ndarray(rgb, format="rgb24")
                 for packet in stream.encode(frame):
                     container.mux(packet)
             for packet in stream.encode():
@@ -294,8 +305,13 @@ def export_gltf(inputs: RecordedInputs, out: Path) -> int:
         )
         # glTF cameras look down -z with +y up; OpenCV cameras down +z with y down
         M = pose_from_tuple(reg.world_from_camera) @ np.diag([1.0, -1.0, -1.0, 1.0])
-        nodes.append({"name": f"camera {reg.camera_id or 'phone'} {reg.photo_id}", "camera": len(cams) - 1,
-                      "matrix": [float(v) for v in M.T.ravel()]})  # fmt: skip
+        nodes.append(
+            {
+                "name": f"camera {reg.camera_id or 'phone'} {reg.photo_id}",
+                "camera": len(cams) - 1,
+                "matrix": [float(v) for v in M.T.ravel()],
+            }
+        )
         children.append(len(nodes) - 1)
     # the site frame is z up: one root node turns it y up (-90 deg about x)
     nodes.append({"name": "site (z up)", "rotation": [-s, 0.0, 0.0, s], "children": children})

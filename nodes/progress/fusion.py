@@ -175,7 +175,9 @@ class ElementTrack:
         p = np.exp(logp)
         return Posterior(path=path, grid=grid, changes=changes, prob=p / p.sum(), cdfs=cdfs)
 
-    def _prior_cdfs(self, path: Path, params: FusionParams) -> tuple[Callable[[NDArray[np.float64]], NDArray[np.float64]], ...]:
+    def _prior_cdfs(
+        self, path: Path, params: FusionParams
+    ) -> tuple[Callable[[NDArray[np.float64]], NDArray[np.float64]], ...]:
         """Prior CDF of each change of the path (see the module docstring)."""
         w = self.window
         margin = params.margin_days * NS_PER_DAY
@@ -191,9 +193,7 @@ class ElementTrack:
             widths.append(params.schedule_width_days * NS_PER_DAY + 0.5 * dur)
         which = {"construction": [0], "demolition": [1], "temporary": [0, 1]}[path]
         weight = params.schedule_weight
-        return tuple(
-            (lambda t, pl=planned[ph], wd=widths[ph]: _prior_cdf(t, pl, wd, lo, hi, weight)) for ph in which
-        )
+        return tuple((lambda t, pl=planned[ph], wd=widths[ph]: _prior_cdf(t, pl, wd, lo, hi, weight)) for ph in which)
 
 
 @dataclass(frozen=True)
@@ -247,9 +247,7 @@ def estimate(
     )
 
 
-def deviation(
-    track: ElementTrack, posterior: Posterior, state: str, as_of_ns: int, params: FusionParams
-) -> Deviation:
+def deviation(track: ElementTrack, posterior: Posterior, state: str, as_of_ns: int, params: FusionParams) -> Deviation:
     """Deviation at ``as_of_ns`` against the element's planned build window (only deviations the evidence
     proves: a change interval wholly before the planned start is ``ahead``, wholly after the planned finish is
     ``behind``; an element still absent after its planned finish is ``not_built``)."""

@@ -21,6 +21,7 @@ import ctypes
 from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -159,7 +160,7 @@ class LayerRenderer:
     """Draws :class:`Layers` of one model (see :meth:`set_model`) for any camera; owns one EGL context."""
 
     def __init__(self) -> None:
-        self._gl = None
+        self._gl: Any = None
         self._program = 0
         self._vao = 0
         self._buffers: list[int] = []
@@ -334,7 +335,13 @@ class LayerRenderer:
         if lookup is not None:
             shape = (intr.height_px, intr.width_px)
             out = [a.ravel()[lookup].reshape(shape) for a in out]
-        return Layers(out[0], out[1], out[2], out[3], out[4])
+        return Layers(
+            out[0].astype(np.uint32),
+            out[1].astype(np.float32),
+            out[2].astype(np.uint32),
+            out[3].astype(np.float32),
+            out[4].astype(np.uint32),
+        )
 
     def close(self) -> None:
         """Free GL objects (on the owning thread). The EGL display stays for the process (see constructaide.gl)."""

@@ -67,13 +67,13 @@ class ReferencePlate:
         """The plate seen by a frame: (Lab, valid, time ns), each at ``intr``'s size."""
         m = pixel_map(self.intrinsics, self.world_from_camera, intr, world_from_camera)
         lab = cv2.remap(self.lab, m[..., 0], m[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-        valid = cv2.remap(
+        valid_u8 = cv2.remap(
             self.valid.astype(np.uint8), m[..., 0], m[..., 1], cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT
         )
         # a pixel is valid only away from invalid plate pixels (bilinear colour must not mix in empty ones)
-        valid = cv2.erode(valid, np.ones((3, 3), np.uint8)) > 0
+        valid = np.asarray(cv2.erode(valid_u8, np.ones((3, 3), np.uint8)) > 0)
         t = self._remap_time(m)
-        return lab, valid, t
+        return np.asarray(lab, np.float32), valid, t
 
     def _remap_time(self, m: F32) -> NDArray[np.int64]:
         base = int(self.time_ns[self.valid].min()) if self.valid.any() else 0
@@ -81,14 +81,14 @@ class ReferencePlate:
         out = cv2.remap(rel, m[..., 0], m[..., 1], cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
         return (out.astype(np.float64) * 1e9).astype(np.int64) + base
 
-    def update(
-        self, lab: F32, keep: NDArray[np.bool_], time_ns: int, intr: Intrinsics, world_from_camera: F64
-    ) -> None:
+    def update(self, lab: F32, keep: NDArray[np.bool_], time_ns: int, intr: Intrinsics, world_from_camera: F64) -> None:
         """Write a frame's pixels where ``keep`` (unoccluded) into the plate."""
         m = pixel_map(intr, world_from_camera, self.intrinsics, self.world_from_camera)
         warped = cv2.remap(lab, m[..., 0], m[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-        ok = cv2.remap(keep.astype(np.uint8), m[..., 0], m[..., 1], cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
-        ok = cv2.erode(ok, np.ones((3, 3), np.uint8)) > 0
+        ok_u8 = cv2.remap(
+            keep.astype(np.uint8), m[..., 0], m[..., 1], cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT
+        )
+        ok = np.asarray(cv2.erode(ok_u8, np.ones((3, 3), np.uint8)) > 0)
         self.lab[ok] = warped[ok]
         self.valid |= ok
         self.time_ns[ok] = time_ns

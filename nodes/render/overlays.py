@@ -272,7 +272,9 @@ def render_overlay(
         _fill(layer, edges, (*EDGE_RGBA[:3], 200))
     elif mode in ("progress", "progress_planned"):
         from_photos = mode == "progress" and bool(schedule.evidence)
-        status = schedule.detected(at_ns, scene.global_ids) if from_photos else schedule.progress(at_ns, scene.global_ids)
+        status = (
+            schedule.detected(at_ns, scene.global_ids) if from_photos else schedule.progress(at_ns, scene.global_ids)
+        )
         status[~sel] = -1
         visible = status >= 0
         if not from_photos:
@@ -292,7 +294,9 @@ def render_overlay(
         if from_photos:
             missing = st == 4
             _fill(layer, missing, (*BEHIND_RGBA[:3], 40))
-            _fill(layer, id_edges(np.where(missing, ras.ids, 0).astype(np.uint32), thickness_px=2) & missing, MISSING_RGBA)
+            _fill(
+                layer, id_edges(np.where(missing, ras.ids, 0).astype(np.uint32), thickness_px=2) & missing, MISSING_RGBA
+            )
             legend.append(LegendEntry(label="due, not built (detected)", rgba=MISSING_RGBA))
             legend = [LegendEntry(label=f"{e.label} (detected)", rgba=e.rgba) for e in legend[:3]] + legend[3:]
         edges = id_edges(np.where(st >= 0, ras.ids, 0).astype(np.uint32)) & (st >= 0) & (st != 4)
