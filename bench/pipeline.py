@@ -48,11 +48,22 @@ from schemas.codec import decode  # noqa: E402
 from schemas.messages import OcclusionMask, Overlay, Registration  # noqa: E402
 
 
-def run_demo(size: str, out: Path, answer: bool = False) -> tuple[Path, float]:
+def run_demo(size: str, out: Path, answer: bool = False, seed: int = 0) -> tuple[Path, float]:
     """Run `constructaide demo` as a user would (``answer``: with --answer-anchor-requests); returns the MCAP path
     and the wall time in seconds."""
     t0 = time.perf_counter()
-    cmd = [sys.executable, "-m", "constructaide.app.cli", "demo", "--size", size, "--out", str(out)]
+    cmd = [
+        sys.executable,
+        "-m",
+        "constructaide.app.cli",
+        "demo",
+        "--size",
+        size,
+        "--seed",
+        str(seed),
+        "--out",
+        str(out),
+    ]
     cmd += ["--answer-anchor-requests"] if answer else []
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
     secs = time.perf_counter() - t0

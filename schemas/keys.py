@@ -28,6 +28,8 @@ OVERLAY = "constructaide/{site}/overlay/{mode}/{photo}"
 ANNOTATION = "constructaide/{site}/annotation/{annotation}"
 ERRORS = "constructaide/{site}/errors"
 LIVELINESS = "constructaide/{site}/@live/{node}/{instance}"
+PHOTO_EVIDENCE = "constructaide/{site}/progress/evidence/{photo}"
+PROGRESS = "constructaide/{site}/progress/update"
 
 ALL_TEMPLATES: dict[str, str] = {
     "photo": PHOTO,
@@ -43,6 +45,8 @@ ALL_TEMPLATES: dict[str, str] = {
     "overlay": OVERLAY,
     "annotation": ANNOTATION,
     "errors": ERRORS,
+    "photo_evidence": PHOTO_EVIDENCE,
+    "progress": PROGRESS,
 }
 
 _BAD_CHUNK = re.compile(r"[/*$?#\s]")

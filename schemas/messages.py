@@ -131,6 +131,87 @@ class ElementFilter(_Base, frozen=True, kw_only=True):
     element_ids: tuple[str, ...] = ()
 
 
+class ElementEvidence(_Base, frozen=True, kw_only=True):
+    """What one photo shows of one element (``PhotoEvidence``).
+
+    ``state``: ``built`` / ``not_built`` (the fused estimate at the photo's capture time, given every photo so far),
+    ``occluded`` (the occlusion masks cover the element's region), ``unknown`` (too few pixels or evidence).
+    ``confidence``: probability of ``state`` (occluded: the covered fraction). Cue log-likelihood ratios (natural
+    log, present vs absent; 0 = no evidence): ``llr_change`` for the element having appeared between
+    ``reference_ns`` and the capture (change against the same camera's earlier frames), ``llr_points`` (sparse
+    points on / behind its surface), ``llr_appearance`` (colours against its material and what stands behind it).
+    Pixel counts are at the working resolution of ``PhotoEvidence``.
+    """
+
+    global_id: str
+    state: Literal["built", "not_built", "occluded", "unknown"]
+    confidence: float = 0.0
+    visible_px: int = 0
+    occluded_fraction: float = 0.0
+    llr_change: float = 0.0
+    llr_points: float = 0.0
+    llr_appearance: float = 0.0
+    reference_ns: int = 0
+    changed_fraction: float | None = None
+
+
+class ElementProgress(_Base, frozen=True, kw_only=True):
+    """Fused progress of one element at ``ProgressUpdate.as_of_ns``.
+
+    ``present_probability``: P(the element stands). ``last_absent_ns`` / ``first_present_ns``: the most probable
+    interval in which it was finished (``None``: unbounded; both ``None`` when never seen), with probability
+    ``finish_probability``; ``detected_finish_ns`` its middle in working time (``None`` when a bound is unknown);
+    ``detected_start_ns``: the latest time it was still absent (construction happened after). Planned dates are the
+    union of the tasks that build it. ``deviation``: ``ahead`` (finished before its planned start), ``on_time``,
+    ``behind`` (finished after its planned finish), ``not_built`` (still absent after its planned finish),
+    ``unknown`` (no evidence).
+    """
+
+    global_id: str
+    state: Literal["built", "not_built", "unknown"]
+    present_probability: float = 0.0
+    detected_start_ns: int | None = None
+    detected_finish_ns: int | None = None
+    last_absent_ns: int | None = None
+    first_present_ns: int | None = None
+    finish_probability: float = 0.0
+    planned_start_ns: int | None = None
+    planned_finish_ns: int | None = None
+    deviation: Literal["ahead", "on_time", "behind", "not_built", "unknown"] = "unknown"
+    task_ids: tuple[str, ...] = ()
+    num_observations: int = 0
+    evidence_photo_ids: tuple[str, ...] = ()
+
+
+class TaskProgress(_Base, frozen=True, kw_only=True):
+    """Fused progress of one schedule task: actual dates from its elements' detected dates (start: the earliest
+    element's ``detected_start_ns``; finish: the latest ``detected_finish_ns`` once all stand), percent complete
+    (expected share of its elements standing) against the planned percent (linear over the planned window)."""
+
+    task_id: str
+    name: str = ""
+    planned_start_ns: int = 0
+    planned_finish_ns: int = 0
+    actual_start_ns: int | None = None
+    actual_finish_ns: int | None = None
+    percent_complete: float = 0.0
+    planned_percent: float = 0.0
+    deviation: Literal["ahead", "on_time", "behind", "not_built", "unknown"] = "unknown"
+    num_elements: int = 0
+    num_built: int = 0
+    num_observed: int = 0
+
+
+class StoreyProgress(_Base, frozen=True, kw_only=True):
+    """Planned vs detected share of a storey's elements standing at ``ProgressUpdate.as_of_ns`` (one S-curve
+    point; planned counts each element's share of its task's window linearly)."""
+
+    storey: str
+    planned_fraction: float = 0.0
+    detected_fraction: float = 0.0
+    num_elements: int = 0
+
+
 # ---------------------------------------------------------------------------
 # Bus messages
 # ---------------------------------------------------------------------------
@@ -288,10 +369,14 @@ class OcclusionMask(Message, frozen=True, kw_only=True):
 
 
 class Overlay(Message, frozen=True, kw_only=True):
-    """The BIM drawn into a photo. ``image_png`` is RGBA (or RGB composite) at photo size."""
+    """The BIM drawn into a photo. ``image_png`` is RGBA (or RGB composite) at photo size.
+
+    ``progress`` colours elements by the deviation detected from the photos (``ProgressUpdate``) where there is
+    evidence, else by the schedule; ``progress_planned`` by the schedule (and annotations) alone.
+    """
 
     photo_id: str
-    mode: Literal["state4d", "progress", "xray", "future", "edges", "photoreal", "id"]
+    mode: Literal["state4d", "progress", "xray", "future", "edges", "photoreal", "id", "progress_planned"]
     at_ns: int = 0
     image_png: bytes = b""
     legend: tuple[LegendEntry, ...] = ()
@@ -339,6 +424,36 @@ class NodeError(Message, frozen=True, kw_only=True):
     time_ns: int = 0
 
 
+class PhotoEvidence(Message, frozen=True, kw_only=True):
+    """Per-photo evidence of which elements stand (the progress node), one entry per element the photo should see
+    (the model rendered at its registered pose and date window, minus the occlusion masks).
+
+    ``working_width_px`` / ``working_height_px``: resolution the evidence was computed at.
+    """
+
+    photo_id: str
+    camera_id: str | None = None
+    capture_time_ns: int = 0
+    filename: str = ""
+    elements: tuple[ElementEvidence, ...] = ()
+    working_width_px: int = 0
+    working_height_px: int = 0
+    processing_ms: float = 0.0
+
+
+class ProgressUpdate(Message, frozen=True, kw_only=True):
+    """Fused progress after new evidence: the elements whose estimate changed, every task touched, and one
+    planned-vs-detected point per storey, all at ``as_of_ns`` (the latest capture time seen). ``photo_id``: the
+    photo that triggered the update (empty for schedule or annotation changes)."""
+
+    as_of_ns: int
+    photo_id: str = ""
+    elements: tuple[ElementProgress, ...] = ()
+    tasks: tuple[TaskProgress, ...] = ()
+    storeys: tuple[StoreyProgress, ...] = ()
+    tz: str = "UTC"
+
+
 AnyMessage = (
     Photo
     | BimModel
@@ -352,6 +467,8 @@ AnyMessage = (
     | Overlay
     | Annotation
     | NodeError
+    | PhotoEvidence
+    | ProgressUpdate
 )
 
 MESSAGE_TYPES: tuple[type[Message], ...] = (
@@ -367,4 +484,6 @@ MESSAGE_TYPES: tuple[type[Message], ...] = (
     Overlay,
     Annotation,
     NodeError,
+    PhotoEvidence,
+    ProgressUpdate,
 )

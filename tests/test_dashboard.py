@@ -113,11 +113,12 @@ def test_dashboard_scene_pairs_photos_and_registrations_in_any_order() -> None:
     assert waiting.cached_photo_ids() == ["x", "z"]
     assert [op.kind for op in waiting.on_registration(registration("x")) if op.kind == "image"] == ["image"]
 
-    # phone photos share the "phone" camera; failures are text only
+    # phone photos share the "phone" camera; failures are text only (a log line and the camera's status line)
     scene.on_photo(photo("q", cam=None))
     assert any(op.path == (*CAMERAS, "phone", "image") for op in scene.on_registration(registration("q", cam=None)))
     failed = scene.on_registration(m.Registration(site=SITE, photo_id="z", status="failed", message="no matches"))
-    assert [op.kind for op in failed] == ["text"] and "no matches" in failed[0].fields["text"]
+    assert [op.kind for op in failed] == ["text", "text_document"] and "no matches" in failed[0].fields["text"]
+    assert "failed to register (no matches)" in failed[1].fields["text"]
     assert scene.cameras == ["cam-a", "phone"]
 
 

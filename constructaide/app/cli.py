@@ -24,6 +24,7 @@ NODE_MODULES = {
     "recorder": "nodes.recorder.node",
     "dashboard": "nodes.dashboard.node",
     "workbench": "nodes.workbench.node",
+    "progress": "nodes.progress.node",
 }
 
 USAGE = """usage: constructaide COMMAND [ARGS...]
@@ -32,7 +33,8 @@ main job
   demo                 run every node on the embedded synthetic site; writes .mcap and .rrd
   run CONFIG.toml      start all nodes of a site from a TOML config
 nodes and bus
-  node NAME [...]      run one node (ingest, register, occlude, render, recorder, dashboard, workbench)
+  node NAME [...]      run one node (ingest, register, occlude, render, recorder, dashboard, workbench,
+                       progress)
   router               run a zenoh router so nodes on several machines can meet
   status               list live nodes
   push FILES --camera ID
@@ -51,6 +53,12 @@ tools
                        batch model-assisted SfM to a COLMAP text model
   render --photo ID --mode MODE --out FILE.png
                        render one overlay from a recording
+progress
+  progress --recording FILE --out DIR
+                       per-photo evidence and per-element progress of a recording (observations.csv, elements.csv)
+  export ifc|bcf|csv|mp4|gltf --recording FILE --out PATH
+                       detected progress for other tools: IFC with actual dates, BCF issues, CSV report,
+                       time-lapse MP4 per fixed camera, glTF of the model with the registered cameras
 
 `constructaide COMMAND --help` for the options of each command.
 """
@@ -142,6 +150,8 @@ COMMANDS: dict[str, Callable[[list[str]], int]] = {
     "bim": _bim,
     "register": _delegate("nodes.register.batch", "main"),
     "render": _delegate("nodes.render.cli", "main"),
+    "progress": _delegate("nodes.progress.batch", "main"),
+    "export": _delegate("nodes.progress.exports", "main"),
 }
 
 

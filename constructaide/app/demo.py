@@ -35,7 +35,7 @@ from constructaide.runtime.bus import port_free
 from schemas import codec, keys
 from schemas.messages import AnchorClicks, AnchorPoint, NeedsAnchor, OcclusionMask, Overlay, Photo
 
-PROCESSING_NODES = tuple(os.environ.get("CONSTRUCTAIDE_DEMO_NODES", "register,occlude,render").split(","))
+PROCESSING_NODES = tuple(os.environ.get("CONSTRUCTAIDE_DEMO_NODES", "register,occlude,render,progress").split(","))
 SETTLE_QUIET_SECS = 4.0  # no new mask or overlay for this long (and overlays newer than masks): settled
 REQUEST_GRACE_SECS = 2.0  # with the simulated user: quiet on NeedsAnchor before registration counts as done
 STALL_SECS = 60.0  # no new mask or overlay for this long while overlays are behind their masks: stalled
@@ -252,6 +252,7 @@ def main(argv: list[str]) -> int:
             bus.subscribe(keys.pattern(keys.OVERLAY, site=args.site), arrivals),
         ]
         errors = bus.collect(keys.key(keys.ERRORS, site=args.site))
+        evidence = bus.collect(keys.pattern(keys.PHOTO_EVIDENCE, site=args.site))
         needs = bus.collect(keys.pattern(keys.NEEDS_ANCHOR, site=args.site))
         bim = bus.collect(keys.key(keys.BIM_MODEL, site=args.site), fetch_latched=True)
         launcher.start("recorder", sets=[f"path='{mcap_path}'"])
@@ -314,6 +315,8 @@ def main(argv: list[str]) -> int:
         # masks or overlays keep arriving, up to --timeout).
         settled = arrivals.wait_settled(registered, SETTLE_QUIET_SECS, STALL_SECS, deadline)
         stale = arrivals.stale(registered)
+        if "progress" in PROCESSING_NODES:  # the progress node reads each photo once its combined mask is out
+            _drain(evidence, lambda: {m.photo_id for _, m in evidence.items} >= registered, deadline)
         for sub in arrival_subs:
             sub.close()
         if args.stay:
@@ -347,6 +350,7 @@ def main(argv: list[str]) -> int:
         ),
         ("occlusion masks", len(masks.items)),
         ("overlays", len(overlays.items)),
+        ("progress evidence (photos)", len({m.photo_id for _, m in evidence.items})),
         ("overlays behind latest mask", f"{len(stale)}" + ("" if settled == "settled" else f" ({settled})")),
         ("node errors", len(errors.items)),
         ("wall time", f"{time.monotonic() - t_start:.0f} s"),

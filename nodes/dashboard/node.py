@@ -4,7 +4,9 @@
 ``serve:PORT`` (gRPC server; connect a viewer with ``rerun rerun+http://HOST:PORT/proxy``), or
 ``connect`` / ``connect:URL`` (a running viewer, default ``rerun+http://127.0.0.1:9876/proxy``).
 The scene logic lives in :mod:`nodes.dashboard.scene`; this shell maps its ops to rerun calls
-and keeps the default blueprint (3D view + one 2D view per registered camera) up to date.
+and keeps the default blueprint up to date: the 3D view, the storeys' progress plot and the log, and per registered
+camera one 2D view showing one overlay mode (``overlay_mode``; other modes and the occlusion masks are layers the
+user toggles in the blueprint panel) above the camera's status line.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ import rerun.blueprint as rrb
 
 from constructaide.errors import UserError
 from constructaide.runtime import Input, NodeContext, NodeSpec, run_node_cli
-from nodes.dashboard.scene import LOG, WORLD, EntityPath, LogOp, Scene, image_path
+from nodes.dashboard.scene import LOG, PROGRESS, STATUS, WORLD, EntityPath, LogOp, Scene, image_path
 from schemas import keys
 from schemas import messages as m
 
@@ -37,6 +39,8 @@ class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=Tr
     image_plane_distance_m: float = 1.0
     point_radius_m: float = 0.03
     application_id: str = "constructaide"
+    overlay_mode: str = "progress"
+    """Overlay mode each camera view shows (the other modes and the occlusion masks are layers a user toggles)."""
 
 
 def entity_path(parts: EntityPath) -> str:
@@ -44,13 +48,32 @@ def entity_path(parts: EntityPath) -> str:
     return "/" + "/".join(rr.escape_entity_path_part(p) for p in parts)
 
 
-def make_blueprint(cameras: Iterable[str]) -> rrb.Blueprint:
-    """3D view of the world and the log, plus one 2D view per camera."""
-    views_2d = [rrb.Spatial2DView(origin=entity_path(image_path(c)), name=c) for c in cameras]
+def camera_view(camera: str, overlay_mode: str) -> rrb.Vertical:
+    """A camera's photo with one overlay mode (the other modes and the masks hidden, toggled by the user in the
+    blueprint panel), above its status line."""
+    img = image_path(camera)
+    hidden = rrb.EntityBehavior(visible=False)
+    overrides = {
+        entity_path((*img, "overlay")): hidden,
+        entity_path((*img, "overlay", overlay_mode)): rrb.EntityBehavior(visible=True),
+        entity_path((*img, "occlusion")): hidden,
+    }
+    return rrb.Vertical(
+        rrb.Spatial2DView(origin=entity_path(img), name=f"{camera}: {overlay_mode}", overrides=overrides),  # type: ignore[arg-type]
+        rrb.TextDocumentView(origin=entity_path((*STATUS, camera)), name=f"{camera} status"),
+        row_shares=[6, 1],
+    )
+
+
+def make_blueprint(cameras: Iterable[str], overlay_mode: str = "progress") -> rrb.Blueprint:
+    """3D view of the world, the storeys' planned-vs-detected progress and the log, plus one 2D view per camera
+    (with its status line)."""
+    views_2d = [camera_view(c, overlay_mode) for c in cameras]
     left = rrb.Vertical(
         rrb.Spatial3DView(origin=entity_path(WORLD), name="site"),
+        rrb.TimeSeriesView(origin=entity_path(PROGRESS), name="progress per storey: planned vs detected (%)"),
         rrb.TextLogView(origin=entity_path(LOG), name="log"),
-        row_shares=[4, 1],
+        row_shares=[4, 2, 1],
     )
     if not views_2d:
         return rrb.Blueprint(left, collapse_panels=False)
@@ -97,6 +120,12 @@ def _archetype(op: LogOp) -> Any:
         return rr.LineStrips2D(
             f["strips"], labels=f.get("labels"), colors=f.get("colors"), draw_order=f.get("draw_order")
         )
+    if kind == "text_document":
+        return rr.TextDocument(f["text"], media_type=rr.MediaType.MARKDOWN)
+    if kind == "scalars":
+        return rr.Scalars(f["value"])
+    if kind == "series_style":
+        return rr.SeriesLines(names=f["name"], colors=f["color"])
     if kind == "clear":
         return rr.Clear(recursive=bool(f.get("recursive", False)))
     raise ValueError(f"unknown op kind {kind!r}")
@@ -138,7 +167,9 @@ class DashboardNode:
             point_radius_m=config.point_radius_m,
         )
         self._blueprint_cameras: tuple[str, ...] = ()
-        self.rec, where = open_stream(config.rerun, ctx.site, config.application_id, make_blueprint(()))
+        self.rec, where = open_stream(
+            config.rerun, ctx.site, config.application_id, make_blueprint((), config.overlay_mode)
+        )
         ctx.log.info("dashboard for site %s: %s", ctx.site, where)
 
     def _log(self, ops: list[LogOp]) -> None:
@@ -152,7 +183,7 @@ class DashboardNode:
         cams = tuple(self.scene.cameras)
         if cams != self._blueprint_cameras:
             self._blueprint_cameras = cams
-            self.rec.send_blueprint(make_blueprint(cams), make_active=True, make_default=True)
+            self.rec.send_blueprint(make_blueprint(cams, self.config.overlay_mode), make_active=True, make_default=True)
 
     def on_photo(self, msg: m.Photo, key: str) -> None:
         self._log(self.scene.on_photo(msg))
@@ -184,6 +215,12 @@ class DashboardNode:
     def on_error(self, msg: m.NodeError, key: str) -> None:
         self._log(self.scene.on_error(msg))
 
+    def on_photo_evidence(self, msg: m.PhotoEvidence, key: str) -> None:
+        self._log(self.scene.on_photo_evidence(msg))
+
+    def on_progress(self, msg: m.ProgressUpdate, key: str) -> None:
+        self._log(self.scene.on_progress(msg))
+
     def close(self) -> None:
         """Flush and close the sink (finishes the .rrd file)."""
         self.rec.flush()
@@ -206,6 +243,8 @@ SPEC = NodeSpec(
         Input(keys.NEEDS_ANCHOR, m.NeedsAnchor, "on_needs_anchor"),
         Input(keys.ANNOTATION, m.Annotation, "on_annotation"),
         Input(keys.ERRORS, m.NodeError, "on_error"),
+        Input(keys.PHOTO_EVIDENCE, m.PhotoEvidence, "on_photo_evidence"),
+        Input(keys.PROGRESS, m.ProgressUpdate, "on_progress"),
     ),
     outputs=(),
 )

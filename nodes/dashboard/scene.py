@@ -16,6 +16,10 @@ Pure (numpy, opencv, trimesh via :mod:`constructaide.bimgeom`): :class:`Scene` t
 * ``world/cameras/<camera>/image/annotations/<annotation_id>`` — user polygons (occluders, notes)
 * ``world/points`` — the sparse cloud
 * ``log/needs_anchor``, ``log/errors``, ``log/registration`` — text logs
+* ``status/<camera>`` — one status line per camera (registered / failed / waiting for an anchor, latest
+  residual, latest detected progress), a markdown text document
+* ``progress/<storey>/planned``, ``progress/<storey>/detected`` — planned vs detected share of a storey's
+  elements standing (the S-curve), scalars on the ``capture_time`` timeline
 
 Timelines: ``capture_time`` (timestamp, ns UTC) and ``event`` (sequence: messages handled).
 """
@@ -48,6 +52,9 @@ OpKind = Literal[
     "text",
     "clear",
     "lines2d",
+    "text_document",
+    "scalars",
+    "series_style",
 ]
 
 EntityPath = tuple[str, ...]
@@ -58,6 +65,10 @@ BIM: EntityPath = ("world", "bim")
 CAMERAS: EntityPath = ("world", "cameras")
 POINTS: EntityPath = ("world", "points")
 LOG: EntityPath = ("log",)
+STATUS: EntityPath = ("status",)
+PROGRESS: EntityPath = ("progress",)
+PLANNED_RGBA = (150, 150, 150, 255)
+DETECTED_RGBA = (40, 200, 60, 255)
 
 OCCLUDED_CLASS = 1
 OCCLUDED_RGBA = (255, 0, 255, 150)
@@ -153,6 +164,16 @@ class _PhotoInfo:
 
 
 @dataclass
+class _CameraStatus:
+    """What the status line of one camera says."""
+
+    registration: str = "no photo registered yet"
+    waiting: int = 0  # photos of this camera waiting for anchor clicks
+    progress: str = ""
+    photos: int = 0
+
+
+@dataclass
 class Scene:
     """State of the dashboard: caches photos (bounded; photos already shown leave first) to pair them with later
     registrations.
@@ -174,6 +195,9 @@ class Scene:
     _tasks: tuple[m.ScheduleTask, ...] = ()
     _event: int = 0
     _started: bool = False
+    _status: dict[str, _CameraStatus] = field(default_factory=dict)
+    _waiting: dict[str, str] = field(default_factory=dict)  # photo_id -> camera, photos waiting for an anchor
+    _storeys: set[str] = field(default_factory=set)
 
     # ------------------------------------------------------------------ helpers
     def _op(self, path: EntityPath, kind: OpKind, time_ns: int | None = None, static: bool = False, **f: Any) -> LogOp:
@@ -323,6 +347,8 @@ class Scene:
         if reg.status == "failed":
             text = f"registration of photo {reg.photo_id} ({camera}) failed: {reg.message or 'no reason given'}"
             ops.append(self._op((*LOG, "registration"), "text", time_ns=time_ns, text=text, level="WARN"))
+            self._cam(camera).registration = f"latest photo failed to register ({reg.message or 'no reason given'})"
+            ops.append(self._status_op(camera, time_ns))
             return ops
         if reg.intrinsics is None:
             raise ValueError(f"registration of photo {reg.photo_id} has status {reg.status} but no intrinsics")
@@ -351,6 +377,14 @@ class Scene:
             f"{reg.num_inliers} inliers, rms {reg.reprojection_rms_px:.2f} px"
         )
         ops.append(self._op((*LOG, "registration"), "text", time_ns=time_ns, text=text, level="INFO"))
+        status = self._cam(camera)
+        status.photos += 1
+        status.registration = (
+            f"registered ({reg.status}/{reg.method or '?'}), latest residual {reg.reprojection_rms_px:.2f} px rms"
+        )
+        self._waiting.pop(reg.photo_id, None)
+        status.waiting = sum(c == camera for c in self._waiting.values())
+        ops.append(self._status_op(camera, time_ns))
         return ops
 
     def _photo_place(self, photo_id: str, camera_id: str | None) -> tuple[str, int | None]:
@@ -425,6 +459,57 @@ class Scene:
         _, time_ns = self._photo_place(msg.photo_id, None)
         text = f"photo {msg.photo_id} needs anchor clicks: {msg.reason} ({msg.num_matched_tracks} matched tracks)"
         ops.append(self._op((*LOG, "needs_anchor"), "text", time_ns=time_ns, text=text, level="WARN"))
+        camera, _ = self._photo_place(msg.photo_id, None)
+        self._waiting[msg.photo_id] = camera
+        self._cam(camera).waiting = sum(c == camera for c in self._waiting.values())
+        ops.append(self._status_op(camera, time_ns))
+        return ops
+
+    # ------------------------------------------------------------------ progress
+    def _cam(self, camera: str) -> _CameraStatus:
+        return self._status.setdefault(camera, _CameraStatus())
+
+    def _status_op(self, camera: str, time_ns: int | None) -> LogOp:
+        """The camera's status line as a markdown document."""
+        s = self._cam(camera)
+        parts = [f"**{camera}**: {s.registration}"]
+        if s.waiting:
+            parts.append(f"**waiting for an anchor** ({s.waiting} photo{'s' if s.waiting > 1 else ''})")
+        if s.progress:
+            parts.append(s.progress)
+        return self._op((*STATUS, camera), "text_document", time_ns=time_ns, text=" · ".join(parts))
+
+    def on_photo_evidence(self, ev: m.PhotoEvidence) -> list[LogOp]:
+        """The latest detected progress in the camera's status line."""
+        ops = self._begin()
+        camera, time_ns = self._photo_place(ev.photo_id, ev.camera_id)
+        counts: dict[str, int] = {}
+        for e in ev.elements:
+            counts[e.state] = counts.get(e.state, 0) + 1
+        seen = ", ".join(
+            f"{counts[k]} {k.replace('_', ' ')}" for k in ("built", "not_built", "occluded", "unknown") if counts.get(k)
+        )
+        self._cam(camera).progress = f"latest progress: {seen or 'no elements in view'} ({len(ev.elements)} in view)"
+        ops.append(self._status_op(camera, time_ns or ev.capture_time_ns))
+        return ops
+
+    def on_progress(self, update: m.ProgressUpdate) -> list[LogOp]:
+        """One planned-vs-detected S-curve point per storey at the update's as-of time."""
+        ops = self._begin()
+        for sp in update.storeys:
+            base = (*PROGRESS, sp.storey or "(no storey)")
+            if sp.storey not in self._storeys:
+                self._storeys.add(sp.storey)
+                for kind, rgba in (("planned", PLANNED_RGBA), ("detected", DETECTED_RGBA)):
+                    ops.append(
+                        self._op((*base, kind), "series_style", static=True, name=f"{sp.storey} {kind}", color=rgba)
+                    )
+            ops.append(
+                self._op((*base, "planned"), "scalars", time_ns=update.as_of_ns, value=100.0 * sp.planned_fraction)
+            )
+            ops.append(
+                self._op((*base, "detected"), "scalars", time_ns=update.as_of_ns, value=100.0 * sp.detected_fraction)
+            )
         return ops
 
     def on_annotation(self, ann: m.Annotation) -> list[LogOp]:

@@ -31,6 +31,7 @@ from schemas.messages import (
     OcclusionMask,
     Overlay,
     Photo,
+    ProgressUpdate,
     Registration,
 )
 
@@ -95,6 +96,7 @@ class RenderEngine:
     schedule: ScheduleView | None = None
     meshes: MeshDict = field(default_factory=dict)
     annotations: list[Annotation] = field(default_factory=list)
+    evidence: dict = field(default_factory=dict)
     _ras: GLRasterizer | None = None
     _photoreal: PhotorealRenderer | None = None
 
@@ -133,11 +135,17 @@ class RenderEngine:
         self.schedule = ScheduleView.from_model(model, self.scene)
         for ann in self.annotations:
             self.schedule.apply_annotation(ann)
+        self.schedule.evidence = self.evidence
 
     def add_annotation(self, ann: Annotation) -> None:
         self.annotations.append(ann)
         if self.schedule is not None:
             self.schedule.apply_annotation(ann)
+
+    def add_progress(self, update: ProgressUpdate) -> None:
+        """Detected progress for the ``progress`` mode (latest estimate per element)."""
+        for ep in update.elements:
+            self.evidence[ep.global_id] = ep
 
     def render(
         self,

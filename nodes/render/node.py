@@ -2,8 +2,9 @@
 
 Inputs: the BIM model (latched) and updates, photos (cached by photo_id, bounded), registrations
 (each newly registered photo gets one overlay per configured mode), occlusion masks (the
-``combined`` kind preferred; a newer mask re-renders the photo) and annotations (status
-annotations colour the progress mode). Output: ``constructaide/{site}/overlay/{mode}/{photo}``.
+``combined`` kind preferred; a newer mask re-renders the photo), annotations (status
+annotations colour the progress modes) and detected progress (``ProgressUpdate`` colours the progress mode; the
+photo whose evidence it carries is redrawn). Output: ``constructaide/{site}/overlay/{mode}/{photo}``.
 The EGL context lives on the node's worker thread (created on first render).
 """
 
@@ -16,7 +17,16 @@ import msgspec
 from constructaide.runtime import Input, NodeContext, NodeSpec, Output, run_node_cli
 from nodes.render.engine import ALL_MODES, RenderEngine, presets_path_ok
 from schemas import keys
-from schemas.messages import Annotation, BimModel, BimUpdate, OcclusionMask, Overlay, Photo, Registration
+from schemas.messages import (
+    Annotation,
+    BimModel,
+    BimUpdate,
+    OcclusionMask,
+    Overlay,
+    Photo,
+    ProgressUpdate,
+    Registration,
+)
 
 
 class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
@@ -113,6 +123,12 @@ class RenderNode:
             for pid in list(self.registrations):
                 self._mark(pid, ("progress",))
 
+    def on_progress(self, msg: ProgressUpdate, key: str) -> None:
+        """Detected progress colours the progress mode; the photo whose evidence it is gets that mode redrawn."""
+        self.engine.add_progress(msg)
+        if "progress" in self.config.modes and msg.photo_id in self.registrations:
+            self._mark(msg.photo_id, ("progress",))
+
     # -- work -----------------------------------------------------------------------------------------
 
     def _mark(self, photo_id: str, modes: tuple[str, ...] | None = None) -> None:
@@ -162,6 +178,7 @@ SPEC = NodeSpec(
         Input(keys.REGISTRATION, Registration, "on_registration"),
         Input(keys.OCCLUSION, OcclusionMask, "on_occlusion"),
         Input(keys.ANNOTATION, Annotation, "on_annotation"),
+        Input(keys.PROGRESS, ProgressUpdate, "on_progress"),
     ),
     outputs=(Output(keys.OVERLAY, Overlay),),
 )

@@ -4,8 +4,11 @@ Every mode turns a :class:`raster.RasterResult` into an RGBA layer (H, W, 4) uin
 plus a legend; :func:`composite` blends the layer over the photo (RGB uint8). Modes:
 
 * ``state4d``  elements that should stand at ``at_ns`` per the plan, tinted by IFC class;
-* ``progress`` elements due or built by ``at_ns`` coloured by schedule status (paper Sec. 4.2:
-  ahead green, on time translucent white, behind red, deviation / needs review dark blue);
+* ``progress`` elements coloured by the deviation the progress node detected from the photos
+  (``ProgressUpdate``; paper Sec. 4.2 colours: ahead green, on time translucent white, behind red, due but not
+  built a red outline, needs review dark blue); without any such evidence for the site, as ``progress_planned``;
+* ``progress_planned`` elements due or built by ``at_ns`` coloured by schedule status (actual dates and status
+  annotations of the schedule, not the photos);
 * ``xray``     selected elements hidden behind other elements, the ground or occluders, ghosted
   with outlines;
 * ``future``   elements scheduled after ``at_ns`` ghosted over what stands;
@@ -27,14 +30,15 @@ from numpy.typing import NDArray
 from constructaide.schedule4d import ElementWindow, actual_state, element_windows, planned_state
 from nodes.render.raster import GLRasterizer, RasterResult
 from nodes.render.scene import GROUND_INDEX, BimScene, filter_mask
-from schemas.messages import Annotation, BimModel, ElementFilter, Intrinsics, LegendEntry
+from schemas.messages import Annotation, BimModel, ElementFilter, ElementProgress, Intrinsics, LegendEntry
 
-MODES = ("state4d", "progress", "xray", "future", "edges")
+MODES = ("state4d", "progress", "xray", "future", "edges", "progress_planned")
 
 AHEAD_RGBA = (40, 200, 60, 150)
 ON_TIME_RGBA = (255, 255, 255, 110)
 BEHIND_RGBA = (230, 40, 40, 160)
 REVIEW_RGBA = (20, 40, 150, 190)
+MISSING_RGBA = (230, 40, 40, 255)
 XRAY_RGBA = (0, 220, 255, 110)
 FUTURE_RGBA = (255, 170, 0, 120)
 EDGE_RGBA = (255, 230, 40, 255)
@@ -50,6 +54,8 @@ class ScheduleView:
     windows: list[ElementWindow | None]
     task_elements: dict[str, tuple[str, ...]]
     annotations: dict[str, Annotation] = field(default_factory=dict)
+    evidence: dict[str, ElementProgress] = field(default_factory=dict)
+    """Latest detected progress per element GlobalId (from ``ProgressUpdate``)."""
 
     @classmethod
     def from_model(cls, model: BimModel, scene: BimScene) -> ScheduleView:
@@ -113,6 +119,25 @@ class ScheduleView:
                     out[i] = 2
                 elif ann.status == "built" and not due:
                     out[i] = 0
+        return out
+
+    def detected(self, at_ns: int, global_ids: list[str]) -> NDArray[np.int8]:
+        """(n + 1,) int8 status from detected progress: -1 not shown, 0 ahead, 1 on time, 2 behind (built late),
+        3 needs review (annotation), 4 due by ``at_ns`` but detected absent then. An element counts as standing at
+        ``at_ns`` once it was first seen standing (``first_present_ns``)."""
+        out = np.full(len(self.windows), -1, np.int8)
+        for i, gid in enumerate(global_ids, start=1):
+            ep = self.evidence.get(gid)
+            if ep is None:
+                continue
+            if ep.state == "built" and ep.first_present_ns is not None and ep.first_present_ns <= at_ns:
+                out[i] = {"ahead": 0, "behind": 2}.get(ep.deviation, 1)
+            elif ep.planned_finish_ns is not None and ep.planned_finish_ns <= at_ns:
+                absent = ep.state == "not_built" or (ep.last_absent_ns is not None and ep.last_absent_ns >= at_ns)
+                out[i] = 4 if absent else -1
+            ann = self.annotations.get(gid)
+            if ann is not None and ann.created_ns <= at_ns and ann.status == "needs_review":
+                out[i] = 3
         return out
 
     def apply_annotation(self, ann: Annotation) -> None:
@@ -255,10 +280,15 @@ def render_overlay(
         legend = [LegendEntry(label=c, rgba=(*class_rgb(c), 120)) for c in classes if c in present]
         edges = id_edges(np.where(show, ras.ids, 0).astype(np.uint32)) & show
         _fill(layer, edges, (*EDGE_RGBA[:3], 200))
-    elif mode == "progress":
-        status = schedule.progress(at_ns, scene.global_ids)
+    elif mode in ("progress", "progress_planned"):
+        from_photos = mode == "progress" and bool(schedule.evidence)
+        status = (
+            schedule.detected(at_ns, scene.global_ids) if from_photos else schedule.progress(at_ns, scene.global_ids)
+        )
         status[~sel] = -1
-        visible = schedule.built(at_ns, basis="actual") | (status >= 0)
+        visible = status >= 0
+        if not from_photos:
+            visible |= schedule.built(at_ns, basis="actual")
         ras = rasterizer.render(scene, intr, world_from_camera, visible)
         st = np.full(ras.ids.shape, -1, np.int8)
         inside = (ras.ids > 0) & (ras.ids <= scene.num_elements) & free
@@ -271,7 +301,15 @@ def render_overlay(
         ):
             _fill(layer, st == code, rgba, ras.shade)
             legend.append(LegendEntry(label=label, rgba=rgba))
-        edges = id_edges(np.where(st >= 0, ras.ids, 0).astype(np.uint32)) & (st >= 0)
+        if from_photos:
+            missing = st == 4
+            _fill(layer, missing, (*BEHIND_RGBA[:3], 40))
+            _fill(
+                layer, id_edges(np.where(missing, ras.ids, 0).astype(np.uint32), thickness_px=2) & missing, MISSING_RGBA
+            )
+            legend.append(LegendEntry(label="due, not built (detected)", rgba=MISSING_RGBA))
+            legend = [LegendEntry(label=f"{e.label} (detected)", rgba=e.rgba) for e in legend[:3]] + legend[3:]
+        edges = id_edges(np.where(st >= 0, ras.ids, 0).astype(np.uint32)) & (st >= 0) & (st != 4)
         layer[edges, 3] = np.maximum(layer[edges, 3], 220)
     elif mode == "xray":
         built = schedule.built(at_ns, basis="actual")

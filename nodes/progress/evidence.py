@@ -1,0 +1,356 @@
+"""Per-photo evidence of which elements stand, from image evidence only (pure core: numpy + OpenCV).
+
+Inputs are arrays at one working size (H, W): the photo in CIE Lab (``lab``, float32, L in [0, 100]), its
+occlusion mask (``occluded``, bool), the model :class:`~nodes.progress.modelview.Layers` at the photo's registered
+pose (built = what the fusion believes stood just before, candidates = elements the schedule window allows), and,
+for fixed cameras, the camera's reference plate (the last unoccluded look of every pixel in earlier frames, warped
+onto this photo). Three cues, each a log-likelihood ratio (natural log) per element:
+
+* ``change``: the fraction of the element's exclusive pixels (it is the only candidate in front of the believed
+  built surface there) whose look changed against the reference plate; evidence that the element *appeared*
+  between the plate's time and this photo (a transition, not a state);
+* ``points``: sparse-cloud observations of this photo lying on the element's surface (present) or behind it along
+  the viewing ray (absent: the camera saw through it);
+* ``appearance``: the colours of the element's pixels under a model of its material (learnt from this photo's
+  believed-built elements of that material and from confident detections elsewhere) against a model of what would
+  show if it were absent (the believed-built surface behind it, or the background).
+
+Elements whose region is mostly covered by the occlusion mask are ``occluded``; too few pixels, ``unknown``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from nodes.progress.modelview import Layers
+
+F32 = NDArray[np.float32]
+BoolA = NDArray[np.bool_]
+
+AB_BINS = 12  # chroma bins per axis of the colour histograms
+L_BINS = 4
+AB_RANGE = 60.0  # |a|, |b| beyond this fall in the outer bins
+
+
+@dataclass(frozen=True)
+class EvidenceParams:
+    """Thresholds of the cues (working resolution ~640 px wide)."""
+
+    min_pixels: int = 40
+    """An element needs this many unoccluded pixels in its region for any evidence."""
+    occluded_fraction: float = 0.7
+    """... and an element whose region is covered by the mask beyond this fraction is ``occluded``."""
+    change_threshold: float = 0.5
+    """Per-pixel change score above which a pixel counts as changed."""
+    change_hit: float = 0.85
+    """Changed fraction of an element's pixels where it appeared."""
+    change_noise: float = 0.1
+    """Changed fraction where nothing appeared (lighting, unmasked movers, registration error)."""
+    change_neutral: float = 0.35
+    """Changed fraction at which the change cue is neutral (LLR 0)."""
+    change_slope: float = 12.0
+    """LLR per unit of changed fraction."""
+    interior_px: int = 2
+    """The change cue uses pixels at least this far inside an element's region."""
+    change_full_pixels: int = 60
+    """Pixels for the full change LLR (fewer scale it down)."""
+    max_llr: float = 5.0
+    point_margin_m: float = 0.15
+    point_margin_rel: float = 0.02
+    """A point within ``margin_m + margin_rel * depth`` of a surface lies on it."""
+    point_llr: float = 0.7
+    """LLR per (verified) point, saturating at ``max_llr``."""
+    appearance: bool = True
+    appearance_scale: float = 1.5
+    """LLR per unit of mean per-pixel log ratio."""
+    appearance_max_llr: float = 1.0
+    appearance_min_reference_px: int = 150
+    appearance_ring_px: int = 12
+    """Background pixels this close to an element's region model what shows where it is absent."""
+    """Pixels a material / absence model needs before it is used."""
+
+
+@dataclass
+class ElementCue:
+    """One element's evidence in one photo. ``index`` is the 1-based element index."""
+
+    index: int
+    region_px: int
+    visible_px: int
+    occluded_fraction: float
+    exclusive_px: int = 0
+    changed_fraction: float = float("nan")
+    llr_change: float = 0.0
+    reference_ns: int = 0
+    points_on: float = 0.0
+    points_behind: float = 0.0
+    llr_points: float = 0.0
+    llr_appearance: float = 0.0
+    status: str = "seen"  # seen | occluded | unknown
+
+
+def to_lab(rgb: NDArray[np.uint8]) -> F32:
+    """(H, W, 3) float32 CIE Lab of an RGB uint8 image (L 0-100, a/b about -100..100)."""
+    return np.asarray(cv2.cvtColor(rgb.astype(np.float32) / 255.0, cv2.COLOR_RGB2LAB), np.float32)
+
+
+def change_score(lab: F32, ref: F32, valid: BoolA, window_px: int = 5, light_scale: float = 0.5) -> F32:
+    """(H, W) per-pixel change score in [0, 1] between two aligned Lab images, robust to a global exposure change
+    and to ~1 px of misalignment: the largest of an exposure-corrected lightness ratio, a chroma difference and a
+    local structure dissimilarity (1 - NCC of L over ``window_px`` windows, where either side is textured)."""
+    cur = cv2.GaussianBlur(lab, (0, 0), 0.6)
+    old = cv2.GaussianBlur(ref, (0, 0), 0.6)
+    L1, L0 = cur[..., 0] + 1.0, old[..., 0] + 1.0
+    ratio = np.log(L1 / L0)
+    gain = float(np.median(ratio[valid])) if valid.any() else 0.0
+    light = np.abs(ratio - gain) / light_scale
+    chroma = np.hypot(cur[..., 1] - old[..., 1], cur[..., 2] - old[..., 2]) / 14.0
+    k = (window_px, window_px)
+    m1, m0 = cv2.blur(L1, k), cv2.blur(L0, k)
+    v1 = np.maximum(cv2.blur(L1 * L1, k) - m1 * m1, 0.0)
+    v0 = np.maximum(cv2.blur(L0 * L0, k) - m0 * m0, 0.0)
+    ncc = (cv2.blur(L1 * L0, k) - m1 * m0) / np.sqrt(v1 * v0 + 1e-3)
+    textured = np.clip((np.sqrt(np.maximum(v1, v0)) - 1.5) / 2.5, 0.0, 1.0)  # smooth -> 0, > 4 L units -> 1
+    structure = textured * np.clip((1.0 - ncc) / 1.2, 0.0, 1.0)
+    return np.clip(np.maximum(np.maximum(light, chroma), structure), 0.0, 1.0).astype(np.float32)
+
+
+def interior(ids: NDArray[np.int64], radius_px: int) -> BoolA:
+    """(H, W) bool: pixels whose (2r+1)^2 neighbourhood carries the same id."""
+    if radius_px <= 0:
+        return np.ones(ids.shape, bool)
+    f = ids.astype(np.float32)  # exact for ids < 2^24
+    k = np.ones((2 * radius_px + 1, 2 * radius_px + 1), np.uint8)
+    return (cv2.erode(f, k) == f) & (cv2.dilate(f, k) == f)
+
+
+def colour_bins(lab: F32) -> NDArray[np.int32]:
+    """(H, W) int32 histogram bin of every pixel: coarse L x fine a/b."""
+    lb = np.clip((lab[..., 0] / 100.0 * L_BINS).astype(np.int32), 0, L_BINS - 1)
+    ab = np.clip(((lab[..., 1:] + AB_RANGE) / (2 * AB_RANGE) * AB_BINS).astype(np.int32), 0, AB_BINS - 1)
+    return (lb * AB_BINS + ab[..., 0]) * AB_BINS + ab[..., 1]
+
+
+NUM_BINS = L_BINS * AB_BINS * AB_BINS
+
+
+def normalised_hist(counts: NDArray[np.float64], prior: float = 1.0) -> NDArray[np.float64]:
+    """Probability per bin with ``prior`` pseudo-counts spread over all bins (no zero probabilities)."""
+    c = counts + prior / len(counts)
+    return c / c.sum()
+
+
+@dataclass
+class MaterialModel:
+    """Colour histograms per material, accumulated from confidently built element regions (any photo)."""
+
+    counts: dict[str, NDArray[np.float64]] = field(default_factory=dict)
+
+    def add(self, material: str, bins: NDArray[np.int32], weight: float = 1.0) -> None:
+        h = self.counts.setdefault(material, np.zeros(NUM_BINS))
+        h += weight * np.bincount(bins, minlength=NUM_BINS)
+
+    def total(self, material: str) -> float:
+        h = self.counts.get(material)
+        return 0.0 if h is None else float(h.sum())
+
+
+def photo_evidence(
+    lab: F32,
+    occluded: BoolA,
+    layers: Layers,
+    material_of: list[str],
+    params: EvidenceParams,
+    reference: tuple[F32, BoolA, NDArray[np.int64]] | None = None,
+    points: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]] | None = None,
+    materials: MaterialModel | None = None,
+    present: NDArray[np.float64] | None = None,
+    confirmed: NDArray[np.float64] | None = None,
+) -> list[ElementCue]:
+    """Cues for every element with pixels in this photo's candidate or built layers.
+
+    ``material_of[i]`` is the material of element index i (row 0 unused). ``reference`` = (plate Lab, plate valid,
+    plate time ns per pixel), warped onto this photo. ``points`` = (pixels (N, 2) at working size, camera depths
+    (N,) m, weights (N,)). ``present`` (n,): P(element stands) before this photo; ``confirmed`` (n,): 1 for
+    elements seen appearing and standing since, whose pixels show their material's look. Returns one
+    :class:`ElementCue` per element, ascending index.
+    """
+    n = len(material_of)
+    ids_all = layers.ids_all.astype(np.int64)
+    free = ~occluded
+    region = np.bincount(ids_all.ravel(), minlength=n)[:n]
+    visible = np.bincount(ids_all[free], minlength=n)[:n]
+    cues: dict[int, ElementCue] = {}
+    for i in np.nonzero(region[1:])[0] + 1:
+        occ = 1.0 - visible[i] / region[i]
+        status = "seen"
+        if visible[i] < params.min_pixels:
+            status = "occluded" if occ >= params.occluded_fraction else "unknown"
+        cues[int(i)] = ElementCue(int(i), int(region[i]), int(visible[i]), float(occ), status=status)
+    if reference is not None:
+        _change_cue(lab, free, layers, reference, params, cues, n, present)
+    if points is not None and len(points[0]):
+        _points_cue(layers, points, params, cues, n)
+    if params.appearance:
+        _appearance_cue(lab, free, layers, material_of, params, cues, materials, confirmed)
+    return [cues[i] for i in sorted(cues)]
+
+
+def _change_cue(
+    lab: F32,
+    free: BoolA,
+    layers: Layers,
+    reference: tuple[F32, BoolA, NDArray[np.int64]],
+    p: EvidenceParams,
+    cues: dict[int, ElementCue],
+    n: int,
+    present: NDArray[np.float64] | None,
+) -> None:
+    """Transition evidence per element from the changed fraction of its front-most interior pixels against the
+    plate: ``change_slope * (fraction - change_neutral)``, clipped, scaled down below ``change_full_pixels``.
+
+    A pixel counts as much as nothing else could have changed it: where a candidate stands behind the element,
+    the change may be that candidate appearing while the element was absent; how likely that candidate appeared
+    is read from its own exclusive pixels (where nothing else could change it).
+    """
+    ref_lab, ref_valid, ref_time = reference
+    valid = free & ref_valid
+    changed = change_score(lab, ref_lab, valid) > p.change_threshold
+    front = layers.ids_front.astype(np.int64)
+    built = layers.ids_built.astype(np.int64)
+    second = layers.ids_second.astype(np.int64)
+    owner = np.where(front > 0, front, built)
+    behind = np.where(front > 0, second, 0)
+    # the change score looks at a neighbourhood: pixels near another element's region would see that one change
+    sel = valid & (owner > 0) & interior(owner, p.interior_px)
+    ids, beh, chg, times = owner[sel], behind[sel], changed[sel], ref_time[sel]
+    excl = beh == 0
+    n_excl = np.bincount(ids[excl], minlength=n)[:n]
+    f_excl = np.bincount(ids[excl], weights=chg[excl], minlength=n)[:n] / np.maximum(n_excl, 1)
+    appeared = np.where(
+        n_excl >= p.min_pixels, np.clip((f_excl - p.change_noise) / (p.change_hit - p.change_noise), 0.02, 0.98), 0.3
+    )
+    stood = np.full(n, 0.5) if present is None else np.clip(np.asarray(present, np.float64), 0.0, 1.0)
+    # a pixel speaks for its owner as much as nothing else could have changed it: the candidate behind it may have
+    # appeared while the owner was absent
+    wx = 1.0 - np.where(beh > 0, appeared[beh] * (1.0 - stood[ids]), 0.0)
+    tot = np.bincount(ids, weights=wx, minlength=n)[:n]
+    s_chg = np.bincount(ids, weights=wx * chg, minlength=n)[:n]
+    order = np.argsort(ids, kind="stable")
+    ids_sorted, times_sorted = ids[order], times[order]
+    starts = np.searchsorted(ids_sorted, np.arange(n))
+    ends = np.searchsorted(ids_sorted, np.arange(n), side="right")
+    for i, cue in cues.items():
+        if cue.status != "seen" or tot[i] < p.min_pixels // 2:
+            continue
+        f = s_chg[i] / tot[i]
+        cue.exclusive_px = int(round(tot[i]))
+        cue.changed_fraction = float(f)
+        weight = min(1.0, tot[i] / p.change_full_pixels)
+        cue.llr_change = float(np.clip(p.change_slope * (f - p.change_neutral), -p.max_llr, p.max_llr) * weight)
+        cue.reference_ns = int(np.median(times_sorted[starts[i] : ends[i]]))
+
+
+def _points_cue(
+    layers: Layers,
+    points: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]],
+    p: EvidenceParams,
+    cues: dict[int, ElementCue],
+    n: int,
+) -> None:
+    px, z, w = points
+    h, wd = layers.ids_front.shape
+    u = np.rint(px[:, 0]).astype(np.int64)
+    v = np.rint(px[:, 1]).astype(np.int64)
+    ok = (u >= 0) & (u < wd) & (v >= 0) & (v < h) & np.isfinite(z) & (z > 0)
+    u, v, z, w = u[ok], v[ok], z[ok], w[ok]
+    margin = p.point_margin_m + p.point_margin_rel * z
+    on = np.zeros(n)
+    behind = np.zeros(n)
+    for ids, depth in ((layers.ids_front, layers.depth_front_m), (layers.ids_built, layers.depth_built_m)):
+        e = ids[v, u].astype(np.int64)
+        d = depth[v, u].astype(np.float64)
+        has = e > 0
+        on += np.bincount(e[has & (np.abs(z - d) <= margin)], weights=w[has & (np.abs(z - d) <= margin)], minlength=n)[
+            :n
+        ]
+        bh = has & (z > d + margin)
+        behind += np.bincount(e[bh], weights=w[bh], minlength=n)[:n]
+    for i, cue in cues.items():
+        if on[i] == 0 and behind[i] == 0:
+            continue
+        cue.points_on, cue.points_behind = float(on[i]), float(behind[i])
+        cue.llr_points = float(np.clip(p.point_llr * (on[i] - behind[i]), -p.max_llr, p.max_llr))
+
+
+def _appearance_cue(
+    lab: F32,
+    free: BoolA,
+    layers: Layers,
+    material_of: list[str],
+    p: EvidenceParams,
+    cues: dict[int, ElementCue],
+    materials: MaterialModel | None,
+    present: NDArray[np.float64] | None,
+) -> None:
+    """Colours of each element's front-most pixels: the element's material (as this photo shows it on the other
+    elements of that material, weighted by how likely each stands, plus what confident detections taught) against
+    what would show if it were absent (half the believed-built surface behind it or the background around it,
+    half anything else this photo shows). ``present`` weights each element's pixels in its material's look (the
+    confirmed elements). Without a known look of its material an element gets no appearance evidence."""
+    bins = colour_bins(lab)
+    front = layers.ids_front.astype(np.int64)
+    built = layers.ids_built.astype(np.int64)
+    ids_all = np.where(front > 0, front, built)
+    n = len(material_of)
+    mats = sorted(set(material_of[1:]))
+    mat_index = {m: k for k, m in enumerate(mats)}
+    mat_of_id = np.array([-1] + [mat_index[m] for m in material_of[1:]], np.int64)
+    weight = np.ones(n) if present is None else np.clip(np.asarray(present, np.float64), 0.0, 1.0)
+    shown = free & (ids_all > 0)
+    flat_ids, flat_bins = ids_all[shown], bins[shown]
+    per_el = np.zeros((n, NUM_BINS))
+    np.add.at(per_el, (flat_ids, flat_bins), 1.0)
+    local = np.zeros((len(mats), NUM_BINS))
+    np.add.at(local, mat_of_id[1:], per_el[1:] * weight[1:, None])
+    background_ok = free & (ids_all == 0)
+    background = np.bincount(bins[background_ok], minlength=NUM_BINS).astype(np.float64)
+    h, w = ids_all.shape
+    r = p.appearance_ring_px
+    kernel = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
+    for i, cue in cues.items():
+        if cue.status != "seen":
+            continue
+        m = mat_of_id[i]
+        counts = local[m] - weight[i] * per_el[i]  # leave the element itself out of its material's look
+        if materials is not None:
+            counts = counts + 0.2 * materials.counts.get(mats[m], np.zeros(NUM_BINS))
+        if counts.sum() < p.appearance_min_reference_px:
+            continue
+        mine = shown & (ids_all == i)
+        ys, xs = np.nonzero(mine)
+        if len(ys) < p.min_pixels:
+            continue
+        y0, y1, x0, x1 = max(ys.min() - r, 0), min(ys.max() + r + 1, h), max(xs.min() - r, 0), min(xs.max() + r + 1, w)
+        sub = mine[y0:y1, x0:x1]
+        ring = (cv2.dilate(sub.astype(np.uint8), kernel) > 0) & ~sub & background_ok[y0:y1, x0:x1]
+        near = np.bincount(bins[y0:y1, x0:x1][ring], minlength=NUM_BINS).astype(np.float64)
+        bg = normalised_hist(near + 0.25 * background * (near.sum() / max(background.sum(), 1.0)) + 1.0, 20.0)
+        b = bins[ys, xs]
+        others = normalised_hist(local.sum(axis=0) - local[m] + background, 20.0)
+        absent = 0.5 * bg[b] + 0.5 * others[b]
+        if front[ys[0], xs[0]] == i:  # a candidate: what is believed built behind it shows when it is absent
+            behind = mat_of_id[built[ys, xs]]
+            for k in np.unique(behind[(behind >= 0) & (behind != m)]):
+                use = behind == k
+                if local[k].sum() >= p.appearance_min_reference_px:
+                    absent[use] = 0.5 * normalised_hist(local[k], 20.0)[b[use]] + 0.5 * others[b[use]]
+        ratio = np.clip(np.log(normalised_hist(counts, 20.0)[b]) - np.log(absent), -4.0, 4.0)
+        alpha = counts.sum() / (counts.sum() + p.appearance_min_reference_px)
+        cue.llr_appearance = float(
+            np.clip(alpha * p.appearance_scale * ratio.mean(), -p.appearance_max_llr, p.appearance_max_llr)
+        )

@@ -1,0 +1,380 @@
+"""Element-ID and depth layers of the BIM seen by a registered camera (OpenGL 3.3 on EGL, headless).
+
+For a camera and two element sets — ``built`` (what is believed to stand) and ``candidates`` (what may have
+been built since) — one call draws three passes into an integer ID target without multisampling (ids stay exact):
+
+* ``built``: the front-most built element per pixel (``ids_built``, ``depth_built_m``);
+* ``front``: the front-most candidate *in front of* the built surface (``ids_front``, ``depth_front_m``): what the
+  pixel would show if that candidate stood;
+* ``second``: the next candidate behind it, still in front of the built surface (``ids_second``): a pixel whose
+  second id is 0 can only change through its front candidate.
+
+Ids are 1-based element indices (0 = none); depths are camera-frame z in metres, ``inf`` where nothing is drawn.
+The scene is drawn into an undistorted canvas covering the distorted photo and resampled (nearest) onto its
+pixel grid through :mod:`constructaide.camera`'s radial model. Create and use a :class:`LayerRenderer` on one
+thread (the EGL context is thread-bound).
+"""
+
+from __future__ import annotations
+
+import ctypes
+from collections.abc import Mapping
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from constructaide.camera import focal_xy, invert_rigid, pixels_to_normalized
+from constructaide.gl import offscreen_renderer
+from schemas.messages import Intrinsics
+
+Mesh = tuple[NDArray[np.float64], NDArray[np.int32]]
+_NEAR_M = 0.05
+
+_VERT = """
+#version 330 core
+layout(location = 0) in vec3 position;
+layout(location = 1) in uint element;
+layout(location = 2) in uint code;
+uniform mat4 clip_from_world;
+uniform mat4 camera_from_world;
+uniform uint draw_code;
+flat out uint v_element;
+out float v_z;
+void main() {
+    v_element = element;
+    v_z = (camera_from_world * vec4(position, 1.0)).z;
+    gl_Position = code == draw_code ? clip_from_world * vec4(position, 1.0) : vec4(2.0, 2.0, 2.0, 1.0);
+}
+"""
+
+_FRAG = """
+#version 330 core
+flat in uint v_element;
+in float v_z;
+uniform usampler2D front_ids;
+uniform bool skip_front;
+layout(location = 0) out uint out_id;
+layout(location = 1) out float out_z;
+void main() {
+    if (skip_front && texelFetch(front_ids, ivec2(gl_FragCoord.xy), 0).r == v_element) discard;
+    out_id = v_element;
+    out_z = v_z;
+}
+"""
+
+
+@dataclass(frozen=True)
+class Layers:
+    """Per-pixel layers at photo (or working) size; see the module docstring."""
+
+    ids_built: NDArray[np.uint32]
+    depth_built_m: NDArray[np.float32]
+    ids_front: NDArray[np.uint32]
+    depth_front_m: NDArray[np.float32]
+    ids_second: NDArray[np.uint32]
+
+    @property
+    def ids_all(self) -> NDArray[np.uint32]:
+        """Front-most element of built + candidates."""
+        return np.where(self.ids_front > 0, self.ids_front, self.ids_built)
+
+    @property
+    def depth_all_m(self) -> NDArray[np.float32]:
+        return np.minimum(self.depth_front_m, self.depth_built_m)
+
+
+def flatten_meshes(global_ids: list[str], meshes: Mapping[str, Mesh]) -> tuple[NDArray[np.float32], NDArray[np.uint32]]:
+    """Unshared triangle soup of the elements in ``global_ids`` order: positions (3T, 3) float32 metres and the
+    1-based element index per vertex (3T,) uint32. Elements without a mesh get no triangles."""
+    pos: list[NDArray[np.float64]] = []
+    idx: list[NDArray[np.uint32]] = []
+    for i, gid in enumerate(global_ids, start=1):
+        mesh = meshes.get(gid)
+        if mesh is None:
+            continue
+        v, f = np.asarray(mesh[0], np.float64), np.asarray(mesh[1], np.int64)
+        tris = v[f].reshape(-1, 3)
+        pos.append(tris)
+        idx.append(np.full(len(tris), i, np.uint32))
+    if not pos:
+        return np.zeros((0, 3), np.float32), np.zeros(0, np.uint32)
+    return np.vstack(pos).astype(np.float32), np.concatenate(idx)
+
+
+def projection_from_intrinsics(intr: Intrinsics, near_m: float, far_m: float) -> NDArray[np.float64]:
+    """(4, 4) OpenGL clip_from_camera of an OpenCV pinhole; GL row ``j`` (from the bottom) = pixel row ``v = j``."""
+    w, h = intr.width_px, intr.height_px
+    fx, fy = focal_xy(intr)
+    P = np.zeros((4, 4))
+    P[0, 0] = 2.0 * fx / w
+    P[0, 2] = (2.0 * intr.cx_px + 1.0) / w - 1.0
+    P[1, 1] = 2.0 * fy / h
+    P[1, 2] = (2.0 * intr.cy_px + 1.0) / h - 1.0
+    P[2, 2] = (far_m + near_m) / (far_m - near_m)
+    P[2, 3] = -2.0 * far_m * near_m / (far_m - near_m)
+    P[3, 2] = 1.0
+    return P
+
+
+def undistorted_grid(intr: Intrinsics, step_px: int = 8) -> NDArray[np.float64]:
+    """(H, W, 2) undistorted normalised coordinates of every pixel: exact on a grid every ``step_px`` pixels,
+    bilinear in between (the map is smooth)."""
+    import cv2
+
+    w, h = intr.width_px, intr.height_px
+    gu = np.arange(0, w - 1 + step_px, step_px, dtype=np.float64)
+    gv = np.arange(0, h - 1 + step_px, step_px, dtype=np.float64)
+    uu, vv = np.meshgrid(gu, gv)
+    grid = pixels_to_normalized(intr, np.stack([uu.ravel(), vv.ravel()], axis=1)).reshape(len(gv), len(gu), 2)
+    mu, mv = np.meshgrid(np.arange(w, dtype=np.float32) / step_px, np.arange(h, dtype=np.float32) / step_px)
+    out = [cv2.remap(np.ascontiguousarray(grid[..., c], np.float32), mu, mv, cv2.INTER_LINEAR) for c in range(2)]
+    return np.stack(out, axis=-1).astype(np.float64)
+
+
+@lru_cache(maxsize=32)
+def canvas_lookup(intr: Intrinsics, margin_px: int = 2) -> tuple[Intrinsics, NDArray[np.int64] | None]:
+    """Undistorted canvas covering a distorted camera and the flat canvas index of every photo pixel (nearest),
+    or ``(intr, None)`` without distortion."""
+    if intr.k1 == 0.0 and intr.k2 == 0.0:
+        return intr, None
+    w, h = intr.width_px, intr.height_px
+    xy = undistorted_grid(intr).reshape(-1, 2)
+    if not np.all(np.isfinite(xy)):
+        raise ValueError(f"distortion k1={intr.k1}, k2={intr.k2} is not invertible over the image")
+    fx, fy = focal_xy(intr)
+    (x0, y0), (x1, y1) = xy.min(0), xy.max(0)
+    cx, cy = float(np.floor(-x0 * fx) + margin_px), float(np.floor(-y0 * fy) + margin_px)
+    cw, ch = int(np.ceil((x1 - x0) * fx)) + 2 * margin_px + 2, int(np.ceil((y1 - y0) * fy)) + 2 * margin_px + 2
+    if cw * ch > 16 * w * h:
+        raise ValueError(f"distortion k1={intr.k1}, k2={intr.k2} needs an unreasonably wide canvas")
+    cu = np.clip(np.rint(xy[:, 0] * fx + cx).astype(np.int64), 0, cw - 1)
+    cv = np.clip(np.rint(xy[:, 1] * fy + cy).astype(np.int64), 0, ch - 1)
+    canvas = Intrinsics(width_px=cw, height_px=ch, f_px=fx, cx_px=cx, cy_px=cy, fy_over_fx=intr.fy_over_fx)
+    return canvas, cv * cw + cu
+
+
+class LayerRenderer:
+    """Draws :class:`Layers` of one model (see :meth:`set_model`) for any camera; owns one EGL context."""
+
+    def __init__(self) -> None:
+        self._gl: Any = None
+        self._program = 0
+        self._vao = 0
+        self._buffers: list[int] = []
+        self._fbo = 0
+        self._fbo_size = (0, 0)
+        self._rbos: list[int] = []
+        self._front_tex = 0
+        self._elements = np.zeros(0, np.uint32)
+        self._bbox = (np.zeros(3), np.zeros(3))
+        self.num_elements = 0
+
+    # -- GL plumbing --------------------------------------------------------------------------------
+
+    def _current(self) -> None:
+        from OpenGL import GL
+        from OpenGL.GL import shaders
+
+        if self._gl is None:
+            self._gl = offscreen_renderer(64, 64)
+            self._gl._platform.make_current()
+            vs = shaders.compileShader(_VERT, GL.GL_VERTEX_SHADER)
+            fs = shaders.compileShader(_FRAG, GL.GL_FRAGMENT_SHADER)
+            self._program = shaders.compileProgram(vs, fs, validate=False)
+            self._u = {
+                n: GL.glGetUniformLocation(self._program, n)
+                for n in ("clip_from_world", "camera_from_world", "draw_code", "front_ids", "skip_front")
+            }
+            self._front_tex = GL.glGenTextures(1)
+        self._gl._platform.make_current()
+
+    def set_model(self, global_ids: list[str], meshes: Mapping[str, Mesh]) -> None:
+        """Upload the meshes of ``global_ids`` (index i + 1 = ``global_ids[i]``)."""
+        from OpenGL import GL
+
+        self._current()
+        positions, elements = flatten_meshes(global_ids, meshes)
+        if self._vao:
+            GL.glDeleteVertexArrays(1, [self._vao])
+            GL.glDeleteBuffers(len(self._buffers), self._buffers)
+        self._vao = GL.glGenVertexArrays(1)
+        GL.glBindVertexArray(self._vao)
+        self._buffers = list(GL.glGenBuffers(3))
+        codes = np.zeros(len(elements), np.uint32)
+        for loc, (buf, arr) in enumerate(zip(self._buffers, (positions, elements, codes), strict=True)):
+            data = np.ascontiguousarray(arr)
+            GL.glBindBuffer(GL.GL_ARRAY_BUFFER, buf)
+            GL.glBufferData(GL.GL_ARRAY_BUFFER, max(data.nbytes, 4), data if data.size else None, GL.GL_DYNAMIC_DRAW)
+            GL.glEnableVertexAttribArray(loc)
+            if loc == 0:
+                GL.glVertexAttribPointer(loc, 3, GL.GL_FLOAT, GL.GL_FALSE, 0, ctypes.c_void_p(0))
+            else:
+                GL.glVertexAttribIPointer(loc, 1, GL.GL_UNSIGNED_INT, 0, ctypes.c_void_p(0))
+        GL.glBindVertexArray(0)
+        self._elements = elements
+        self.num_elements = len(global_ids)
+        self._bbox = (positions.min(0), positions.max(0)) if len(positions) else (np.zeros(3), np.zeros(3))
+
+    def _ensure_fbo(self, w: int, h: int) -> None:
+        from OpenGL import GL
+
+        if self._fbo and self._fbo_size == (w, h):
+            GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._fbo)
+            return
+        if self._fbo:
+            GL.glDeleteFramebuffers(1, [self._fbo])
+            GL.glDeleteRenderbuffers(len(self._rbos), self._rbos)
+        self._fbo = GL.glGenFramebuffers(1)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._fbo)
+        self._rbos = list(GL.glGenRenderbuffers(3))
+        for rbo, fmt, attach in zip(
+            self._rbos,
+            (GL.GL_R32UI, GL.GL_R32F, GL.GL_DEPTH_COMPONENT32F),
+            (GL.GL_COLOR_ATTACHMENT0, GL.GL_COLOR_ATTACHMENT1, GL.GL_DEPTH_ATTACHMENT),
+            strict=True,
+        ):
+            GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, rbo)
+            GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, fmt, w, h)
+            GL.glFramebufferRenderbuffer(GL.GL_FRAMEBUFFER, attach, GL.GL_RENDERBUFFER, rbo)
+        if GL.glCheckFramebufferStatus(GL.GL_FRAMEBUFFER) != GL.GL_FRAMEBUFFER_COMPLETE:
+            raise RuntimeError("OpenGL framebuffer incomplete")
+        self._fbo_size = (w, h)
+
+    def _pass(self, w: int, h: int, skip_front: bool) -> tuple[NDArray[np.uint32], NDArray[np.float32]]:
+        """Built elements into depth only, then candidates into ids + z; returns (ids, z) in GL row order."""
+        from OpenGL import GL
+
+        GL.glClearBufferuiv(GL.GL_COLOR, 0, np.zeros(4, np.uint32))
+        GL.glClearBufferfv(GL.GL_COLOR, 1, np.full(4, np.inf, np.float32))
+        GL.glClearBufferfv(GL.GL_DEPTH, 0, np.ones(1, np.float32))
+        n = len(self._elements)
+        GL.glUniform1i(self._u["skip_front"], int(skip_front))
+        for code, colour in ((1, False), (2, True)):
+            GL.glColorMask(colour, colour, colour, colour)
+            GL.glUniform1ui(self._u["draw_code"], code)
+            GL.glDrawArrays(GL.GL_TRIANGLES, 0, n)
+        GL.glColorMask(True, True, True, True)
+        GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT0)
+        ids = np.empty((h, w), np.uint32)
+        GL.glReadPixels(0, 0, w, h, GL.GL_RED_INTEGER, GL.GL_UNSIGNED_INT, ids)
+        GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT1)
+        z = np.empty((h, w), np.float32)
+        GL.glReadPixels(0, 0, w, h, GL.GL_RED, GL.GL_FLOAT, z)
+        return ids, z
+
+    # -- rendering ----------------------------------------------------------------------------------
+
+    def render(
+        self,
+        intr: Intrinsics,
+        world_from_camera: NDArray[np.float64],
+        built: NDArray[np.bool_],
+        candidates: NDArray[np.bool_],
+    ) -> Layers:
+        """Layers at ``intr``'s size. ``built`` and ``candidates`` are (num_elements + 1,) bool (row 0 unused);
+        an element in both counts as built."""
+        from OpenGL import GL
+
+        if built.shape != (self.num_elements + 1,) or candidates.shape != built.shape:
+            raise ValueError(f"element masks must have shape ({self.num_elements + 1},)")
+        self._current()
+        code_of = np.where(built, 1, np.where(candidates, 2, 0)).astype(np.uint32)
+        codes = np.ascontiguousarray(code_of[self._elements])
+        canvas, lookup = canvas_lookup(intr)
+        w, h = canvas.width_px, canvas.height_px
+        camera_from_world = invert_rigid(np.asarray(world_from_camera, np.float64))
+        lo, hi = self._bbox
+        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        far = float(np.linalg.norm(corners - world_from_camera[:3, 3], axis=1).max() * 1.5 + 1.0)
+        clip_from_world = projection_from_intrinsics(canvas, _NEAR_M, far) @ camera_from_world
+
+        self._ensure_fbo(w, h)
+        GL.glUseProgram(self._program)
+        GL.glBindVertexArray(self._vao)
+        if codes.size:
+            GL.glBindBuffer(GL.GL_ARRAY_BUFFER, self._buffers[2])
+            GL.glBufferSubData(GL.GL_ARRAY_BUFFER, 0, codes.nbytes, codes)
+        GL.glDrawBuffers(2, [GL.GL_COLOR_ATTACHMENT0, GL.GL_COLOR_ATTACHMENT1])
+        GL.glViewport(0, 0, w, h)
+        for cap in (GL.GL_MULTISAMPLE, GL.GL_BLEND, GL.GL_CULL_FACE):
+            GL.glDisable(cap)
+        GL.glEnable(GL.GL_DEPTH_TEST)
+        GL.glDepthFunc(GL.GL_LESS)
+        GL.glUniformMatrix4fv(self._u["clip_from_world"], 1, GL.GL_TRUE, clip_from_world.astype(np.float32))
+        GL.glUniformMatrix4fv(self._u["camera_from_world"], 1, GL.GL_TRUE, camera_from_world.astype(np.float32))
+        GL.glPixelStorei(GL.GL_PACK_ALIGNMENT, 1)
+        GL.glPixelStorei(GL.GL_UNPACK_ALIGNMENT, 1)
+        # built alone: draw built as colour (code 1 as the "candidate" of a pass with nothing in depth)
+        GL.glUniform1i(self._u["skip_front"], 0)
+        GL.glClearBufferuiv(GL.GL_COLOR, 0, np.zeros(4, np.uint32))
+        GL.glClearBufferfv(GL.GL_COLOR, 1, np.full(4, np.inf, np.float32))
+        GL.glClearBufferfv(GL.GL_DEPTH, 0, np.ones(1, np.float32))
+        GL.glUniform1ui(self._u["draw_code"], 1)
+        GL.glDrawArrays(GL.GL_TRIANGLES, 0, len(self._elements))
+        GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT0)
+        ids_b = np.empty((h, w), np.uint32)
+        GL.glReadPixels(0, 0, w, h, GL.GL_RED_INTEGER, GL.GL_UNSIGNED_INT, ids_b)
+        GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT1)
+        z_b = np.empty((h, w), np.float32)
+        GL.glReadPixels(0, 0, w, h, GL.GL_RED, GL.GL_FLOAT, z_b)
+        ids_f, z_f = self._pass(w, h, skip_front=False)
+        GL.glActiveTexture(GL.GL_TEXTURE0)
+        GL.glBindTexture(GL.GL_TEXTURE_2D, self._front_tex)
+        GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MIN_FILTER, GL.GL_NEAREST)
+        GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MAG_FILTER, GL.GL_NEAREST)
+        GL.glTexImage2D(GL.GL_TEXTURE_2D, 0, GL.GL_R32UI, w, h, 0, GL.GL_RED_INTEGER, GL.GL_UNSIGNED_INT, ids_f)
+        GL.glUniform1i(self._u["front_ids"], 0)
+        ids_s, _ = self._pass(w, h, skip_front=True)
+        GL.glBindVertexArray(0)
+        GL.glUseProgram(0)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, 0)
+        out = [ids_b, z_b, ids_f, z_f, ids_s]
+        if lookup is not None:
+            shape = (intr.height_px, intr.width_px)
+            out = [a.ravel()[lookup].reshape(shape) for a in out]
+        return Layers(
+            out[0].astype(np.uint32),
+            out[1].astype(np.float32),
+            out[2].astype(np.uint32),
+            out[3].astype(np.float32),
+            out[4].astype(np.uint32),
+        )
+
+    def close(self) -> None:
+        """Free GL objects (on the owning thread). The EGL display stays for the process (see constructaide.gl)."""
+        if self._gl is None:
+            return
+        from OpenGL import GL
+
+        try:
+            self._gl._platform.make_current()
+            if self._vao:
+                GL.glDeleteVertexArrays(1, [self._vao])
+                GL.glDeleteBuffers(len(self._buffers), self._buffers)
+            if self._fbo:
+                GL.glDeleteFramebuffers(1, [self._fbo])
+                GL.glDeleteRenderbuffers(len(self._rbos), self._rbos)
+            GL.glDeleteTextures([self._front_tex])
+        except Exception:  # context already gone at interpreter exit
+            pass
+        self._vao = self._fbo = 0
+        self._fbo_size = (0, 0)
+
+
+def scaled_intrinsics(intr: Intrinsics, width_px: int, height_px: int) -> Intrinsics:
+    """The same camera for an image resized to ``width_px`` x ``height_px`` (fx scales with the width, fy with the
+    height; pixel centres stay centres)."""
+    sx, sy = width_px / intr.width_px, height_px / intr.height_px
+    return Intrinsics(
+        width_px=width_px,
+        height_px=height_px,
+        f_px=intr.f_px * sx,
+        cx_px=(intr.cx_px + 0.5) * sx - 0.5,
+        cy_px=(intr.cy_px + 0.5) * sy - 0.5,
+        k1=intr.k1,
+        k2=intr.k2,
+        fy_over_fx=intr.fy_over_fx * sy / sx,
+    )

@@ -1,0 +1,177 @@
+"""Progress node: which elements stand, read from the photos; fused per element over photos and time.
+
+Inputs: the BIM model (latched) and updates, photos, registrations, occlusion masks, the sparse cloud and status
+annotations. A registered photo is processed once its first ``combined`` occlusion mask arrives (or on
+registration with ``require_mask = false``); a newer combined mask re-runs it from ``on_idle``. Outputs:
+``PhotoEvidence`` on ``constructaide/{site}/progress/evidence/{photo}`` and ``ProgressUpdate`` (the elements
+whose estimate changed, their tasks, one S-curve point per storey) on ``constructaide/{site}/progress/update``.
+The algorithms live in :mod:`nodes.progress.engine`; this shell only wires topics to it.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+
+import msgspec
+
+from constructaide.runtime import Input, NodeContext, NodeSpec, Output, run_node_cli
+from nodes.progress.engine import EngineParams, ProgressEngine
+from nodes.progress.evidence import EvidenceParams
+from nodes.progress.fusion import FusionParams
+from schemas import keys
+from schemas.messages import (
+    Annotation,
+    BimModel,
+    BimUpdate,
+    OcclusionMask,
+    Photo,
+    PhotoEvidence,
+    ProgressUpdate,
+    Registration,
+    SparseCloud,
+)
+
+
+class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    site: str = "demo"
+    working_width_px: int = 640
+    """Evidence is computed at this width (photos are downscaled)."""
+    require_mask: bool = True
+    """Wait for a photo's combined occlusion mask before reading it (false: read it on registration)."""
+    lookahead_days: float = 14.0
+    """Elements planned to start within this many days of a photo are looked for in it."""
+    schedule_weight: float = 0.5
+    """Share of each element's prior that follows the schedule (the rest is flat over the project)."""
+    tolerance_days: float = 0.0
+    """Deviation tolerance around the planned windows."""
+    work_hours: tuple[float, float] = (7.0, 17.0)
+    """Local working hours, Mon-Fri (the middle of a finish interval is taken in working time)."""
+    max_photos: int = 2000
+    """Photos kept for re-reading on newer masks (the oldest processed ones leave first)."""
+
+
+def engine_params(config: Config) -> EngineParams:
+    return EngineParams(
+        working_width_px=config.working_width_px,
+        lookahead_days=config.lookahead_days,
+        work_hours=config.work_hours,
+        evidence=EvidenceParams(),
+        fusion=FusionParams(schedule_weight=config.schedule_weight, tolerance_days=config.tolerance_days),
+    )
+
+
+class ProgressNode:
+    def __init__(self, config: Config, ctx: NodeContext) -> None:
+        self.config = config
+        self.ctx = ctx
+        self.engine = ProgressEngine(engine_params(config))
+        self.dirty: OrderedDict[str, None] = OrderedDict()  # processed photos to re-read (newer mask)
+        self.waiting: set[str] = set()  # registered, waiting for a mask
+
+    # -- inputs ---------------------------------------------------------------------------------------
+
+    def on_model(self, msg: BimModel, key: str) -> None:
+        self.engine.set_model(msg)
+        self.ctx.log.info("model %s: %d elements, %d tasks", msg.revision, len(msg.elements), len(msg.tasks))
+        self._publish_update(list(self.engine.global_ids))
+        for pid in sorted(self.waiting):
+            self._try(pid)
+
+    def on_update(self, msg: BimUpdate, key: str) -> None:
+        self.engine.apply_update(msg)
+        self._publish_update(list(self.engine.global_ids))
+
+    def on_photo(self, msg: Photo, key: str) -> None:
+        self.engine.add_photo(msg)
+        while len(self.engine.photos) > self.config.max_photos:
+            old = next((p for p in self.engine.photos if p in self.engine.records), next(iter(self.engine.photos)))
+            self.engine.photos.pop(old)
+        self._try(msg.photo_id)
+
+    def on_registration(self, msg: Registration, key: str) -> None:
+        self.engine.add_registration(msg)
+        if msg.photo_id in self.engine.records:
+            self._mark(msg.photo_id)
+        else:
+            self._try(msg.photo_id)
+
+    def on_occlusion(self, msg: OcclusionMask, key: str) -> None:
+        self.engine.add_mask(msg)
+        if msg.kind != "combined":
+            return
+        if msg.photo_id in self.engine.records:
+            self._mark(msg.photo_id)
+        else:
+            self._try(msg.photo_id)
+
+    def on_sparse(self, msg: SparseCloud, key: str) -> None:
+        self.engine.set_sparse(msg)
+
+    def on_annotation(self, msg: Annotation, key: str) -> None:
+        touched = self.engine.add_annotation(msg)
+        if touched:
+            self._publish_update(touched)
+
+    # -- work -----------------------------------------------------------------------------------------
+
+    def _try(self, photo_id: str) -> None:
+        """Read a photo now if it can be read for the first time."""
+        if photo_id in self.engine.records or not self.engine.ready(photo_id):
+            self.waiting.add(photo_id)
+            return
+        if self.config.require_mask and not self.engine.has_mask(photo_id):
+            self.waiting.add(photo_id)
+            return
+        self.waiting.discard(photo_id)
+        self._process(photo_id)
+
+    def _mark(self, photo_id: str) -> None:
+        self.dirty[photo_id] = None
+
+    def on_idle(self) -> bool:
+        """Re-read one photo whose mask or registration changed; True while more wait."""
+        if self.dirty:
+            photo_id, _ = self.dirty.popitem(last=False)
+            if self.engine.ready(photo_id):
+                self._process(photo_id)
+        return bool(self.dirty)
+
+    def _process(self, photo_id: str) -> None:
+        evidence, update = self.engine.process(photo_id)
+        site = self.ctx.site
+        self.ctx.publish(keys.key(keys.PHOTO_EVIDENCE, site=site, photo=photo_id), evidence)
+        self.ctx.publish(keys.key(keys.PROGRESS, site=site), update)
+
+    def _publish_update(self, gids: list[str]) -> None:
+        if self.engine.model is not None:
+            self.ctx.publish(keys.key(keys.PROGRESS, site=self.ctx.site), self.engine.update_message(gids))
+
+    def close(self) -> None:
+        if self.engine.renderer is not None:
+            self.engine.renderer.close()
+
+
+SPEC = NodeSpec(
+    name="progress",
+    description="per-photo evidence of which elements stand; per-element and per-task progress and deviations",
+    config_type=Config,
+    factory=ProgressNode,
+    inputs=(
+        Input(keys.BIM_MODEL, BimModel, "on_model", latched=True),
+        Input(keys.BIM_UPDATE, BimUpdate, "on_update"),
+        Input(keys.PHOTO, Photo, "on_photo"),
+        Input(keys.REGISTRATION, Registration, "on_registration"),
+        Input(keys.OCCLUSION, OcclusionMask, "on_occlusion"),
+        Input(keys.SPARSE, SparseCloud, "on_sparse", latched=True),
+        Input(keys.ANNOTATION, Annotation, "on_annotation"),
+    ),
+    outputs=(Output(keys.PHOTO_EVIDENCE, PhotoEvidence), Output(keys.PROGRESS, ProgressUpdate)),
+)
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_node_cli(SPEC, argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,226 @@
+"""Progress: fusion over time (monotone, change intervals, deviations) and each evidence cue on seeded scenes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from constructaide.camera import look_at
+from constructaide.schedule4d import ElementWindow
+from nodes.progress.evidence import EvidenceParams, photo_evidence, to_lab
+from nodes.progress.fusion import NS_PER_DAY, ElementTrack, FusionParams, Observation, estimate
+from nodes.progress.modelview import LayerRenderer
+from schemas.messages import Intrinsics
+
+D = NS_PER_DAY
+SPAN = (0, 20 * D)
+
+
+def track(window: ElementWindow | None, obs: list[Observation]) -> ElementTrack:
+    tr = ElementTrack("e", window, SPAN)
+    for o in obs:
+        tr.add(o)
+    return tr
+
+
+def daily(change_day: int | None, days: range, strength: float = 4.0) -> list[Observation]:
+    """Fixed-camera transition evidence: strong change on the day the element appears, none on the others."""
+    return [
+        Observation(f"p{d}", d * D, llr_change=strength if d == change_day else -strength, reference_ns=(d - 1) * D)
+        for d in days
+    ]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_fusion_is_monotone_for_construction_and_demolition(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    obs = [
+        Observation(
+            f"p{k}",
+            int(t),
+            llr_state=float(rng.normal(0, 2)),
+            llr_change=float(rng.normal(0, 2)),
+            reference_ns=int(t) - D,
+        )
+        for k, t in enumerate(np.sort(rng.uniform(2 * D, 18 * D, 12)))
+    ]
+    times = np.linspace(0, 20 * D, 60).astype(np.int64)
+    build = track(ElementWindow(build_start_ns=8 * D, build_finish_ns=9 * D), obs).posterior(FusionParams())
+    p = [build.present_at(int(t)) for t in times]
+    assert np.all(np.diff(p) >= -1e-9), "a constructed element never disappears"
+    demolish = track(ElementWindow(remove_start_ns=8 * D, remove_finish_ns=9 * D), obs).posterior(FusionParams())
+    q = [demolish.present_at(int(t)) for t in times]
+    assert np.all(np.diff(q) <= 1e-9), "a demolished element never comes back"
+    temp = track(
+        ElementWindow(build_start_ns=3 * D, build_finish_ns=4 * D, remove_start_ns=14 * D, remove_finish_ns=15 * D), obs
+    ).posterior(FusionParams())
+    r = np.array([temp.present_at(int(t)) for t in times])
+    assert r[0] < r[len(r) // 2] and r[-1] < r[len(r) // 2], "a temporary element stands in between"
+
+
+def test_fusion_places_the_change_and_the_evidence_overrules_the_plan() -> None:
+    params = FusionParams()
+    # planned on day 5, seen appearing between day 11 and 12: behind, finish in (11, 12]
+    tr = track(ElementWindow(build_start_ns=4 * D, build_finish_ns=5 * D), daily(12, range(1, 16)))
+    e = estimate(tr, tr.posterior(params), 15 * D, params)
+    assert e.state == "built" and e.last_absent_ns == 11 * D and e.first_present_ns == 12 * D
+    assert e.deviation == "behind" and 11 * D < (e.finish_ns or 0) <= 12 * D
+    assert e.finish_probability > 0.5
+    assert tr.posterior(params).present_at(10 * D) < 0.3 < 0.7 < tr.posterior(params).present_at(13 * D)
+    # planned on day 10, seen on day 3: ahead
+    tr = track(ElementWindow(build_start_ns=9 * D, build_finish_ns=10 * D), daily(3, range(1, 16)))
+    assert estimate(tr, tr.posterior(params), 15 * D, params).deviation == "ahead"
+    # planned on day 5, never appears but looks absent every day: not built
+    absent = [
+        Observation(f"p{d}", d * D, llr_state=-1.0, llr_change=-4.0, reference_ns=(d - 1) * D) for d in range(1, 16)
+    ]
+    tr = track(ElementWindow(build_start_ns=4 * D, build_finish_ns=5 * D), absent)
+    e = estimate(tr, tr.posterior(params), 15 * D, params)
+    assert e.state == "not_built" and e.deviation == "not_built"
+    # on the plan: on time
+    tr = track(ElementWindow(build_start_ns=6 * D, build_finish_ns=8 * D), daily(7, range(1, 16)))
+    assert estimate(tr, tr.posterior(params), 15 * D, params).deviation == "on_time"
+    # no evidence at all: unknown
+    tr = track(ElementWindow(build_start_ns=6 * D, build_finish_ns=8 * D), [])
+    assert estimate(tr, tr.posterior(params), 15 * D, params).deviation == "unknown"
+
+
+def test_fusion_is_incremental_and_order_free() -> None:
+    """A track's posterior depends on its observations only, not on the order they arrived in."""
+    obs = daily(9, range(1, 15))
+    w = ElementWindow(build_start_ns=8 * D, build_finish_ns=9 * D)
+    a = track(w, obs).posterior(FusionParams())
+    b = track(w, obs[::-1]).posterior(FusionParams())
+    assert [a.present_at(d * D) for d in range(15)] == pytest.approx([b.present_at(d * D) for d in range(15)])
+
+
+# --------------------------------------------------------------------------------------------- cues
+
+W, H = 160, 120
+INTR = Intrinsics(width_px=W, height_px=H, f_px=140.0, cx_px=79.5, cy_px=59.5)
+
+
+def box(lo: tuple[float, float, float], hi: tuple[float, float, float]) -> tuple[np.ndarray, np.ndarray]:
+    import trimesh
+
+    m = trimesh.creation.box(bounds=np.array([lo, hi]))
+    return np.asarray(m.vertices), np.asarray(m.faces, np.int32)
+
+
+@pytest.fixture(scope="module")
+def scene() -> tuple[LayerRenderer, np.ndarray]:
+    """A wall (1), a column (2) beside and behind it, a slab (3) to the other side, seen from 8 m."""
+    r = LayerRenderer()
+    r.set_model(
+        ["wall", "col", "slab"],
+        {
+            "wall": box((-1.5, -0.1, 0.0), (0.5, 0.1, 2.0)),
+            "col": box((-2.6, 0.5, 0.0), (-1.9, 1.2, 2.5)),
+            "slab": box((1.0, -1.0, 0.0), (2.8, 1.0, 0.4)),
+        },
+    )
+    T = look_at((0.0, -8.0, 1.2), (0.0, 0.0, 1.0))
+    return r, T
+
+
+def textured(
+    rng: np.random.Generator, shape: tuple[int, int], rgb: tuple[int, int, int], amp: float = 25.0
+) -> np.ndarray:
+    noise = rng.normal(0, amp, (*shape, 1))
+    return np.clip(np.asarray(rgb, np.float64) + noise, 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_change_cue_attributes_appearance_to_the_right_element(scene, seed: int) -> None:  # noqa: ANN001
+    r, T = scene
+    rng = np.random.default_rng(seed)
+    none = np.zeros(4, bool)
+    cand = np.array([False, True, True, True])
+    layers = r.render(INTR, T, none, cand)
+    ids = layers.ids_all
+    before = textured(rng, (H, W), (90, 140, 80))  # grass, nothing built
+    after = before.copy()
+    wall = ids == 1
+    after[wall] = textured(rng, (H, W), (160, 70, 50))[wall]  # the brick wall appeared
+    after = np.clip(after.astype(int) + rng.normal(0, 2, after.shape), 0, 255).astype(np.uint8)  # sensor noise
+    lab0, lab1 = to_lab(before), to_lab(after)
+    ref = (lab0, np.ones((H, W), bool), np.zeros((H, W), np.int64))
+    cues = {
+        c.index: c
+        for c in photo_evidence(
+            lab1, np.zeros((H, W), bool), layers, ["", "brick", "concrete", "concrete"], EvidenceParams(), reference=ref
+        )
+    }
+    assert cues[1].llr_change > 3.0, "the wall appeared"
+    assert cues[3].llr_change < -2.0, "the slab did not"
+    assert cues[2].llr_change < -2.0, "nor did the column"
+    # occlusion: a mask over the wall makes it occluded, not evidence
+    occ = np.zeros((H, W), bool)
+    occ[wall] = True
+    masked = {
+        c.index: c for c in photo_evidence(lab1, occ, layers, ["", "b", "c", "c"], EvidenceParams(), reference=ref)
+    }
+    assert masked[1].status == "occluded" and masked[1].llr_change == 0.0
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_points_cue_on_surface_and_seen_through(scene, seed: int) -> None:  # noqa: ANN001
+    r, T = scene
+    rng = np.random.default_rng(seed)
+    layers = r.render(INTR, T, np.zeros(4, bool), np.array([False, True, True, True]))
+    lab = to_lab(textured(rng, (H, W), (120, 120, 120)))
+    ys, xs = np.nonzero(layers.ids_front == 1)
+    pick = rng.choice(len(ys), 12, replace=False)
+    px = np.column_stack([xs[pick], ys[pick]]).astype(np.float64)
+    z_wall = layers.depth_front_m[ys[pick], xs[pick]].astype(np.float64)
+    on = photo_evidence(
+        lab,
+        np.zeros((H, W), bool),
+        layers,
+        ["", "a", "b", "c"],
+        EvidenceParams(),
+        points=(px, z_wall + rng.normal(0, 0.03, 12), np.ones(12)),
+    )
+    through = photo_evidence(
+        lab,
+        np.zeros((H, W), bool),
+        layers,
+        ["", "a", "b", "c"],
+        EvidenceParams(),
+        points=(px, z_wall + 3.0 + rng.uniform(0, 2, 12), np.ones(12)),
+    )
+    assert next(c for c in on if c.index == 1).llr_points > 3.0
+    assert next(c for c in through if c.index == 1).llr_points < -3.0
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_appearance_cue_against_its_material_and_what_is_behind(scene, seed: int) -> None:  # noqa: ANN001
+    r, T = scene
+    rng = np.random.default_rng(seed)
+    built = np.array([False, False, False, True])  # the slab stands: its concrete look is known
+    cand = np.array([False, True, True, False])
+    layers = r.render(INTR, T, built, cand)
+    ids = layers.ids_all
+    base = textured(rng, (H, W), (90, 140, 80))  # grass
+    concrete = textured(rng, (H, W), (150, 150, 145), 12.0)
+    img = base.copy()
+    img[ids == 3] = concrete[ids == 3]
+    present_img = img.copy()
+    present_img[ids == 2] = concrete[ids == 2]  # the concrete column stands (the wall in front is absent)
+    mats = ["", "brick", "concrete", "concrete"]
+    confirmed = np.array([0.0, 0.0, 0.0, 1.0])
+    occ = ids == 1  # keep the wall out of it
+    yes = {
+        c.index: c
+        for c in photo_evidence(
+            to_lab(present_img), occ, layers, mats, EvidenceParams(appearance_min_reference_px=30), confirmed=confirmed
+        )
+    }
+    no = {
+        c.index: c
+        for c in photo_evidence(
+            to_lab(img), occ, layers, mats, EvidenceParams(appearance_min_reference_px=30), confirmed=confirmed
+        )
+    }
+    assert yes[2].llr_appearance > 0.5
+    assert no[2].llr_appearance < -0.5
