@@ -50,6 +50,7 @@ from nodes.register.mapper import (
     bootstrap_next,
     click_disagreement_px,
     frame_anchor_order,
+    implausible,
     prune_observations,
     register_anchor,
     register_image_pnp,
@@ -303,6 +304,10 @@ def reconstruct(
             name = recon.images[unmet[0]].name
             n = matched_track_count(recon, unmet[0])
             recon.needs_anchor = [r for r in recon.needs_anchor if r[0] != name] + [(name, unmet[1], n)]
+    for im in recon.images:  # a camera the adjustments could not make plausible is not reported as registered
+        why = implausible(im, cfg) if im.registered else ""
+        if why:
+            im.status, im.message = "failed", f"implausible registration ({im.method}): {why}"
     for i, im in enumerate(recon.images):
         if im.status == "unregistered" and i in failed_pnp and not im.message.startswith("needs"):
             im.message = "PnP failed: " + im.message
