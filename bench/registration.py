@@ -757,8 +757,9 @@ def main(argv: list[str] | None = None) -> int:
     sets = ("temple",) if args.quick else SETS
     if args.sets:
         sets = tuple(x.strip() for x in args.sets.split(","))
-        if unknown := [x for x in sets if x not in SETS]:
-            ap.error(f"unknown set(s) {', '.join(unknown)}; choose from {', '.join(SETS)}")
+        synth = re.compile(r"^synthetic-(tiny|small|default|large)(-\d+)?$")
+        if unknown := [x for x in sets if x not in SETS and not synth.match(x)]:
+            ap.error(f"unknown set(s) {', '.join(unknown)}; choose from {', '.join(SETS)} or synthetic-SIZE-SEED")
     protocols = tuple(x.strip() for x in args.protocols.split(",") if x.strip())
     all_cfgs = {
         "default": MapperConfig(),

@@ -271,7 +271,9 @@ def release_anchors_if_significant(recon: Reconstruction, cfg: MapperConfig) -> 
     reg = recon.registered_indices()
     held = held_anchors(recon, cfg)
     tracked = [i for i in reg if recon.images[i].status == "anchor" and i not in held]
-    if not tracked or len(reg) < 2:
+    n_anchors = sum(1 for i in reg if recon.images[i].status == "anchor")
+    if not tracked or len(reg) < 2 or n_anchors < 2:
+        # One photo's clicks fix its pose but hardly the reconstruction's scale: that anchor stays held.
         return float("nan")
     n_grp = len(set(principal_point_groups(recon, reg).tolist())) if cfg.share_principal_point else len(reg)
     snap = snapshot(recon)

@@ -51,6 +51,8 @@ class MapperConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     model_point_tolerance: float = 0.02
     # A PnP pose must explain this fraction of the verified matches to registered images (epipolar check).
     min_pose_pair_agreement: float = 0.7
+    # ... over the pairs with photos within this distance by GPS (m; None: all pairs), when the photo has GPS.
+    agreement_max_gps_apart_m: float | None = 40.0
     epipolar_weight: float = 1.0
     min_triangulation_angle_deg: float = 2.0
     max_obs_error_frac: float = 0.005
@@ -181,7 +183,8 @@ class MapperConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     bootstrap_min_matches: int = 100
     bootstrap_min_parallax_deg: float = 2.0
     bootstrap_click_radius_frac: float = 0.05
-    bootstrap_max_scale_spread: float = 0.1
+    bootstrap_max_scale_spread: float = 0.05
+    bootstrap_min_scale_agreement: float = 0.4
     # Standard deviation (px, relative to a user's click) of clicks carried into a bootstrapped photo by local
     # homographies of the matches around them: they hold the baseline's length, not the pose.
     carried_click_sigma_px: float = 5.0

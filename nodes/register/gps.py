@@ -182,10 +182,3 @@ def gps_check(
         cfg.gps_sigma_m,
     )
     return why
-
-
-def gps_apart_m(a: GeoPoint | None, b: GeoPoint | None) -> float:
-    """Horizontal distance (m) between two GPS positions, NaN when either is missing."""
-    if a is None or b is None:
-        return float("nan")
-    return horizontal_distance_m(a, b)

@@ -11,9 +11,11 @@ from nodes.register.config import MapperConfig
 from nodes.register.features import (
     homography_inlier_ratio,
 )
-from nodes.register.gps import gps_apart_m, gps_check
+from nodes.register.gps import gps_check
 from nodes.register.pose import (
     fit_rotation_about_centre,
+    focal_from_fundamental,
+    horizontal_apart_m,
     pose_pair_agreement,
     project_pose,
     rays_from_pixels,
@@ -89,7 +91,7 @@ def try_homography_transfer(recon: Reconstruction, src: int, idx: int, cfg: Mapp
         return False
     # The transfer's premise is the same viewpoint; GPS fixes far apart say otherwise (a repeated print, e.g. site
     # hoarding, gives one homography for most matches of two photos taken 50 m apart, and no image test can tell).
-    apart = gps_apart_m(a.gps, im.gps)
+    apart = horizontal_apart_m(a.gps, im.gps)
     if cfg.gps_max_homography_distance_m is not None and apart > cfg.gps_max_homography_distance_m:
         im.message = f"homography from {a.name} refused: GPS positions {apart:.0f} m apart"
         return False
@@ -208,14 +210,20 @@ def _neighbour_scale_ratios(
     click_px: np.ndarray, click_depth_m: np.ndarray, px: np.ndarray, depth_unit: np.ndarray, radius_px: float, k: int
 ) -> np.ndarray:
     """Per click (K, 2) with its model depth (K,): the model depth over the median unit depth of the <= ``k``
-    nearest of the points (N, 2) px with unit depths (N,) within ``radius_px`` (NaN without at least 3)."""
+    nearest of the points (N, 2) px with unit depths (N,) within ``radius_px`` (NaN without at least 3, or when
+    their depths spread by more than 5 % about their median: the click is on an edge between surfaces)."""
     out = np.full(len(click_px), np.nan)
     for c, (p, d) in enumerate(zip(click_px, click_depth_m, strict=True)):
         dist = np.linalg.norm(px - p, axis=1)
         near = np.argsort(dist)[:k]
         near = near[dist[near] <= radius_px]
-        if len(near) >= 3 and d > 0:
-            out[c] = d / float(np.median(depth_unit[near]))
+        if len(near) < 3 or d <= 0:
+            continue
+        z = depth_unit[near]
+        zm = float(np.median(z))
+        # Neighbours at several depths (the click sits on an edge between surfaces): no ratio from them.
+        if zm > 0 and float(np.median(np.abs(z / zm - 1))) <= 0.05:
+            out[c] = d / zm
     return out
 
 
@@ -272,8 +280,9 @@ def try_relative_pose(recon: Reconstruction, ref: int, idx: int, cfg: MapperConf
     ``idx``'s focal prior), ``ref``'s pose held, and the baseline's length from what is known in ``ref``'s view:
     the triangulated points among the matches (their depth over the unit-baseline depth), else ``ref``'s clicks
     (each click's model depth over the unit-baseline depths of the matches around it). The motion whose length
-    ratios agree best is taken; they must agree within ``bootstrap_max_scale_spread`` (median relative deviation:
-    the wrong motion of a planar scene gives a tilted plane, whose ratios drift across the image). The clicks are
+    ratios agree best is taken: the most within ``bootstrap_max_scale_spread`` of each other, at least 3 and
+    ``bootstrap_min_scale_agreement`` of them (the wrong motion of a planar scene gives a tilted plane, whose ratios
+    drift across the image; a click on an edge or on something in front disagrees alone). The clicks are
     then carried into ``idx`` by local homographies of their neighbouring matches (checked against the pose and
     kept as constraints that hold the baseline in the adjustments). Needs a median ray angle of
     ``bootstrap_min_parallax_deg``. Returns True when registered."""
@@ -285,6 +294,11 @@ def try_relative_pose(recon: Reconstruction, ref: int, idx: int, cfg: MapperConf
     px_r = r.features.keypoints_px[m[:, 0]].astype(np.float64)
     px_u = im.features.keypoints_px[m[:, 1]].astype(np.float64)
     intr_u = camera_lens(recon, idx, cfg)
+    if not np.isfinite(focal_sigma_frac(im, cfg)) and im.camera_id is None:
+        # No focal prior (no EXIF): the pair's fundamental matrix with the calibrated reference gives it.
+        f_u = focal_from_fundamental(p[1], cam.K_matrix(r.camera), im.width_px, im.height_px)
+        if f_u is not None:
+            intr_u = with_focal(intr_u, f_u)
     x_r = cam.pixels_to_normalized(r.intrinsics, px_r)
     x_u = cam.pixels_to_normalized(intr_u, px_u)
     thr = max(cfg.fundamental_threshold_frac * im.width_px / intr_u.f_px, 1e-4)
@@ -321,35 +335,47 @@ def try_relative_pose(recon: Reconstruction, ref: int, idx: int, cfg: MapperConf
         tr = tracks_all[sel]
         known = tr >= 0
         known[known] = np.all(np.isfinite(recon.points[tr[known]]), axis=1)
+        source = np.zeros(0, np.int64)  # the clicks the ratios come from (none for track points)
         if known.sum() >= 5:
             ratios = (recon.points[tr[known]] @ T_r[:3, :3].T + T_r[:3, 3])[:, 2] / X[known, 2]
             how = f"{int(known.sum())} triangulated points"
         elif clicks is not None:
             ratios = _neighbour_scale_ratios(clicks[0], clicks[2], px_r[sel], X[:, 2], radius, 8)
-            ratios = ratios[np.isfinite(ratios)]
+            source = np.nonzero(np.isfinite(ratios))[0]
+            ratios = ratios[source]
             how = f"{len(ratios)} clicks"
         else:
             ratios = np.zeros(0)
         if len(ratios) < 3 or not np.all(ratios > 0):
             why = f"relative pose from {r.name}: no known depth in {r.name} to fix the baseline"
             continue
-        scale = float(np.median(ratios))
-        spread = float(np.median(np.abs(ratios / scale - 1)))
-
-        if best is None or spread < best[0]:
-            best = (spread, R, t, scale, sel, parallax, how)
+        # The largest set of ratios agreeing within the tolerance (clicks on an edge or on something in front
+        # disagree; the wrong motion of a planar scene drifts them all across the image).
+        tol = cfg.bootstrap_max_scale_spread
+        agree = np.abs(ratios[None, :] / ratios[:, None] - 1) <= tol
+        centre = int(np.argmax(agree.sum(1)))
+        members = ratios[agree[centre]]
+        score = (len(members) / len(ratios), -float(np.std(members / np.median(members))))
+        if best is None or score > best[0]:
+            used = source[agree[centre]] if len(source) else source
+            best = (score, R, t, float(np.median(members)), sel, parallax, how, len(members), len(ratios), used)
     if best is None:
         im.message = why
         return False
-    spread, R, t, scale, sel, parallax, how = best
-    if spread > cfg.bootstrap_max_scale_spread:
-        im.message = f"relative pose from {r.name}: baseline lengths from {how} disagree by {spread:.0%}"
+    _, R, t, scale, sel, parallax, how, n_agree, n_all, used = best
+    if n_agree < max(3, cfg.bootstrap_min_scale_agreement * n_all):
+        im.message = (
+            f"relative pose from {r.name}: baseline lengths from {how} disagree (only {n_agree} of {n_all} within "
+            f"{cfg.bootstrap_max_scale_spread:.0%})"
+        )
         return False
     transferred = None
-    if clicks is not None:
-        q, ok = _transfer_clicks(clicks[0], px_r[sel], px_u[sel], radius, 2.0)
+    if clicks is not None and len(used):
+        # Only the clicks whose surroundings agreed on the scale are carried (on one surface, a local homography
+        # of the matches around them carries them well).
+        q, ok = _transfer_clicks(clicks[0][used], px_r[sel], px_u[sel], radius, 2.0)
         if ok.sum() >= 3:
-            transferred = (q[ok], clicks[1][ok])
+            transferred = (q[ok], clicks[1][used][ok])
     front = sel
     T_u = cam.rigid(R, scale * t) @ T_r  # idx camera from world
     world_from_camera = cam.invert_rigid(T_u)
@@ -359,7 +385,9 @@ def try_relative_pose(recon: Reconstruction, ref: int, idx: int, cfg: MapperConf
         if not off <= cfg.click_check_max_frac * im.width_px:
             im.message = f"relative pose from {r.name} puts the carried clicks {off:.0f} px off (median)"
             return False
-    agree = pose_pair_agreement(recon, idx, intr_u, world_from_camera, 2 * cfg.pnp_inlier_frac * im.width_px)
+    agree = pose_pair_agreement(
+        recon, idx, intr_u, world_from_camera, 2 * cfg.pnp_inlier_frac * im.width_px, cfg.agreement_max_gps_apart_m
+    )
     if agree < cfg.min_pose_pair_agreement:
         im.message = f"relative pose from {r.name} explains only {agree:.0%} of the verified matches"
         return False
@@ -487,7 +515,9 @@ def register_image_pnp(recon: Reconstruction, idx: int, cfg: MapperConfig) -> bo
         if tilt > cfg.max_tilt_from_upright_deg:
             im.message = f"PnP pose tilted {tilt:.0f} deg from upright (> {cfg.max_tilt_from_upright_deg:g})"
             return False
-    agree = pose_pair_agreement(recon, idx, intr, cam.invert_rigid(cam.rigid(R, tv)), 2 * thr)
+    agree = pose_pair_agreement(
+        recon, idx, intr, cam.invert_rigid(cam.rigid(R, tv)), 2 * thr, cfg.agreement_max_gps_apart_m
+    )
     if agree < cfg.min_pose_pair_agreement:
         im.message = (
             f"PnP pose explains only {agree:.0%} of the verified matches to registered images "

@@ -8,9 +8,10 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from constructaide import camera as cam
+from constructaide.geo import horizontal_distance_m
 from nodes.register.config import MapperConfig
 from nodes.register.recon import Reconstruction, focal_prior
-from schemas.messages import Intrinsics
+from schemas.messages import GeoPoint, Intrinsics
 
 
 def with_focal(intr: Intrinsics, f_px: float) -> Intrinsics:
@@ -185,6 +186,13 @@ def solve_pose_epipolar(
     return sol.x[:3], sol.x[3:6], f
 
 
+def horizontal_apart_m(a: GeoPoint | None, b: GeoPoint | None) -> float:
+    """Horizontal distance (m) between two GPS positions, NaN when either is missing."""
+    if a is None or b is None:
+        return float("nan")
+    return horizontal_distance_m(a, b)
+
+
 def epipolar_agreement(
     x_other: np.ndarray, x_this: np.ndarray, this_from_other: np.ndarray, f_px: float, thr_px: float
 ) -> tuple[int, int]:
@@ -202,21 +210,32 @@ def epipolar_agreement(
 
 
 def pose_pair_agreement(
-    recon: Reconstruction, idx: int, intr: Intrinsics, world_from_camera: np.ndarray, thr_px: float
+    recon: Reconstruction,
+    idx: int,
+    intr: Intrinsics,
+    world_from_camera: np.ndarray,
+    thr_px: float,
+    max_gps_apart_m: float | None = None,
 ) -> float:
     """Fraction of the verified matches between image ``idx`` and registered images whose epipolar distance (px,
     in image ``idx``) under the candidate pose is below ``thr_px`` (1.0 without such pairs; pairs sharing the
-    camera centre are not counted; a fixed camera with registered frames of its own is checked against those). A
-    pose fitted to matches on repeated texture (the same lettering on two sides of a site) disagrees with the other
-    matches."""
+    camera centre are not counted; a fixed camera with registered frames of its own is checked against those, a
+    photo with GPS against the photos within ``max_gps_apart_m`` of it when there are any). A pose fitted to
+    matches on repeated texture (the same lettering on two sides of a site) disagrees with the other matches."""
     n_ok, n_all = 0, 0
     this_from_world = cam.invert_rigid(world_from_camera)
     partners = [j for j in recon.registered_indices() if j != idx and recon.pair(j, idx) is not None]
-    own = recon.images[idx].camera_id
+    im = recon.images[idx]
+    own = im.camera_id
     if own is not None and any(recon.images[j].camera_id == own for j in partners):
         # A fixed camera's own earlier frames overlap its view for sure; other cameras' pairs may be matches of
         # repeated texture only, which no pose explains.
         partners = [j for j in partners if recon.images[j].camera_id == own]
+    elif max_gps_apart_m is not None and im.gps is not None:
+        # Photos whose GPS positions lie further apart than a view of the site spans share repeated texture (the
+        # same print on two sides of a site), not the same surfaces: their pairs do not count.
+        near = [j for j in partners if not horizontal_apart_m(im.gps, recon.images[j].gps) > max_gps_apart_m]
+        partners = near or partners
     for j in partners:
         p = recon.pair(j, idx)
         if p is None:
@@ -252,3 +271,31 @@ def relative_rotation_deg(recon: Reconstruction, a: int, b: int, cfg: MapperConf
     E = K[1].T @ F @ K[0]
     _, R, _, _ = cv2.recoverPose(E, xy[0], xy[1], np.eye(3))
     return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def focal_from_fundamental(F_u_from_r: np.ndarray, K_ref: np.ndarray, width_px: int, height_px: int) -> float | None:
+    """Focal (px) of an uncalibrated image from its fundamental matrix with a calibrated one (``x_u^T F x_r = 0``,
+    reference pinhole ``K_ref``; a centred principal point assumed): the focal whose essential matrix
+    ``K_u^T F K_ref`` is closest to having two equal singular values (a search over 0.3-3 widths, then refined).
+    None when the pair does not determine it (no clear minimum)."""
+    F = np.asarray(F_u_from_r, np.float64)
+    c = np.array([(width_px - 1) / 2.0, (height_px - 1) / 2.0])
+
+    def cost(f: float) -> float:
+        K = np.array([[f, 0.0, c[0]], [0.0, f, c[1]], [0.0, 0.0, 1.0]])
+        sv = np.linalg.svd(K.T @ F @ K_ref, compute_uv=False)
+        return float((sv[0] - sv[1]) / max(sv[0], 1e-18))
+
+    fs = np.geomspace(0.3 * width_px, 3.0 * width_px, 200)
+    costs = np.array([cost(f) for f in fs])
+    k = int(np.argmin(costs))
+    if k in (0, len(fs) - 1) or costs[k] > 0.5 * float(np.median(costs)):
+        return None
+    lo, hi = fs[k - 1], fs[k + 1]
+    for _ in range(40):  # golden-section refinement
+        m1, m2 = lo + 0.382 * (hi - lo), lo + 0.618 * (hi - lo)
+        if cost(m1) < cost(m2):
+            hi = m2
+        else:
+            lo = m1
+    return float(0.5 * (lo + hi))

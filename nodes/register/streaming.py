@@ -72,6 +72,10 @@ class StreamConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     local_ba_window: int = 6
     local_ba_iterations: int = 8
     global_ba_every: int = 10
+    key_frame_every_secs: float | None = 2 * 86400.0
+    """A fixed camera's fast-path frame joins the map (SIFT, matches, model points) when the camera has no photo in
+    it from this long before: the site changes, and later photos (phones above all) match what it looks like now
+    (None: never)."""
     """A bundle adjustment of the whole map after this many new registered images (0: never)."""
     viewpoint_max_neighbours: int = 30
     viewpoint_max_angle_deg: float = 20.0
@@ -231,6 +235,16 @@ class StreamingRegistrar:
                 changed = self._record(
                     photo, res.intrinsics, res.world_from_camera, res.method, (res.inlier_ratio, res.num_inliers)
                 )
+                grew = self._wants_key_frame(photo)
+                if grew:  # the site changes: a fixed camera's frame now and then joins the map (other photos match it)
+                    idx = self._ensure_image(photo)
+                    im = self.recon.images[idx]
+                    im.intrinsics, im.world_from_camera = res.intrinsics, res.world_from_camera
+                    im.status, im.method, im.message, im.num_inliers = "auto", res.method, res.note, res.num_inliers
+                    self._match(idx)
+                    link_image_tracks(self.recon, idx)
+                    changed += [p for p in self._grow(photo, idx, trusted=True) if p not in changed]
+                    res.note += "; joined the map as a key frame"
                 reg = self._registration(
                     photo,
                     "auto",
@@ -242,7 +256,7 @@ class StreamingRegistrar:
                     res.note,
                     t0,
                 )
-                return Outcome(reg, viewpoint_changed=changed)
+                return Outcome(reg, viewpoint_changed=changed, map_changed=grew)
         if not self.has_registrations():
             reason = "no registered images yet: anchor clicks are needed"
             return Outcome(self._failed(photo, reason, t0), needs_anchor=reason)
@@ -339,12 +353,25 @@ class StreamingRegistrar:
         names = ", ".join(r.images[j].name for j in partners[:3])
         return f"matched {len(partners)} registered photo(s) ({names}) but {'; '.join(n for n in notes if n)}"
 
-    def _grow(self, photo: PhotoInput, idx: int) -> list[str]:
-        """After image ``idx`` registered: model points, triangulation, adjustment, plausibility, densification,
-        viewpoint edges, fast-path state and pose records. Returns photo ids whose viewpoint group changed."""
+    def _wants_key_frame(self, photo: PhotoInput) -> bool:
+        """Whether a fast-path frame joins the map: its camera has no photo in it from the last
+        ``key_frame_every_secs``."""
+        every = self.config.key_frame_every_secs
+        if every is None or photo.camera_id is None:
+            return False
+        last = max(
+            (im.capture_time_ns for im in self.recon.images if im.registered and im.camera_id == photo.camera_id),
+            default=None,
+        )
+        return last is None or photo.capture_time_ns - last >= every * 1e9
+
+    def _grow(self, photo: PhotoInput, idx: int, trusted: bool = False) -> list[str]:
+        """After image ``idx`` registered: model points (anchors, and ``trusted`` poses: a fixed camera's fast-path
+        frame), triangulation, adjustment, plausibility, densification, viewpoint edges, fast-path state and pose
+        records. Returns photo ids whose viewpoint group changed."""
         r, cfg, c = self.recon, self.mcfg, self.config
         im = r.images[idx]
-        if im.status == "anchor" and self.depth_lookup is not None:
+        if (im.status == "anchor" or trusted) and self.depth_lookup is not None:
             pts = self._lookup(im.pose, im.camera, im.features.keypoints_px, im.capture_time_ns)
             mapper.add_model_points(r, idx, pts)
         mapper.prune_observations(r, idx, cfg)
