@@ -76,7 +76,7 @@ class Pooled:
 
 
 def load_photos(site: Path) -> list[PhotoRec]:
-    from nodes.ingest.photos import photo_from_file
+    from constructaide.photos import photo_from_file
 
     cfg = tomllib.loads((site / "site.toml").read_text())
     tz = cfg.get("site", {}).get("tz", "UTC")

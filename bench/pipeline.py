@@ -31,7 +31,6 @@ import time
 from collections import defaultdict
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -41,10 +40,10 @@ sys.path.insert(0, str(ROOT / "bench"))
 from _report import median, table, write_section  # noqa: E402
 
 from constructaide import camera as cam  # noqa: E402
+from constructaide.imagecodec import decode_unchanged, mask_of_message  # noqa: E402
+from constructaide.recording import decoded_messages  # noqa: E402
 from constructaide.synth import ensure_site  # noqa: E402
 from constructaide.synth.truth import load_cameras, load_depth, load_ids, load_mask, true_camera  # noqa: E402
-from nodes.recorder.mcapio import iter_messages  # noqa: E402
-from schemas.codec import decode  # noqa: E402
 from schemas.messages import OcclusionMask, Overlay, Registration  # noqa: E402
 
 
@@ -77,11 +76,7 @@ def final_outputs(recording: Path) -> tuple[dict, dict, dict]:
     regs: dict[str, Registration] = {}
     masks: dict[str, dict[str, OcclusionMask]] = defaultdict(dict)
     overlays: dict[str, Overlay] = {}
-    wanted = ("Registration", "OcclusionMask", "Overlay")
-    for rec in iter_messages(recording, allow_truncated=True):
-        if rec.type_name.rsplit(".", 1)[-1] not in wanted:
-            continue
-        msg = decode(rec.payload)
+    for _key, msg in decoded_messages(recording, (Registration, OcclusionMask, Overlay), allow_truncated=True):
         if isinstance(msg, Registration):
             regs[msg.photo_id] = msg
         elif isinstance(msg, OcclusionMask):
@@ -91,26 +86,17 @@ def final_outputs(recording: Path) -> tuple[dict, dict, dict]:
     return regs, masks, overlays
 
 
-def _decode(png: bytes, flags: int) -> np.ndarray:
-    img = cv2.imdecode(np.frombuffer(png, np.uint8), flags)
-    if img is None:
-        raise ValueError("undecodable image in the recording")
-    return img
-
-
 def mask_of(msg: OcclusionMask | None, shape: tuple[int, int]) -> np.ndarray:
     """(H, W) bool mask of a message; empty for a missing message or one without a usable mask."""
-    if msg is None or msg.status != "ok" or not msg.mask_png:
-        return np.zeros(shape, bool)
-    m = _decode(msg.mask_png, cv2.IMREAD_GRAYSCALE) > 127
-    return m if m.shape == shape else cv2.resize(m.astype(np.uint8), shape[::-1], cv2.INTER_NEAREST) > 0
+    m = mask_of_message(msg, shape)
+    return np.zeros(shape, bool) if m is None else m
 
 
 def footprint_of(msg: Overlay | None, shape: tuple[int, int]) -> np.ndarray:
     """(H, W) bool: pixels where the overlay draws the model (alpha > 0 of an RGBA layer)."""
     if msg is None or not msg.image_png:
         return np.zeros(shape, bool)
-    img = _decode(msg.image_png, cv2.IMREAD_UNCHANGED)
+    img = decode_unchanged(msg.image_png, "state4d overlay")
     if img.ndim != 3 or img.shape[2] != 4:
         raise ValueError("state4d overlay is not an RGBA layer (render node composite=True?)")
     return img[..., 3] > 0

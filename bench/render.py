@@ -24,11 +24,11 @@ import constructaide  # noqa: E402,F401  (EGL platform)
 from bench._report import median, table, write_section  # noqa: E402
 from constructaide.camera import centered_intrinsics, focal_xy, look_at  # noqa: E402
 from constructaide.gl import offscreen_renderer  # noqa: E402
-from nodes.render.engine import encode_png  # noqa: E402
+from constructaide.imagecodec import encode_png_rgb  # noqa: E402
+from constructaide.modelscene import scene_from_model  # noqa: E402
+from constructaide.modelview import GLRasterizer  # noqa: E402
 from nodes.render.overlays import MODES, ScheduleView, composite, render_overlay  # noqa: E402
 from nodes.render.photoreal import PhotorealRenderer  # noqa: E402
-from nodes.render.raster import GLRasterizer  # noqa: E402
-from nodes.render.scene import scene_from_model  # noqa: E402
 from nodes.render.sun import sun_direction_in_site, sun_position  # noqa: E402
 
 _KEEP: list = []
@@ -106,8 +106,8 @@ def id_agreement(size: str = "small") -> tuple[int, float, float]:
     Returns (photos, mean agreement, worst agreement) as fractions of compared pixels.
     """
     from constructaide.bimgeom import glb_to_meshes
+    from constructaide.modelscene import build_scene
     from constructaide.synth import ensure_site, truth
-    from nodes.render.scene import build_scene
     from schemas.messages import BimElement
 
     site = ensure_site(size, 0, ROOT / ".cache" / "synth")
@@ -157,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
             )
             for m in MODES
         }
-        png_ms = _timed(lambda: encode_png(photo), args.runs)  # noqa: B023
+        png_ms = _timed(lambda: encode_png_rgb(photo), args.runs)  # noqa: B023
         gps = model.gps
         sun = sun_position(gps.lat_deg, gps.lon_deg, at) if gps else sun_position(51.86, 5.86, at)
         sun_dir = sun_direction_in_site(sun)

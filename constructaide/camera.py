@@ -75,6 +75,28 @@ def centered_intrinsics(
     )
 
 
+def scaled_intrinsics(intr: Intrinsics, width_px: int, height_px: int) -> Intrinsics:
+    """Intrinsics of the same camera for its image resized to (width_px, height_px): fx scales with the width, fy
+    with the height (a resize that changes the aspect changes ``fy_over_fx``); pixel centres map as
+    ``u -> s (u + 0.5) - 0.5``. ValueError for a non-positive size or focal length."""
+    if intr.width_px <= 0 or intr.height_px <= 0 or intr.f_px <= 0 or width_px <= 0 or height_px <= 0:
+        raise ValueError(
+            f"intrinsics need a positive image size and focal length, got {intr} -> {width_px}x{height_px}"
+        )
+    sx = width_px / intr.width_px
+    sy = height_px / intr.height_px
+    return Intrinsics(
+        width_px=width_px,
+        height_px=height_px,
+        f_px=intr.f_px * sx,
+        cx_px=sx * (intr.cx_px + 0.5) - 0.5,
+        cy_px=sy * (intr.cy_px + 0.5) - 0.5,
+        k1=intr.k1,
+        k2=intr.k2,
+        fy_over_fx=intr.fy_over_fx * sy / sx,
+    )
+
+
 def focal_from_fov(width_px: int, fov_deg: float = 50.0) -> float:
     """Focal length in pixels for a horizontal field of view."""
     return 0.5 * width_px / np.tan(np.radians(fov_deg) / 2.0)

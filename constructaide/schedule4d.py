@@ -10,7 +10,7 @@ build it (start = earliest start, finish = latest finish), ``demolition`` tasks 
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -159,3 +159,29 @@ def states_at(tasks: Iterable[ScheduleTask], element_ids: Iterable[str], at_ns: 
     """Planned state of every element in ``element_ids`` at ``at_ns``."""
     windows = element_windows(tasks)
     return {gid: planned_state(windows.get(gid), at_ns) for gid in element_ids}
+
+
+STANDING_STATES: frozenset[State] = frozenset({"complete", "under_demolition", "unscheduled"})
+"""States in which an element stands whole (what a camera sees of the model at that time)."""
+
+
+def standing_elements(tasks: Iterable[ScheduleTask], element_ids: Iterable[str]) -> Callable[[int], set[str] | None]:
+    """``elements_at(t_ns)``: the elements of ``element_ids`` standing at ``t_ns`` by the schedule.
+
+    Actual dates win over planned ones; complete, under-demolition and unscheduled elements stand; elements under
+    construction do not (their full geometry would hide what is really visible behind them). With no tasks every
+    element stands: ``elements_at`` returns None (no filter).
+    """
+    windows = element_windows(tasks)
+    ids = list(element_ids)
+    if not windows:
+        return lambda t_ns: None
+
+    def elements_at(t_ns: int) -> set[str] | None:
+        return {
+            gid
+            for gid in ids
+            if (actual_state(windows.get(gid), t_ns) or planned_state(windows.get(gid), t_ns)) in STANDING_STATES
+        }
+
+    return elements_at

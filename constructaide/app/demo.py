@@ -177,8 +177,8 @@ def _latest_status(items: list) -> dict[str, str]:
 
 def main(argv: list[str]) -> int:
     from constructaide.app.cli import cache_dir
+    from constructaide.photos import photo_from_file
     from constructaide.synth import ensure_site
-    from nodes.ingest.photos import photo_from_file
 
     ap = argparse.ArgumentParser(prog="constructaide demo", description=__doc__)
     ap.add_argument("--size", default="default", choices=["small", "default", "large"], help="synthetic site size")

@@ -20,10 +20,10 @@ from pathlib import Path
 
 import msgspec
 
+from constructaide.photos import MAX_PIXELS, PhotoError, photo_from_bytes
 from constructaide.runtime import Input, NodeContext, NodeSpec, Output, run_node_cli
 from nodes.ingest.ifc import load_site_model
 from nodes.ingest.model import SiteModel
-from nodes.ingest.photos import MAX_PIXELS, PhotoError, photo_from_bytes
 from nodes.ingest.revisions import diff_models, revision_id, to_bim_model
 from nodes.ingest.watcher import FolderWatcher, SeenHashes, content_hash
 from schemas import keys

@@ -562,7 +562,7 @@ def smooth_scores(photo: F32, scores: list[F32], params: DynamicParams) -> list[
         smoothed = cv2.ximgproc.jointBilateralFilter(
             photo, stacked, params.bilateral_diameter_px, params.bilateral_sigma_color, params.bilateral_sigma_space_px
         )
-        out += [smoothed[..., c] for c in range(len(chunk))]
+        out += [np.asarray(smoothed[..., c], np.float32) for c in range(len(chunk))]
     return out
 
 
@@ -733,7 +733,9 @@ def clean_plate(photo_full: U8, mask_small: U8, mask: U8, background_small: F32,
     size = (X1 - X0, Y1 - Y0)
     bg = cv2.resize((background_small[y0:y1, x0:x1] * 255.0).astype(np.uint8), size, interpolation=cv2.INTER_LINEAR)
     covered = cv2.resize((count[y0:y1, x0:x1] > 0).astype(np.uint8), size, interpolation=cv2.INTER_NEAREST)
-    m = cv2.dilate(mask[Y0:Y1, X0:X1], np.ones((5, 5), np.uint8)) & (covered * 255)
+    m = np.asarray(cv2.dilate(mask[Y0:Y1, X0:X1], np.ones((5, 5), np.uint8)), np.uint8) & np.asarray(
+        covered * 255, np.uint8
+    )
     alpha = cv2.GaussianBlur(m, (0, 0), 2.0).astype(np.float32) * np.float32(1.0 / 255.0)
     plate[Y0:Y1, X0:X1] = cv2.blendLinear(bg, np.ascontiguousarray(photo_full[Y0:Y1, X0:X1]), alpha, 1.0 - alpha)
     return plate
@@ -777,7 +779,7 @@ def _finish(
     photo_full: U8, small: U8, background: F32 | None, count: NDArray[np.int32] | None, params: DynamicParams
 ) -> tuple[U8, U8 | None]:
     """Full-resolution mask of a working-size 0/255 mask and the clean plate (None without a background)."""
-    soft = cv2.GaussianBlur(small.astype(np.float32) / 255.0, (3, 3), 0)
+    soft = np.asarray(cv2.GaussianBlur(small.astype(np.float32) / 255.0, (3, 3), 0), np.float32)
     mask = upsample_mask(soft, photo_full, params.guided_radius_px, params.guided_eps)
     if background is None or count is None:
         return mask, None

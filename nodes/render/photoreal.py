@@ -28,14 +28,15 @@ from __future__ import annotations
 import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from constructaide.camera import focal_xy
-from nodes.render.raster import GLRasterizer, render_geometry
-from nodes.render.scene import BimScene
+from constructaide.modelscene import BimScene
+from constructaide.modelview import GLRasterizer, render_geometry
 from schemas.messages import BimElement, Intrinsics
 
 # pyrender 0.1.45 computes scene bounds (needed for shadow maps) with ``np.infty``, removed in NumPy 2.
@@ -162,7 +163,7 @@ class PhotorealRenderer:
         self.rasterizer = rasterizer
         self.library = library or MaterialLibrary()
         self._cache_key: tuple | None = None
-        self._scenes = None
+        self._scenes: tuple[Any, Any] | None = None
 
     def _build(self, scene: BimScene, visible: NDArray[np.bool_], ground_z_m: float):
         import pyrender
