@@ -97,6 +97,16 @@ def scaled_intrinsics(intr: Intrinsics, width_px: int, height_px: int) -> Intrin
     )
 
 
+def resized_pixels(pixels_px: ArrayLike, from_size: tuple[int, int], to_size: tuple[int, int]) -> F64:
+    """Pixels (N, 2) of an image of ``from_size`` (width, height) in the same image resized to ``to_size``
+    (pixel centres map as ``u -> s (u + 0.5) - 0.5``)."""
+    px = np.asarray(pixels_px, np.float64).reshape(-1, 2)
+    if tuple(from_size) == tuple(to_size):
+        return px.copy()
+    s = np.array([to_size[0] / from_size[0], to_size[1] / from_size[1]])
+    return s * (px + 0.5) - 0.5
+
+
 def focal_from_fov(width_px: int, fov_deg: float = 50.0) -> float:
     """Focal length in pixels for a horizontal field of view."""
     return 0.5 * width_px / np.tan(np.radians(fov_deg) / 2.0)

@@ -90,12 +90,15 @@ class RenderGeometry:
     flattened pixels (nearest neighbour) for every photo pixel, or is ``None`` when the photo has
     no distortion and the render is the photo grid itself. ``map_x``/``map_y`` (H, W) float32 are
     the exact render coordinates for ``cv2.remap`` (bilinear resampling of colour renders).
+    ``outside`` (H, W) bool marks photo pixels whose ray the render does not cover (a strong distortion that folds
+    back, or that looks beyond three times the pinhole field of view): they show nothing; None when there are none.
     """
 
     render_intrinsics: Intrinsics
     lookup_flat: NDArray[np.int64] | None
     map_x: NDArray[np.float32] | None = None
     map_y: NDArray[np.float32] | None = None
+    outside: NDArray[np.bool_] | None = None
 
 
 def projection_from_intrinsics(intr: Intrinsics, near_m: float, far_m: float) -> NDArray[np.float64]:
@@ -125,24 +128,30 @@ def render_geometry(intr: Intrinsics, margin_px: int = 4) -> RenderGeometry:
         return RenderGeometry(render_intrinsics=intr, lookup_flat=None)
     w, h = intr.width_px, intr.height_px
     xy = _undistorted_grid(intr).reshape(-1, 2)
-    if not np.all(np.isfinite(xy)):
-        raise ValueError(f"distortion k1={intr.k1}, k2={intr.k2} is not invertible over the image")
     fx, fy = focal_xy(intr)
-    xmin, ymin = xy.min(0)
-    xmax, ymax = xy.max(0)
+    # the canvas covers the photo's rays within three times the pinhole field of view (an estimated distortion can
+    # fold the undistortion outwards); rays beyond it, or where the inversion fails, show nothing
+    half = np.array([w / fx, h / fy])
+    centre = np.array([intr.cx_px / fx, intr.cy_px / fy])
+    lo, hi = -centre - half, -centre + 2.0 * half
+    inside = np.all(np.isfinite(xy), axis=1) & np.all((xy >= lo) & (xy <= hi), axis=1)
+    if not inside.any():
+        raise ValueError(f"distortion k1={intr.k1}, k2={intr.k2} maps no pixel of the image to a usable ray")
+    xy = np.where(inside[:, None], xy, np.clip(np.nan_to_num(xy, nan=0.0), lo, hi))
+    xmin, ymin = xy[inside].min(0)
+    xmax, ymax = xy[inside].max(0)
     # Principal point on an integer pixel of the render grid.
     cx = float(np.floor(-xmin * fx) + margin_px)
     cy = float(np.floor(-ymin * fy) + margin_px)
     rw = int(np.ceil((xmax - xmin) * fx)) + 2 * margin_px + 2
     rh = int(np.ceil((ymax - ymin) * fy)) + 2 * margin_px + 2
-    if rw * rh > 16 * w * h:
-        raise ValueError(f"distortion k1={intr.k1}, k2={intr.k2} needs an unreasonably wide undistorted render")
     ru = np.clip(np.rint(xy[:, 0] * fx + cx).astype(np.int64), 0, rw - 1)
     rv = np.clip(np.rint(xy[:, 1] * fy + cy).astype(np.int64), 0, rh - 1)
     r_intr = Intrinsics(width_px=rw, height_px=rh, f_px=fx, cx_px=cx, cy_px=cy, fy_over_fx=intr.fy_over_fx)
-    map_x = (xy[:, 0] * fx + cx).astype(np.float32).reshape(h, w)
-    map_y = (xy[:, 1] * fy + cy).astype(np.float32).reshape(h, w)
-    return RenderGeometry(render_intrinsics=r_intr, lookup_flat=rv * rw + ru, map_x=map_x, map_y=map_y)
+    map_x = np.where(inside, xy[:, 0] * fx + cx, -1.0).astype(np.float32).reshape(h, w)
+    map_y = np.where(inside, xy[:, 1] * fy + cy, -1.0).astype(np.float32).reshape(h, w)
+    outside = None if inside.all() else ~inside.reshape(h, w)
+    return RenderGeometry(r_intr, rv * rw + ru, map_x, map_y, outside)
 
 
 def _undistorted_grid(intr: Intrinsics, step_px: int = 8) -> NDArray[np.float64]:
@@ -411,7 +420,11 @@ class GLRasterizer:
         shape = (intr.height_px, intr.width_px)
         idx = geo.lookup_flat
         zs = self._last_depth_shade.reshape(-1, 2)[idx].reshape(*shape, 2)
-        return RasterResult(ids=raw.ids.ravel()[idx].reshape(shape), depth_m=zs[..., 0], shade=zs[..., 1])
+        ids = raw.ids.ravel()[idx].reshape(shape)
+        if geo.outside is not None:
+            ids[geo.outside] = 0
+            zs[geo.outside] = 0.0
+        return RasterResult(ids=ids, depth_m=zs[..., 0], shade=zs[..., 1])
 
     def close(self) -> None:
         """Free this rasterizer's GL objects and its EGL context (call on the owning thread; the process-wide EGL
@@ -618,6 +631,9 @@ class ModelView:
         if geo.lookup_flat is not None:
             pts_cam = pts_cam.reshape(-1, 3)[geo.lookup_flat].reshape(height_px, width_px, 3)
             n_cam = n_cam.reshape(-1, 3)[geo.lookup_flat].reshape(height_px, width_px, 3)
+            if geo.outside is not None:
+                pts_cam[geo.outside] = np.nan
+                n_cam[geo.outside] = 0.0
         depth = pts_cam[..., 2].copy()
         depth[~np.isfinite(depth)] = np.inf
         R = wfc[:3, :3].astype(np.float32)

@@ -116,3 +116,21 @@ def test_standing_elements_follows_actual_then_planned_dates() -> None:
     assert at(26 * DAY_NS) == {"w", "r", "u"}
     assert at(31 * DAY_NS) == {"w", "r", "u"}  # the scaffold was removed at its finish
     assert schedule4d.standing_elements((), ["w"])(0) is None  # no schedule: no filter
+
+
+def test_a_distortion_that_folds_back_renders_what_it_covers() -> None:
+    """An estimated distortion whose undistortion folds outwards (k2 = -0.84, as a poorly constrained batch
+    registration can give) renders the covered rays and leaves the rest empty instead of failing."""
+    intr = centered_intrinsics(320, 180, 300.0, k1=0.03, k2=-0.84)
+    wfc = look_at((0.0, -12.0, 2.0), (0.0, 0.0, 1.5))
+    view = ModelView({"A": box((0.0, 0.0, 1.5), (6, 2, 3))})
+    ras = view.raster(intr, wfc)
+    maps = view.maps(intr, wfc, 320, 180)
+    assert ras.ids.shape == (180, 320) and (ras.ids > 0).any()
+    assert ras.ids[90, 160] > 0 and np.isfinite(maps.depth_m[90, 160])  # the centre sees the box
+    from constructaide.modelview import render_geometry
+
+    outside = render_geometry(intr).outside
+    assert outside is not None and outside.any() and not outside[90, 160]
+    assert (ras.ids[outside] == 0).all() and not np.isfinite(maps.depth_m[outside]).any()
+    view.close()

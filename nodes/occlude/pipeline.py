@@ -29,6 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from constructaide.bimgeom import glb_to_meshes, load_bim_model_glb
+from constructaide.camera import resized_pixels
 from constructaide.imagecodec import decode_bgr, decode_mask, encode_jpeg, encode_png
 from constructaide.modelview import ModelMaps, ModelView
 from nodes.occlude.dynamic import ColourModel, DynamicParams, dynamic_mask, recombine
@@ -423,7 +424,12 @@ class OcclusionPipeline:
             self.store.set_occluder_mask(photo_id, res.mask)
         if res.num_views > 0 and res.timelapse_small is not None:
             camera = self.photos[photo_id].camera_id if photo_id in self.photos else None
-            self.colour.add(photo_id, small, res.timelapse_small, camera, self._working_image)
+            if camera is None or self.dynamic_had_later[photo_id]:
+                self.colour.add(photo_id, small, res.timelapse_small, camera, self._working_image)
+            else:
+                # a fixed camera's newest frame: without a later frame construction progress and a new occluder look
+                # alike, so its provisional mask teaches the colour model only once the next frame refined it
+                self.colour.forget(photo_id)
             self.dynamic_no_stack.discard(photo_id)
         else:
             self.dynamic_no_stack.add(photo_id)
@@ -583,9 +589,7 @@ class OcclusionPipeline:
             pts, px = self.cloud.points_m[idx], self.cloud.obs_pixel[sel].astype(np.float64)
             normals, flat = self.cloud.normals[idx], self.cloud.flatness[idx]
             # observations are in the registered image's pixels; rescale when the photo differs
-            if (reg.intrinsics.width_px, reg.intrinsics.height_px) != (W, H) and reg.intrinsics.width_px > 0:
-                sx, sy = W / reg.intrinsics.width_px, H / reg.intrinsics.height_px
-                px = np.stack([sx * (px[:, 0] + 0.5) - 0.5, sy * (px[:, 1] + 0.5) - 0.5], axis=1)
+            px = resized_pixels(px, (reg.intrinsics.width_px, reg.intrinsics.height_px), (W, H))
         self.static_obs_count[photo_id] = len(pts)
         res = static_mask(
             img,

@@ -287,6 +287,8 @@ class PhotorealRenderer:
         lin_with = _srgb_to_linear(warp(c_with, cv2.INTER_LINEAR).astype(np.float32) / 255.0)
         lin_without = _srgb_to_linear(warp(c_without, cv2.INTER_LINEAR).astype(np.float32) / 255.0)
         ground = warp((d_without > 0).astype(np.uint8), cv2.INTER_NEAREST) > 0
+        if geo.outside is not None:
+            ground &= ~geo.outside  # rays the render does not cover show the photo alone
         ids = self.rasterizer.render(scene, intr, world_from_camera, visible).ids
         obj = ids > 0
         free = np.ones((h, w), bool) if occlusion is None else ~occlusion
