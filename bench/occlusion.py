@@ -15,7 +15,7 @@ would), and, labelled ORACLE (an ablation, never the product's figure), true cam
 Rows labelled ablation change one config field; baselines (OpenCV MOG2 on the pipeline's own aligned stacks; the
 paper's static heuristic alone on the same inputs) are computed here.
 
-    python bench/occlusion.py [--sizes small default] [--seeds 0 7] [--no-oracle] [--quick] [--no-write]
+    python bench/occlusion.py [--sizes small default] [--seeds 0 7] [--oracle-sizes small] [--no-write]
 """
 
 from __future__ import annotations
@@ -507,7 +507,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sizes", nargs="+", default=["small"], help="synthetic site sizes (ensure_site)")
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 7], help="synthetic site seeds (0: tuned on; 7: not)")
     ap.add_argument("--site-dir", type=Path, default=None, help="an existing site folder instead (size/seed unknown)")
-    ap.add_argument("--no-oracle", action="store_true", help="skip the ORACLE ablation (true cameras)")
+    ap.add_argument(
+        "--oracle-sizes", nargs="*", default=["small"], help="sizes that also get the ORACLE ablation (true cameras)"
+    )
     ap.add_argument("--cache", type=Path, default=ROOT / ".cache" / "synth")
     ap.add_argument("--no-write", action="store_true", help="do not touch BENCHMARKS.md")
     args = ap.parse_args(argv)
@@ -519,7 +521,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.site_dir is not None
         else [(ensure_site(size, seed, args.cache), size, seed) for size in args.sizes for seed in args.seeds]
     )
-    results = [bench_site(site, size, seed, oracle=not args.no_oracle) for site, size, seed in sites]
+    results = [bench_site(site, size, seed, oracle=size in args.oracle_sizes) for site, size, seed in sites]
     body = [
         f"Code: {code_version()}; `nodes.occlude.pipeline.OcclusionPipeline` with `Config()` defaults "
         f"(`{msgspec.json.encode(Config(site='bench')).decode()}`) unless a column names an ablation. "

@@ -28,7 +28,7 @@ from tqdm import tqdm
 
 from constructaide.app.launch import Launcher
 from constructaide.errors import UserError
-from constructaide.runtime import BusConfig, free_port, open_bus
+from constructaide.runtime import BusConfig, open_bus
 from schemas import codec, keys
 from schemas.messages import AnchorClicks, AnchorPoint, NeedsAnchor, OcclusionMask, Overlay, Photo
 
@@ -221,11 +221,11 @@ def main(argv: list[str]) -> int:
     log_dir = out / "logs" / f"{args.site}-{stamp}"
     ifc_path = site_dir / site_doc["paths"]["ifc"]
 
-    bus_cfg = BusConfig(hub_port=free_port())
     counts: Counter[str] = Counter()
+    # the demo's own session is the hub, on a loopback port the system picks; the nodes join it
     with (
-        Launcher(site=args.site, bus=bus_cfg, log_dir=log_dir) as launcher,
-        open_bus(bus_cfg) as bus,
+        open_bus(BusConfig(listen=["tcp/127.0.0.1:0"])) as bus,
+        Launcher(site=args.site, bus=BusConfig(hub_port=bus.listen_port()), log_dir=log_dir) as launcher,
         contextlib.ExitStack() as stack,
     ):
         print("[2/5] starting nodes", file=sys.stderr)
