@@ -21,6 +21,7 @@ paper's static heuristic alone on the same inputs) are computed here.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import tempfile
 import time
@@ -74,6 +75,7 @@ class Inputs:
     cloud: SparseCloud
     secs: float
     anchors_used: int = 0
+    unclickable: int = 0  # photos the simulated user could not click (too little of the model in view)
 
 
 @dataclass
@@ -131,23 +133,44 @@ def _cloud_message(
     )
 
 
-def batch_inputs(site: Path, photos: list[PhotoRec], answer_anchor_requests: bool) -> Inputs:
-    """Registrations and the sparse cloud of the register batch pipeline (``constructaide register``).
+def write_answered_anchor_file(site: Path, photos: list[PhotoRec], path: Path) -> int:
+    """The site's anchors.json clicks, then, flagged ``on_request`` (used only for photos the batch asks an anchor
+    for), the simulated user's clicks (``constructaide.synth.clicker.simulated_clicks``: 12 model pixels, 1 px
+    noise, as the demo answers NeedsAnchor requests) on every other photo that shows enough of the model to click.
+    Returns how many photos nobody could click."""
+    from constructaide.synth.clicker import simulated_clicks
 
-    With ``answer_anchor_requests`` the anchor file also holds clicks simulated from truth for every photo
-    (``bench/registration.py``'s protocol): the batch uses them only for photos it asks an anchor for."""
+    doc = json.loads((site / "anchors.json").read_text())
+    have = {a["image"] for a in doc["anchors"]}
+    cams = load_cameras(site)
+    unclickable = 0
+    for rec in photos:
+        if rec.rel in have:
+            continue
+        try:
+            px, world = simulated_clicks(site, rec.rel, cameras=cams)
+        except ValueError:  # too little of the model in view
+            unclickable += 1
+            continue
+        points = [{"pixel": list(map(float, p)), "world": list(map(float, w))} for p, w in zip(px, world, strict=True)]
+        doc["anchors"].append({"image": rec.rel, "points": points, "on_request": True})
+    path.write_text(json.dumps(doc))
+    return unclickable
+
+
+def batch_inputs(site: Path, photos: list[PhotoRec], answer_anchor_requests: bool) -> Inputs:
+    """Registrations and the sparse cloud of the register batch pipeline (``constructaide register``), with the
+    site's anchor file, or with ``answer_anchor_requests`` :func:`write_answered_anchor_file`'s."""
     from nodes.register.batch import run_batch
 
     by_rel = {r.rel: r for r in photos}
     t0 = time.perf_counter()
+    unclickable = 0
     with tempfile.TemporaryDirectory() as tmp:
         anchors = site / "anchors.json"
         if answer_anchor_requests:
-            from _datasets import load_synth
-            from registration import write_synth_anchor_file
-
             anchors = Path(tmp) / "anchors-answered.json"
-            write_synth_anchor_file(site, load_synth(site), anchors)
+            unclickable = write_answered_anchor_file(site, photos, anchors)
         recon, report = run_batch(site / "photos", anchors, Path(tmp) / "out", show_progress=False)
     secs = time.perf_counter() - t0
     pts, _, obs_p, obs_i, obs_px = recon.sparse_arrays()
@@ -171,7 +194,7 @@ def batch_inputs(site: Path, photos: list[PhotoRec], answer_anchor_requests: boo
     cloud = _cloud_message(ids, pts, verified, obs_p, obs_i, obs_px)
     n_anchors = sum(im.get("status") == "anchor" for im in report.get("images", []))
     label = "answered" if answer_anchor_requests else "plain"
-    return Inputs(label, regs, cloud, secs, n_anchors)
+    return Inputs(label, regs, cloud, secs, n_anchors, unclickable)
 
 
 def oracle_inputs(site: Path, photos: list[PhotoRec]) -> Inputs:
@@ -458,7 +481,8 @@ def bench_site(site: Path, size: str, seed: int, oracle: bool) -> SiteResult:
         st, paper = statics[inp.label]
         what = {
             "plain": "registration from the site's anchors.json only",
-            "answered": f"every anchor request answered ({inp.anchors_used} anchors used)",
+            "answered": f"every anchor request answered ({inp.anchors_used} anchors used; "
+            f"{inp.unclickable} photos show too little of the model to click)",
             "ORACLE": "ORACLE ablation: true cameras and truth-depth points, not a system figure",
         }[inp.label]
         lines += [
@@ -513,6 +537,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cache", type=Path, default=ROOT / ".cache" / "synth")
     ap.add_argument("--no-write", action="store_true", help="do not touch BENCHMARKS.md")
     args = ap.parse_args(argv)
+    code = code_version()  # at the start: the code this run imported
 
     from constructaide.synth import ensure_site
 
@@ -523,7 +548,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     results = [bench_site(site, size, seed, oracle=size in args.oracle_sizes) for site, size, seed in sites]
     body = [
-        f"Code: {code_version()}; `nodes.occlude.pipeline.OcclusionPipeline` with `Config()` defaults "
+        f"Code: {code}; `nodes.occlude.pipeline.OcclusionPipeline` with `Config()` defaults "
         f"(`{msgspec.json.encode(Config(site='bench')).decode()}`) unless a column names an ablation. "
         "Inputs and protocol: `bench/occlusion.py` docstring (photos one at a time in capture order, cameras and "
         "sparse cloud from the register batch pipeline, no viewpoint groups). IoU pooled over a group's photos "
