@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import cv2
+import msgspec
 import numpy as np
 from numpy.typing import NDArray
 
@@ -506,14 +507,8 @@ def normals_from_depth(depth_m: NDArray[np.float32], intr: Intrinsics) -> tuple[
 
 
 def _pinhole(intr: Intrinsics) -> Intrinsics:
-    return Intrinsics(
-        width_px=intr.width_px,
-        height_px=intr.height_px,
-        f_px=intr.f_px,
-        cx_px=intr.cx_px,
-        cy_px=intr.cy_px,
-        fy_over_fx=intr.fy_over_fx,
-    )
+    """The same camera without lens distortion."""
+    return msgspec.structs.replace(intr, k1=0.0, k2=0.0)
 
 
 class ModelView:

@@ -117,7 +117,7 @@ def test_node_fixed_camera_static_user_combined(scene) -> None:
         assert [sum(m.photo_id == p.photo_id for m in dyn_msgs) for p in photos] == [2, 2, 1]
         # two-pass: each frame's own mask is remembered, so the other frames' stacks leave it out
         for i, p in enumerate(photos):
-            occ = node.obj.pipeline.store.frames[p.photo_id].occluder_small
+            occ = node.obj.store.frames[p.photo_id].occluder_small
             assert occ is not None
             small_truth = cv2.resize(truths[i], occ.shape[::-1], interpolation=cv2.INTER_NEAREST) > 0
             assert np.count_nonzero(occ & small_truth) > 0.8 * np.count_nonzero(small_truth)
@@ -223,8 +223,8 @@ def test_node_keeps_at_most_max_stored_photos(scene) -> None:
             bus.publish(keys.key(keys.PHOTO, site=SITE, camera="cam-b"), p)
         got.wait(where=_is("dynamic", photos[2].photo_id))
         assert node.wait_idle(30.0)
-        assert list(node.obj.pipeline.photos) == [photos[1].photo_id, photos[2].photo_id]
-        assert photos[0].photo_id not in node.obj.pipeline.store.frames
+        assert list(node.obj.photos) == [photos[1].photo_id, photos[2].photo_id]
+        assert photos[0].photo_id not in node.obj.store.frames
         # the newest frame's stack holds only the frame still kept
         last = [m for _, m in got.items if m.kind == "dynamic" and m.photo_id == photos[2].photo_id][-1]
         assert last.status == "ok" and last.num_views == 1
@@ -242,12 +242,12 @@ def test_node_fixed_camera_frames_borrow_the_registered_frames_model_region(scen
         for p in photos:
             got.wait(where=_is("dynamic", p.photo_id, "ok"))
         assert node.wait_idle(30.0)
-        assert not any(node.obj.pipeline.dynamic_used_region.values())
+        assert not any(node.obj.dynamic_used_region.values())
         # only the middle frame is registered: the others use its projected model (same fixed view)
         reg = _registration(scene, photos[1].photo_id, "cam-b")
         bus.publish(keys.key(keys.REGISTRATION, site=SITE, camera="cam-b", photo=photos[1].photo_id), reg)
         assert node.wait_idle(30.0)
-        obj = node.obj.pipeline
+        obj = node.obj
         assert set(obj.model_region) == {photos[1].photo_id}
         assert all(obj.dynamic_used_region[p.photo_id] for p in photos)
         own = obj.model_region[photos[1].photo_id]
@@ -301,7 +301,7 @@ def test_node_fast_path_frames_take_their_cameras_static_mask(scene) -> None:
         for p in photos[1:]:
             m = last[p.photo_id]
             assert m.status == "ok" and m.num_views == 0  # no points of its own
-            assert node.obj.pipeline.static_borrowed[p.photo_id] == photos[0].photo_id
+            assert node.obj.static_borrowed[p.photo_id] == photos[0].photo_id
             assert iou(_mask(m), scene.truth) > 0.7
 
 
@@ -331,7 +331,7 @@ def test_node_labels_photos_without_a_stack_by_colour(scene, appearance: str) ->
         for p in photos:
             got.wait(where=_is("dynamic", p.photo_id, "ok"))
         assert node.wait_idle(30.0)
-        obj = node.obj.pipeline
+        obj = node.obj
         # every fixed frame's time-lapse mask was learnt but the newest's (provisional until a later frame comes)
         assert obj.colour.num_frames == len(photos) - 1 and photos[-1].photo_id not in obj.colour.per_photo
         last = [m for _, m in got.items if m.kind == "dynamic" and m.photo_id == phone.photo_id][-1]
@@ -372,7 +372,7 @@ def test_node_redoes_fixed_camera_frames_as_the_colour_model_grows(scene, appear
             bus.publish(keys.key(keys.PHOTO, site=SITE, camera="cam-d"), p)
         got.wait(where=_is("dynamic", ids[4], "ok"))
         assert node.wait_idle(30.0)
-        obj = node.obj.pipeline
+        obj = node.obj
         # not ready yet (the newest frame is not learnt): time-lapse masks only, the parked vehicle missed
         assert obj.colour.num_frames == 4 and ids[4] not in obj.colour.per_photo
         before = {m.photo_id: m for m in dynamic_since(0)}  # the last of each

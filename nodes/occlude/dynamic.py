@@ -733,9 +733,8 @@ def clean_plate(photo_full: U8, mask_small: U8, mask: U8, background_small: F32,
     size = (X1 - X0, Y1 - Y0)
     bg = cv2.resize((background_small[y0:y1, x0:x1] * 255.0).astype(np.uint8), size, interpolation=cv2.INTER_LINEAR)
     covered = cv2.resize((count[y0:y1, x0:x1] > 0).astype(np.uint8), size, interpolation=cv2.INTER_NEAREST)
-    m = np.asarray(cv2.dilate(mask[Y0:Y1, X0:X1], np.ones((5, 5), np.uint8)), np.uint8) & np.asarray(
-        covered * 255, np.uint8
-    )
+    dilated = np.asarray(cv2.dilate(mask[Y0:Y1, X0:X1], np.ones((5, 5), np.uint8)), np.uint8)
+    m = dilated & (np.asarray(covered, np.uint8) * np.uint8(255))
     alpha = cv2.GaussianBlur(m, (0, 0), 2.0).astype(np.float32) * np.float32(1.0 / 255.0)
     plate[Y0:Y1, X0:X1] = cv2.blendLinear(bg, np.ascontiguousarray(photo_full[Y0:Y1, X0:X1]), alpha, 1.0 - alpha)
     return plate

@@ -100,14 +100,16 @@ class _PhotoInfo:
 
 @dataclass
 class _Cloud:
-    points_m: NDArray[np.float64]
-    normals: NDArray[np.float32]
-    flatness: NDArray[np.float32]
-    obs_point: NDArray[np.int32]
-    obs_photo: NDArray[np.int32]
-    obs_pixel: NDArray[np.float32]
-    photo_index: dict[str, int]
-    terrain_height_m: float | None
+    """A decoded sparse cloud: per point, then the terrain it shows, then the observations."""
+
+    points_m: NDArray[np.float64]  # (N, 3)
+    normals: NDArray[np.float32]  # (N, 3) PCA normals
+    flatness: NDArray[np.float32]  # (N,)
+    terrain_height_m: float | None  # dominant horizontal surface, when one stands out
+    photo_index: dict[str, int]  # photo id -> index in obs_photo
+    obs_point: NDArray[np.int32]  # (M,)
+    obs_photo: NDArray[np.int32]  # (M,)
+    obs_pixel: NDArray[np.float32]  # (M, 2) registered-image pixels
 
 
 def decode_sparse(msg: SparseCloud) -> _Cloud:
@@ -142,9 +144,8 @@ def decode_sparse(msg: SparseCloud) -> _Cloud:
         obs_point, obs_photo, obs_pixel = remap[obs_point[keep]].astype(np.int32), obs_photo[keep], obs_pixel[keep]
     normals, flatness = estimate_point_normals(pts64)
     terrain = estimate_terrain_height(pts64, normals, flatness)
-    return _Cloud(
-        pts64, normals, flatness, obs_point, obs_photo, obs_pixel, {p: i for i, p in enumerate(msg.photo_ids)}, terrain
-    )
+    index = {p: i for i, p in enumerate(msg.photo_ids)}
+    return _Cloud(pts64, normals, flatness, terrain, index, obs_point, obs_photo, obs_pixel)
 
 
 def _flushing(handler: Callable[..., None]) -> Callable[..., None]:
