@@ -5,7 +5,7 @@ gets it: photos pushed in capture order through zenoh, the register node's strea
 node's masks computed from whatever stacks, viewpoint groups and sparse points had arrived (the last mask
 published per photo and kind counts, as the dashboard shows it), the render node's overlays.
 
-    python bench/pipeline.py [--size small] [--recording demo.mcap] [--no-write]
+    python bench/pipeline.py [--size small] [--seed 0] [--answer-anchor-requests] [--recording demo.mcap] [--no-write]
 
 Without ``--recording`` it runs ``constructaide demo --size SIZE`` in a temporary folder first. Scoring only
 reads ``truth/`` (cameras, depth, element ids, occluder masks). Metrics:
@@ -37,7 +37,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from _report import median, table, write_section  # noqa: E402
+from _report import code_version, median, table, write_section  # noqa: E402
 
 from constructaide import camera as cam  # noqa: E402
 from constructaide.imagecodec import decode_unchanged, mask_of_message  # noqa: E402
@@ -47,11 +47,22 @@ from constructaide.synth.truth import load_cameras, load_depth, load_ids, load_m
 from schemas.messages import OcclusionMask, Overlay, Registration  # noqa: E402
 
 
-def run_demo(size: str, out: Path, answer: bool = False) -> tuple[Path, float]:
+def run_demo(size: str, seed: int, out: Path, answer: bool = False) -> tuple[Path, float]:
     """Run `constructaide demo` as a user would (``answer``: with --answer-anchor-requests); returns the MCAP path
     and the wall time in seconds."""
     t0 = time.perf_counter()
-    cmd = [sys.executable, "-m", "constructaide.app.cli", "demo", "--size", size, "--out", str(out)]
+    cmd = [
+        sys.executable,
+        "-m",
+        "constructaide.app.cli",
+        "demo",
+        "--size",
+        size,
+        "--seed",
+        str(seed),
+        "--out",
+        str(out),
+    ]
     cmd += ["--answer-anchor-requests"] if answer else []
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
     secs = time.perf_counter() - t0
@@ -174,12 +185,16 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--no-write", action="store_true")
     args = ap.parse_args(argv)
+    code = code_version()
     site = ensure_site(args.size, args.seed, args.cache)
     with tempfile.TemporaryDirectory() as tmp:
         if args.recording is None:
-            recording, secs = run_demo(args.size, Path(tmp), args.answer_anchor_requests)
+            recording, secs = run_demo(args.size, args.seed, Path(tmp), args.answer_anchor_requests)
             flag = " --answer-anchor-requests" if args.answer_anchor_requests else ""
-            ran = f"`constructaide demo --size {args.size}{flag}` ({secs:.0f} s wall time including start-up)"
+            ran = (
+                f"`constructaide demo --size {args.size} --seed {args.seed}{flag}` ({secs:.0f} s wall time including "
+                "start-up)"
+            )
         else:
             recording, secs, ran = args.recording, float("nan"), f"the recording `{args.recording.name}`"
         acc = score(site, recording)
@@ -219,7 +234,9 @@ def main(argv: list[str] | None = None) -> int:
             if args.answer_anchor_requests
             else "anchors from the site's anchors.json only; photos that asked for an anchor stay unregistered"
         )
-        body = f"""Synthetic site `{site.name}`, scored from {ran}. What the nodes published over the bus and the
+        tuned = "the seed the thresholds were tuned on" if args.seed == 0 else "a seed not used for tuning"
+        body = f"""Code: {code} (every node at its default config). Synthetic site `{site.name}` (seed {args.seed}:
+{tuned}), scored from {ran}. What the nodes published over the bus and the
 recorder stored, as a user sees it: streaming registrations ({anchors}), the last dynamic / static mask
 published per photo (masks of a camera's newest frame are provisional until the next frame arrives), the last
 state4d overlay. IoUs are pooled over the group's photos; a photo without a mask counts as an empty mask. The
@@ -230,7 +247,8 @@ differences count as error). Figures of the algorithms on batch inputs are in th
 {tab}
 """
         answered = ", anchor requests answered" if args.answer_anchor_requests else ""
-        write_section(f"pipeline ({args.size} site{answered})", body)
+        seed = f", seed {args.seed}" if args.seed != 0 else ""
+        write_section(f"pipeline ({args.size} site{seed}{answered})", body)
     return 0
 
 
