@@ -230,3 +230,7 @@ SPEC = NodeSpec(
 
 def main(argv: list[str] | None = None) -> int:
     return run_node_cli(SPEC, argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -12,8 +12,10 @@ viewpoint group, a registration, a sparse cloud with markedly more observations 
 camera's previous newest frame is recomputed once when the next frame arrives. Dynamic masks made before the
 projected model was known are redone once it is. A fixed-camera frame that judges fewer than
 ``static_borrow_below_points`` sparse points takes the static mask of its camera's frame that judged the most,
-warped by the stack homography; it is redone when that donor's mask changes or a better donor appears. As the
-colour model learns, the dynamic masks it shaped are redone from :meth:`OcclusionPipeline.idle`, a few per call.
+warped by the stack homography; it is redone when that donor's mask changes or a better donor appears. Every
+time-lapse mask teaches the colour model except a fixed camera's newest frame's (provisional until the next frame
+refines it). As the colour model learns, the dynamic masks it shaped are redone from
+:meth:`OcclusionPipeline.idle`, a few per call.
 """
 
 from __future__ import annotations
