@@ -209,3 +209,54 @@ def test_a_new_model_redoes_every_registered_static_mask_with_its_terrain(scene)
 
     assert area(first[a.photo_id]) > 0 and area(second[a.photo_id]) < area(first[a.photo_id])
     pipe.close()
+
+
+def test_static_masks_follow_their_dynamic_masks(scene) -> None:
+    """A static mask leaves out the photo's dynamic occluders as they are now: when a dynamic mask is redone (here:
+    the first frame gets a stack once the second arrives) the static mask is republished, and a frame that borrows
+    takes its donor's static occluders without the donor's own dynamic ones."""
+    h, w = scene.image.shape[:2]
+    photos, vehicles = [], []
+    for i in range(3):
+        img = scene.image.copy()
+        truth = np.zeros((h, w), np.uint8)
+        x0 = int(w * (0.1 + 0.25 * i))
+        cv2.rectangle(truth, (x0, int(h * 0.55)), (x0 + w // 6, int(h * 0.8)), 255, -1)
+        img[truth > 0] = (30, 40, 210)
+        photos.append(_photo(img, "cam-a", (i + 1) * DAY_NS))
+        vehicles.append(truth > 0)
+    out = Emitted()
+    pipe = OcclusionPipeline(Config(site=SITE), out)
+    n = len(scene.points_m)
+    pipe.set_model(
+        BimModel(site=SITE, revision="r1", geometry_glb=meshes_to_glb(scene.model_meshes), terrain_height_m=0.0)
+    )
+    pipe.set_sparse(_cloud(scene, {photos[0].photo_id: slice(0, n)}, 1))  # frame 0 judges; 1 and 2 borrow
+    start = {}
+    for p in photos:
+        start[p.photo_id] = len(out.items)
+        pipe.add_photo(p)
+        pipe.add_registration(_registration(scene, p.photo_id))
+    first = photos[0].photo_id
+    # frame 0 had no stack when its static mask was made; its dynamic mask came with the second frame, and its
+    # static mask was published again after that
+    kinds = [(m.kind, m.status) for m in out.items if m.photo_id == first and m.kind in ("dynamic", "static")]
+    first_dyn_ok = kinds.index(("dynamic", "ok"))
+    assert ("static", "ok") in kinds[first_dyn_ok + 1 :]
+    assert pipe.static_borrowed == {photos[1].photo_id: first, photos[2].photo_id: first}
+    for p, vehicle in zip(photos, vehicles, strict=True):
+        static = decode_mask(out.last("static", p.photo_id).mask_png)
+        dynamic = decode_mask(out.last("dynamic", p.photo_id).mask_png)
+        raw = decode_mask(pipe.static_raw[p.photo_id][1])
+        assert dynamic[vehicle].mean() > 0.8  # the vehicle is found
+        assert np.array_equal(static, raw & ~dynamic)  # the static mask is the raw one minus the current dynamic
+        assert not (static & dynamic).any()
+    # the donor's raw static mask is what frame 1 borrowed (warped by an identity-like homography): the donor's
+    # vehicle pixels are not cut out of it
+    donor_raw = decode_mask(pipe.static_raw[first][1])
+    donor_static = decode_mask(out.last("static", first).mask_png)
+    cut = donor_raw & ~donor_static  # where the donor's dynamic mask took pixels out
+    assert cut.sum() > 100
+    borrowed_raw = decode_mask(pipe.static_raw[photos[1].photo_id][1])
+    assert borrowed_raw[cut].mean() > 0.5
+    pipe.close()

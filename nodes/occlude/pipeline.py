@@ -213,6 +213,9 @@ class OcclusionPipeline:
         self.static_obs_count: dict[str, int] = {}
         self.static_judged: dict[str, int] = {}  # sparse points judged by a photo's own static mask
         self.static_borrowed: dict[str, str] = {}  # photo -> the camera frame whose static mask it took
+        # photo -> (status, PNG of its static occluders, own and borrowed, before the dynamic mask is taken out,
+        # points judged)
+        self.static_raw: dict[str, tuple[str, bytes, int]] = {}
         self._dirty: set[str] = set()
         self.model_region: dict[str, NDArray[np.bool_]] = {}  # projected model at dynamic working size
         self.dynamic_used_region: dict[str, bool] = {}
@@ -362,6 +365,7 @@ class OcclusionPipeline:
             self.dynamic_plate,
             self.static_judged,
             self.static_borrowed,
+            self.static_raw,
         ):
             d.pop(photo_id, None)
         self.dynamic_no_stack.discard(photo_id)
@@ -406,6 +410,8 @@ class OcclusionPipeline:
         self.emit(msg, mask if png else None)
         if kind != "combined":
             self._dirty.add(photo_id)
+        if kind == "dynamic" and photo_id in self.static_raw:
+            self._publish_static(photo_id, started, only_if_changed=True)
 
     def _flush(self) -> None:
         """Publish the combined mask of every photo whose component masks changed in this handler."""
@@ -606,12 +612,7 @@ class OcclusionPipeline:
             self._terrain_height_m(),
             self.static_params,
         )
-        mask = res.mask
-        status, png = self.masks.get((photo_id, "dynamic"), ("", b""))
-        if self.config.static_excludes_dynamic and status == "ok" and png:
-            # what moves between views is a dynamic occluder, not a static one (the combined mask has both)
-            mask = np.where(decode_mask(png, mask.shape), 0, mask).astype(np.uint8)
-        status = res.status
+        mask, status = res.mask, res.status
         self.static_judged[photo_id] = res.num_points
         self.static_borrowed.pop(photo_id, None)
         info = self.photos[photo_id]
@@ -619,7 +620,8 @@ class OcclusionPipeline:
             borrowed = self._borrow_static(photo_id, info.camera_id, maps.has_model, (W, H))
             if borrowed is not None:
                 mask, status = mask | borrowed, "ok"
-        self._publish(photo_id, "static", status, mask, started, num_views=res.num_points)
+        self.static_raw[photo_id] = (status, encode_png(mask) if status == "ok" else b"", res.num_points)
+        self._publish_static(photo_id, started)
         for other, donor in list(self.static_borrowed.items()):
             if donor == photo_id and other != photo_id:  # its mask changed: the frames that took it follow
                 self._static(other)
@@ -635,6 +637,21 @@ class OcclusionPipeline:
                 ):
                     self._static(other)
 
+    def _publish_static(self, photo_id: str, started: float, only_if_changed: bool = False) -> None:
+        """Publish a photo's static mask: its own (and borrowed) static occluders, minus its current dynamic mask with
+        ``static_excludes_dynamic`` (what moves between views is a dynamic occluder; the combined mask has both).
+        Redone whenever the dynamic mask changes; ``only_if_changed``: not published when the result is the same."""
+        status, raw, num_points = self.static_raw[photo_id]
+        mask = np.where(decode_mask(raw), 255, 0).astype(np.uint8) if raw else None
+        dyn_status, dyn_png = self.masks.get((photo_id, "dynamic"), ("", b""))
+        if mask is not None and self.config.static_excludes_dynamic and dyn_status == "ok" and dyn_png:
+            mask = np.where(decode_mask(dyn_png, mask.shape), 0, mask).astype(np.uint8)
+        if only_if_changed:
+            png = encode_png(mask) if mask is not None and status == "ok" else b""
+            if self.masks.get((photo_id, "static")) == (status, png):
+                return
+        self._publish(photo_id, "static", status, mask, started, num_views=num_points)
+
     def _borrow_static(
         self, photo_id: str, camera_id: str, has_model_small: NDArray[np.bool_], size: tuple[int, int]
     ) -> U8 | None:
@@ -646,13 +663,13 @@ class OcclusionPipeline:
             for q in self.store.by_camera.get(camera_id, ())
             if q != photo_id
             and self.static_judged.get(q, 0) >= self.config.static_borrow_below_points
-            and self.masks.get((q, "static"), ("",))[0] == "ok"
+            and self.static_raw.get(q, ("",))[0] == "ok"
         ]
         if not donors:
             return None
         q = max(donors, key=lambda d: self.static_judged[d])
         H_this_from_q = self.store.candidate_neighbours(photo_id).get(q)
-        png = self.masks[(q, "static")][1]
+        png = self.static_raw[q][1]  # the donor's static occluders before its own dynamic ones are taken out
         if H_this_from_q is None or not png:
             return None
         src = np.where(decode_mask(png), 255, 0).astype(np.uint8)
