@@ -28,6 +28,20 @@ def machine() -> str:
     )
 
 
+def code_version() -> str:
+    """``git <short commit>`` of the checkout the bench runs from, ``+ uncommitted changes`` when dirty."""
+    import subprocess
+
+    try:
+        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True)
+    except OSError:
+        return "git commit unknown"
+    if rev.returncode != 0:
+        return "git commit unknown"
+    return f"git {rev.stdout.strip()}" + (" + uncommitted changes" if dirty.stdout.strip() else "")
+
+
 def median(values: list[float]) -> float:
     return float(statistics.median(values)) if values else float("nan")
 

@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy as np  # noqa: E402
 from _report import median, table, write_section  # noqa: E402
 
-from constructaide.runtime import BusConfig, free_port, open_bus  # noqa: E402
+from constructaide.runtime import BusConfig, open_bus  # noqa: E402
 from schemas import keys  # noqa: E402
 from schemas.messages import Photo  # noqa: E402
 
@@ -63,9 +63,8 @@ def main() -> int:
     pings, burst = (10, 20) if args.quick else (30, 100)
     rows = []
     for recorder in (False, True):
-        port = free_port()
-        cfg = BusConfig(hub_port=port)
-        with tempfile.TemporaryDirectory() as tmp, open_bus(cfg) as bus:
+        with tempfile.TemporaryDirectory() as tmp, open_bus(BusConfig(listen=["tcp/127.0.0.1:0"])) as bus:
+            port = bus.listen_port()  # the bench's session is the hub; the peers join it
             procs = [
                 subprocess.Popen(
                     [sys.executable, str(HERE / "_bus_peer.py"), "--site", SITE, "--hub-port", str(port)],

@@ -25,18 +25,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from nodes.recorder.mcapio import iter_messages  # noqa: E402
-from schemas.codec import decode  # noqa: E402
+from constructaide.imagecodec import decode_bgr, decode_mask, decode_unchanged  # noqa: E402
+from constructaide.recording import decoded_messages  # noqa: E402
 from schemas.messages import OcclusionMask, Overlay, Photo, Registration  # noqa: E402
 
 MODES = ("state4d", "progress")
-
-
-def _png(data: bytes, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
-    if img is None:
-        raise ValueError("undecodable image in the recording")
-    return img
 
 
 def over(photo_bgr: np.ndarray, layer: np.ndarray) -> np.ndarray:
@@ -61,10 +54,7 @@ def collect(path: Path) -> tuple[dict, dict, dict, dict]:
     regs: dict[str, Registration] = {}
     overlays: dict[str, dict[str, Overlay]] = defaultdict(dict)
     masks: dict[str, OcclusionMask] = {}
-    for rec in iter_messages(path, allow_truncated=True):
-        if rec.type_name.rsplit(".", 1)[-1] not in ("Photo", "Registration", "Overlay", "OcclusionMask"):
-            continue
-        msg = decode(rec.payload)
+    for _key, msg in decoded_messages(path, (Photo, Registration, Overlay, OcclusionMask), allow_truncated=True):
         if isinstance(msg, Photo):
             photos[msg.photo_id] = msg
         elif isinstance(msg, Registration):
@@ -115,9 +105,9 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     for i, pid in enumerate(picked, 1):
         p, r = photos[pid], regs[pid]
-        img = _png(p.data, cv2.IMREAD_COLOR)
-        panels = [img] + [over(img, _png(overlays[pid][m].image_png)) for m in MODES]
-        panels.append(tint(img, _png(masks[pid].mask_png, cv2.IMREAD_GRAYSCALE)))
+        img = decode_bgr(p.data, f"photo {pid}")
+        panels = [img] + [over(img, decode_unchanged(overlays[pid][m].image_png, "overlay")) for m in MODES]
+        panels.append(tint(img, decode_mask(masks[pid].mask_png)))
         h = round(img.shape[0] * args.width / img.shape[1])
         panels = [cv2.resize(x, (args.width, h), interpolation=cv2.INTER_AREA) for x in panels]
         sheet = np.vstack([np.hstack(panels[:2]), np.hstack(panels[2:])])

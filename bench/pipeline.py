@@ -5,7 +5,7 @@ gets it: photos pushed in capture order through zenoh, the register node's strea
 node's masks computed from whatever stacks, viewpoint groups and sparse points had arrived (the last mask
 published per photo and kind counts, as the dashboard shows it), the render node's overlays.
 
-    python bench/pipeline.py [--size small] [--recording demo.mcap] [--no-write]
+    python bench/pipeline.py [--size small] [--seed 0] [--answer-anchor-requests] [--recording demo.mcap] [--no-write]
 
 Without ``--recording`` it runs ``constructaide demo --size SIZE`` in a temporary folder first. Scoring only
 reads ``truth/`` (cameras, depth, element ids, occluder masks). Metrics:
@@ -31,24 +31,23 @@ import time
 from collections import defaultdict
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from _report import median, table, write_section  # noqa: E402
+from _report import code_version, median, table, write_section  # noqa: E402
 
 from constructaide import camera as cam  # noqa: E402
+from constructaide.imagecodec import decode_unchanged, mask_of_message  # noqa: E402
+from constructaide.recording import decoded_messages  # noqa: E402
 from constructaide.synth import ensure_site  # noqa: E402
 from constructaide.synth.truth import load_cameras, load_depth, load_ids, load_mask, true_camera  # noqa: E402
-from nodes.recorder.mcapio import iter_messages  # noqa: E402
-from schemas.codec import decode  # noqa: E402
 from schemas.messages import OcclusionMask, Overlay, Registration  # noqa: E402
 
 
-def run_demo(size: str, out: Path, answer: bool = False, seed: int = 0) -> tuple[Path, float]:
+def run_demo(size: str, seed: int, out: Path, answer: bool = False) -> tuple[Path, float]:
     """Run `constructaide demo` as a user would (``answer``: with --answer-anchor-requests); returns the MCAP path
     and the wall time in seconds."""
     t0 = time.perf_counter()
@@ -88,11 +87,7 @@ def final_outputs(recording: Path) -> tuple[dict, dict, dict]:
     regs: dict[str, Registration] = {}
     masks: dict[str, dict[str, OcclusionMask]] = defaultdict(dict)
     overlays: dict[str, Overlay] = {}
-    wanted = ("Registration", "OcclusionMask", "Overlay")
-    for rec in iter_messages(recording, allow_truncated=True):
-        if rec.type_name.rsplit(".", 1)[-1] not in wanted:
-            continue
-        msg = decode(rec.payload)
+    for _key, msg in decoded_messages(recording, (Registration, OcclusionMask, Overlay), allow_truncated=True):
         if isinstance(msg, Registration):
             regs[msg.photo_id] = msg
         elif isinstance(msg, OcclusionMask):
@@ -102,26 +97,17 @@ def final_outputs(recording: Path) -> tuple[dict, dict, dict]:
     return regs, masks, overlays
 
 
-def _decode(png: bytes, flags: int) -> np.ndarray:
-    img = cv2.imdecode(np.frombuffer(png, np.uint8), flags)
-    if img is None:
-        raise ValueError("undecodable image in the recording")
-    return img
-
-
 def mask_of(msg: OcclusionMask | None, shape: tuple[int, int]) -> np.ndarray:
     """(H, W) bool mask of a message; empty for a missing message or one without a usable mask."""
-    if msg is None or msg.status != "ok" or not msg.mask_png:
-        return np.zeros(shape, bool)
-    m = _decode(msg.mask_png, cv2.IMREAD_GRAYSCALE) > 127
-    return m if m.shape == shape else cv2.resize(m.astype(np.uint8), shape[::-1], cv2.INTER_NEAREST) > 0
+    m = mask_of_message(msg, shape)
+    return np.zeros(shape, bool) if m is None else m
 
 
 def footprint_of(msg: Overlay | None, shape: tuple[int, int]) -> np.ndarray:
     """(H, W) bool: pixels where the overlay draws the model (alpha > 0 of an RGBA layer)."""
     if msg is None or not msg.image_png:
         return np.zeros(shape, bool)
-    img = _decode(msg.image_png, cv2.IMREAD_UNCHANGED)
+    img = decode_unchanged(msg.image_png, "state4d overlay")
     if img.ndim != 3 or img.shape[2] != 4:
         raise ValueError("state4d overlay is not an RGBA layer (render node composite=True?)")
     return img[..., 3] > 0
@@ -199,12 +185,16 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--no-write", action="store_true")
     args = ap.parse_args(argv)
+    code = code_version()
     site = ensure_site(args.size, args.seed, args.cache)
     with tempfile.TemporaryDirectory() as tmp:
         if args.recording is None:
-            recording, secs = run_demo(args.size, Path(tmp), args.answer_anchor_requests)
+            recording, secs = run_demo(args.size, args.seed, Path(tmp), args.answer_anchor_requests)
             flag = " --answer-anchor-requests" if args.answer_anchor_requests else ""
-            ran = f"`constructaide demo --size {args.size}{flag}` ({secs:.0f} s wall time including start-up)"
+            ran = (
+                f"`constructaide demo --size {args.size} --seed {args.seed}{flag}` ({secs:.0f} s wall time including "
+                "start-up)"
+            )
         else:
             recording, secs, ran = args.recording, float("nan"), f"the recording `{args.recording.name}`"
         acc = score(site, recording)
@@ -246,7 +236,9 @@ def main(argv: list[str] | None = None) -> int:
             else "up-front anchors from the site's anchors.json only (first usable photo per fixed camera and phone "
             "visit, corner clicks with mis-clicks, no knock anchor); photos that asked for an anchor stay unregistered"
         )
-        body = f"""Synthetic site `{site.name}`, scored from {ran}. What the nodes published over the bus and the
+        tuned = "the seed the thresholds were tuned on" if args.seed == 0 else "a seed not used for tuning"
+        body = f"""Code: {code} (every node at its default config). Synthetic site `{site.name}` (seed {args.seed}:
+{tuned}), scored from {ran}. What the nodes published over the bus and the
 recorder stored, as a user sees it: streaming registrations ({anchors}), the last dynamic / static mask
 published per photo (masks of a camera's newest frame are provisional until the next frame arrives), the last
 state4d overlay. IoUs are pooled over the group's photos; a photo without a mask counts as an empty mask. The
@@ -257,7 +249,8 @@ differences count as error). Figures of the algorithms on batch inputs are in th
 {tab}
 """
         answered = ", anchor requests answered" if args.answer_anchor_requests else ""
-        write_section(f"pipeline ({args.size} site{answered})", body)
+        seed = f", seed {args.seed}" if args.seed != 0 else ""
+        write_section(f"pipeline ({args.size} site{seed}{answered})", body)
     return 0
 
 

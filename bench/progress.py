@@ -347,7 +347,7 @@ def main(argv: list[str] | None = None) -> int:
     label = f"{args.size} seed {args.seed}"
     with tempfile.TemporaryDirectory() as tmp:
         if args.recording is None:
-            recording, secs = run_demo(args.size, Path(tmp), answer=True, seed=args.seed)
+            recording, secs = run_demo(args.size, args.seed, Path(tmp), answer=True)
             ran = f"`constructaide demo --size {args.size} --seed {args.seed} --answer-anchor-requests` ({secs:.0f} s)"
         else:
             recording, ran = args.recording, f"the recording `{args.recording.name}`"

@@ -75,21 +75,36 @@ def centered_intrinsics(
     )
 
 
-def scale_intrinsics(intr: Intrinsics, width_px: int, height_px: int) -> Intrinsics:
-    """The same camera for its image resized to ``width_px`` x ``height_px`` (pixel centres kept: fx scales with the
-    width, fy with the height)."""
+def scaled_intrinsics(intr: Intrinsics, width_px: int, height_px: int) -> Intrinsics:
+    """Intrinsics of the same camera for its image resized to (width_px, height_px): fx scales with the width, fy
+    with the height (a resize that changes the aspect changes ``fy_over_fx``); pixel centres map as
+    ``u -> s (u + 0.5) - 0.5``. ValueError for a non-positive size or focal length."""
+    if intr.width_px <= 0 or intr.height_px <= 0 or intr.f_px <= 0 or width_px <= 0 or height_px <= 0:
+        raise ValueError(
+            f"intrinsics need a positive image size and focal length, got {intr} -> {width_px}x{height_px}"
+        )
     sx = width_px / intr.width_px
     sy = height_px / intr.height_px
     return Intrinsics(
         width_px=width_px,
         height_px=height_px,
         f_px=intr.f_px * sx,
-        cx_px=(intr.cx_px + 0.5) * sx - 0.5,
-        cy_px=(intr.cy_px + 0.5) * sy - 0.5,
+        cx_px=sx * (intr.cx_px + 0.5) - 0.5,
+        cy_px=sy * (intr.cy_px + 0.5) - 0.5,
         k1=intr.k1,
         k2=intr.k2,
         fy_over_fx=intr.fy_over_fx * sy / sx,
     )
+
+
+def resized_pixels(pixels_px: ArrayLike, from_size: tuple[int, int], to_size: tuple[int, int]) -> F64:
+    """Pixels (N, 2) of an image of ``from_size`` (width, height) in the same image resized to ``to_size``
+    (pixel centres map as ``u -> s (u + 0.5) - 0.5``)."""
+    px = np.asarray(pixels_px, np.float64).reshape(-1, 2)
+    if tuple(from_size) == tuple(to_size):
+        return px.copy()
+    s = np.array([to_size[0] / from_size[0], to_size[1] / from_size[1]])
+    return s * (px + 0.5) - 0.5
 
 
 def focal_from_fov(width_px: int, fov_deg: float = 50.0) -> float:

@@ -10,8 +10,8 @@ build it (start = earliest start, finish = latest finish), ``demolition`` tasks 
 
 from __future__ import annotations
 
-from collections.abc import Iterable
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, replace
 from typing import Literal
 
 from schemas.messages import ScheduleTask
@@ -43,61 +43,47 @@ class ElementWindow:
     has_actuals: bool = False
 
 
-def _min(a: int | None, b: int | None) -> int | None:
+def earliest(a: int | None, b: int | None) -> int | None:
+    """The earlier of two optional times (None = unknown: the other one)."""
     return b if a is None else a if b is None else min(a, b)
 
 
-def _max(a: int | None, b: int | None) -> int | None:
+def latest(a: int | None, b: int | None) -> int | None:
+    """The later of two optional times (None = unknown: the other one)."""
     return b if a is None else a if b is None else max(a, b)
-
-
-@dataclass(slots=True)
-class _Acc:
-    bs: int | None = None
-    bf: int | None = None
-    rs: int | None = None
-    rf: int | None = None
-    abs: int | None = None
-    abf: int | None = None
-    ars: int | None = None
-    arf: int | None = None
-    act: bool = False
 
 
 def element_windows(tasks: Iterable[ScheduleTask]) -> dict[str, ElementWindow]:
     """Planned and actual build/removal windows per element GlobalId."""
-    acc: dict[str, _Acc] = {}
+    out: dict[str, ElementWindow] = {}
     for task in tasks:
         builds = task.task_type in ("construction", "temporary", "other")
         demolition = task.task_type == "demolition"
         removes = demolition or task.task_type == "temporary"
-        has_actual = task.actual_start_ns is not None or task.actual_finish_ns is not None
         # A temporary element is removed at its task's finish; a demolished one from the start.
         remove_start = task.planned_start_ns if demolition else task.planned_finish_ns
         actual_remove_start = task.actual_start_ns if demolition else task.actual_finish_ns
+        has_actual = task.actual_start_ns is not None or task.actual_finish_ns is not None
         for gid in task.element_ids:
-            w = acc.setdefault(gid, _Acc())
+            w = out.get(gid, ElementWindow())
             if builds:
-                w.bs, w.bf = _min(w.bs, task.planned_start_ns), _max(w.bf, task.planned_finish_ns)
-                w.abs, w.abf = _min(w.abs, task.actual_start_ns), _max(w.abf, task.actual_finish_ns)
+                w = replace(
+                    w,
+                    build_start_ns=earliest(w.build_start_ns, task.planned_start_ns),
+                    build_finish_ns=latest(w.build_finish_ns, task.planned_finish_ns),
+                    actual_build_start_ns=earliest(w.actual_build_start_ns, task.actual_start_ns),
+                    actual_build_finish_ns=latest(w.actual_build_finish_ns, task.actual_finish_ns),
+                )
             if removes:
-                w.rs, w.rf = _min(w.rs, remove_start), _max(w.rf, task.planned_finish_ns)
-                w.ars, w.arf = _min(w.ars, actual_remove_start), _max(w.arf, task.actual_finish_ns)
-            w.act = w.act or has_actual
-    return {
-        gid: ElementWindow(
-            build_start_ns=w.bs,
-            build_finish_ns=w.bf,
-            remove_start_ns=w.rs,
-            remove_finish_ns=w.rf,
-            actual_build_start_ns=w.abs,
-            actual_build_finish_ns=w.abf,
-            actual_remove_start_ns=w.ars,
-            actual_remove_finish_ns=w.arf,
-            has_actuals=w.act,
-        )
-        for gid, w in acc.items()
-    }
+                w = replace(
+                    w,
+                    remove_start_ns=earliest(w.remove_start_ns, remove_start),
+                    remove_finish_ns=latest(w.remove_finish_ns, task.planned_finish_ns),
+                    actual_remove_start_ns=earliest(w.actual_remove_start_ns, actual_remove_start),
+                    actual_remove_finish_ns=latest(w.actual_remove_finish_ns, task.actual_finish_ns),
+                )
+            out[gid] = replace(w, has_actuals=w.has_actuals or has_actual)
+    return out
 
 
 def _state(at_ns: int, bs: int | None, bf: int | None, rs: int | None, rf: int | None, existed_before: bool) -> State:
@@ -170,3 +156,29 @@ def states_at(tasks: Iterable[ScheduleTask], element_ids: Iterable[str], at_ns: 
     """Planned state of every element in ``element_ids`` at ``at_ns``."""
     windows = element_windows(tasks)
     return {gid: planned_state(windows.get(gid), at_ns) for gid in element_ids}
+
+
+STANDING_STATES: frozenset[State] = frozenset({"complete", "under_demolition", "unscheduled"})
+"""States in which an element stands whole (what a camera sees of the model at that time)."""
+
+
+def standing_elements(tasks: Iterable[ScheduleTask], element_ids: Iterable[str]) -> Callable[[int], set[str] | None]:
+    """``elements_at(t_ns)``: the elements of ``element_ids`` standing at ``t_ns`` by the schedule.
+
+    Actual dates win over planned ones; complete, under-demolition and unscheduled elements stand; elements under
+    construction do not (their full geometry would hide what is really visible behind them). With no tasks every
+    element stands: ``elements_at`` returns None (no filter).
+    """
+    windows = element_windows(tasks)
+    ids = list(element_ids)
+    if not windows:
+        return lambda t_ns: None
+
+    def elements_at(t_ns: int) -> set[str] | None:
+        return {
+            gid
+            for gid in ids
+            if (actual_state(windows.get(gid), t_ns) or planned_state(windows.get(gid), t_ns)) in STANDING_STATES
+        }
+
+    return elements_at

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -44,7 +45,10 @@ def small_site_seed7() -> Path:
 
 
 @pytest.fixture()
-def hub_port() -> int:
-    from constructaide.runtime import free_port
+def hub_port() -> Iterator[int]:
+    """The port of a loopback hub session opened for the test (bound to a port the system picked, read back): the
+    test's sessions and node processes given ``hub_port`` find it taken and join it."""
+    from constructaide.runtime import BusConfig, open_bus
 
-    return free_port()
+    with open_bus(BusConfig(listen=["tcp/127.0.0.1:0"])) as hub:
+        yield hub.listen_port()

@@ -15,7 +15,7 @@ import numpy as np
 import trimesh
 
 from constructaide.camera import centered_intrinsics, look_at
-from nodes.occlude.modeldepth import ModelRenderer
+from constructaide.modelview import ModelView
 from schemas.messages import Intrinsics
 
 
@@ -89,8 +89,8 @@ def static_scene(seed: int, w: int = 960, h: int = 540, num_points: int = 3000, 
     ground = {"ground": _box((60.0, 60.0, 0.2), (0.0, 0.0, -0.1))}
     depths = []
     for meshes in (model, fence, ground):
-        r = ModelRenderer(meshes)
-        depths.append(r.render(intr, wfc, w, h))
+        r = ModelView(meshes)
+        depths.append(r.maps(intr, wfc, w, h))
         r.close()
     d = np.stack([m.depth_m for m in depths])
     label = np.argmin(d, axis=0)

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from constructaide.recording import iter_recording
 from constructaide.runtime import BusConfig, open_bus
-from nodes.recorder.mcapio import iter_recording
 from schemas import codec, keys
 
 pytestmark = pytest.mark.zenoh

@@ -311,7 +311,7 @@ def test_dashboard_real_ifc_model_to_rrd(tmp_path: Path, ifc: str) -> None:
 
     rrd = tmp_path / "model.rrd"
     dash = DashboardNode(Config(site=SITE, rerun=f"save:{rrd}"), Ctx())  # type: ignore[arg-type]
-    dash.on_bim_model(model, keys.key(keys.BIM_MODEL, site=SITE))
+    dash.on_message(model)
     dash.close()
     got = _rrd_contents(rrd)
     bim = {p for p, v in got.items() if p.startswith("/world/bim/") and "Mesh3D:vertex_positions" in v["columns"]}

@@ -9,14 +9,17 @@ import subprocess
 import sys
 from pathlib import Path
 
-import cv2
 import numpy as np
+import pytest
 from conftest import CACHE, ROOT
 
+from constructaide.imagecodec import decode_mask
+from constructaide.recording import iter_messages
 from constructaide.synth.truth import load_mask
-from nodes.recorder.mcapio import iter_messages
 from schemas.codec import decode
 from schemas.messages import BimModel, OcclusionMask, Overlay, Registration
+
+pytestmark = [pytest.mark.slow, pytest.mark.zenoh]
 
 
 def _run_demo(out: Path, *flags: str, with_stdout: bool = False):
@@ -79,7 +82,7 @@ def test_demo_small_site_end_to_end(small_site: Path, tmp_path: Path) -> None:
         rel = by_id[pid]
         if rel.startswith("phone/"):
             continue
-        pred = cv2.imdecode(np.frombuffer(msg.mask_png, np.uint8), cv2.IMREAD_GRAYSCALE) > 127
+        pred = decode_mask(msg.mask_png)
         truth = load_mask(small_site, rel, "static")
         inter += int(np.sum(pred & truth))
         union += int(np.sum(pred | truth))
@@ -118,7 +121,7 @@ def test_demo_with_the_simulated_user_registers_every_photo(small_site: Path, tm
     assert len(phones) == 5
     inter = union = 0
     for rel in phones:
-        pred = cv2.imdecode(np.frombuffer(static[rel].mask_png, np.uint8), cv2.IMREAD_GRAYSCALE) > 127
+        pred = decode_mask(static[rel].mask_png)
         truth = load_mask(small_site, rel, "static")
         inter += int(np.sum(pred & truth))
         union += int(np.sum(pred | truth))

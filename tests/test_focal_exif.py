@@ -10,7 +10,7 @@ import pytest
 from PIL import Image
 
 from constructaide import camera as cam
-from nodes.ingest.photos import exif_focal
+from constructaide.photos import exif_focal
 from nodes.register.batch import exif_focal_px
 
 

@@ -141,7 +141,7 @@ def test_watched_photos_not_republished_after_restart(tmp_path: Path) -> None:
 def test_model_file_reloaded_only_once_it_stops_changing(tmp_path: Path) -> None:
     """A model file still being written (size or mtime changed since the previous poll) is not read; once its
     signature holds for a poll it is, and an unchanged file never is."""
-    from nodes.ingest.node import settled_change
+    from nodes.ingest.watcher import settled_change
 
     model = tmp_path / "model.ifc"
     text = BSI.read_text()

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from nodes.ingest.photos import PhotoError, photo_from_bytes, photo_from_file
+from constructaide.photos import PhotoError, photo_from_bytes, photo_from_file
 from nodes.ingest.watcher import FolderWatcher, SeenHashes
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"

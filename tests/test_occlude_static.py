@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from occlude_scenes import _box, iou, static_scene
 
-from constructaide.camera import centered_intrinsics, invert_rigid, look_at, project_points
-from nodes.occlude.modeldepth import ModelMaps, ModelRenderer, scaled_intrinsics
+from constructaide.camera import centered_intrinsics, invert_rigid, look_at, project_points, scaled_intrinsics
+from constructaide.modelview import ModelMaps, ModelView
 from nodes.occlude.stacks import working_size
 from nodes.occlude.static import (
     StaticParams,
@@ -35,8 +35,8 @@ def _small(img: np.ndarray, width: int = 640) -> np.ndarray:
 def test_model_depth_matches_projection(k1: float) -> None:
     intr = centered_intrinsics(1280, 720, 1000.0, k1=k1, k2=0.02 if k1 else 0.0)
     wfc = look_at((3.0, -15.0, 4.0), (0.0, 0.0, 2.0))
-    r = ModelRenderer({"wall": _box((12.0, 0.5, 8.0), (0.0, 0.25, 2.0))})
-    maps = r.render(intr, wfc, 640, 360)
+    r = ModelView({"wall": _box((12.0, 0.5, 8.0), (0.0, 0.25, 2.0))})
+    maps = r.maps(intr, wfc, 640, 360)
     r.close()
     small = scaled_intrinsics(intr, 640, 360)
     rng = np.random.default_rng(0)
@@ -82,8 +82,8 @@ def test_classify_depth_and_normal_rules() -> None:
 
 def test_static_mask_fence_and_ground(scene) -> None:
     small = _small(scene.image)
-    r = ModelRenderer(scene.model_meshes)
-    maps = r.render(scene.intrinsics, scene.world_from_camera, small.shape[1], small.shape[0])
+    r = ModelView(scene.model_meshes)
+    maps = r.maps(scene.intrinsics, scene.world_from_camera, small.shape[1], small.shape[0])
     r.close()
     normals, flat = estimate_point_normals(scene.points_m)
     res = static_mask(
@@ -110,8 +110,8 @@ def test_static_mask_fence_and_ground(scene) -> None:
 
 def test_static_without_points_or_terrain_is_not_enough(scene) -> None:
     small = _small(scene.image)
-    r = ModelRenderer(scene.model_meshes)
-    maps = r.render(scene.intrinsics, scene.world_from_camera, small.shape[1], small.shape[0])
+    r = ModelView(scene.model_meshes)
+    maps = r.maps(scene.intrinsics, scene.world_from_camera, small.shape[1], small.shape[0])
     r.close()
     res = static_mask(
         scene.image,
@@ -179,8 +179,8 @@ def test_static_mask_from_few_points(seed: int, num_points: int, min_iou: float)
     the superpixel labels recovers the fence at least as well as the greedy rounds."""
     sc = static_scene(seed, num_points=num_points)
     small = _small(sc.image)
-    r = ModelRenderer(sc.model_meshes)
-    maps = r.render(sc.intrinsics, sc.world_from_camera, small.shape[1], small.shape[0])
+    r = ModelView(sc.model_meshes)
+    maps = r.maps(sc.intrinsics, sc.world_from_camera, small.shape[1], small.shape[0])
     r.close()
     normals, flat = estimate_point_normals(sc.points_m)
     centre = sc.world_from_camera[:3, 3]

@@ -383,13 +383,13 @@ def test_recorder_repair_any_truncation_point_gives_a_prefix(tmp_path: Path) -> 
 @pytest.mark.zenoh
 def test_recorder_replay_cli_over_zenoh(tmp_path: Path) -> None:
     """``replay`` waits for a live node on the target site, then re-publishes every message there."""
-    from constructaide.runtime import BusConfig, free_port, open_bus
+    from constructaide.runtime import BusConfig, open_bus
     from nodes.recorder.cli import replay_main
 
     path = tmp_path / "timed.mcap"
     _timed_recording(path)
-    port = free_port()
-    with open_bus(BusConfig(listen=[f"tcp/127.0.0.1:{port}"])) as bus:
+    with open_bus(BusConfig(listen=["tcp/127.0.0.1:0"])) as bus:
+        port = bus.listen_port()
         got = bus.collect("constructaide/moved/**")
         token = bus.declare_token(keys.key(keys.LIVELINESS, site="moved", node="test", instance="x"))
         try:
@@ -429,12 +429,12 @@ def test_recorder_node_refuses_to_overwrite(tmp_path: Path) -> None:
 @pytest.mark.zenoh
 def test_recorder_node_process_sigkilled_mid_stream_over_zenoh(tmp_path: Path) -> None:
     """The recorder node as its own process on zenoh, SIGKILLed while photos stream in."""
-    from constructaide.runtime import BusConfig, free_port, open_bus
+    from constructaide.runtime import BusConfig, open_bus
 
     out = tmp_path / "node-killed.mcap"
-    port = free_port()
     data = bytes(range(256)) * 1024  # 256 KiB
-    with open_bus(BusConfig(listen=[f"tcp/127.0.0.1:{port}"])) as bus:
+    with open_bus(BusConfig(listen=["tcp/127.0.0.1:0"])) as bus:
+        port = bus.listen_port()
         argv = [sys.executable, "-m", "nodes.recorder.node", "--site", SITE, "--set", f"path={out}", "-v"]
         argv += ["--connect", f"tcp/127.0.0.1:{port}", "--listen", "tcp/127.0.0.1:0"]
         with subprocess.Popen(argv, cwd=REPO, stderr=subprocess.PIPE, text=True, bufsize=1) as proc:

@@ -9,6 +9,8 @@ from render_scenes import AT, camera, four_box_model
 
 import constructaide  # noqa: F401  (EGL platform)
 from constructaide.camera import invert_rigid, project_points
+from constructaide.modelscene import GROUND_INDEX, scene_from_model
+from constructaide.modelview import GLRasterizer
 from nodes.render.overlays import (
     AHEAD_RGBA,
     BEHIND_RGBA,
@@ -19,8 +21,7 @@ from nodes.render.overlays import (
     render_overlay,
 )
 from nodes.render.photoreal import MaterialLibrary, PhotorealRenderer
-from nodes.render.raster import GLRasterizer
-from nodes.render.scene import GROUND_INDEX, filter_mask, scene_from_model
+from nodes.render.scene import filter_mask
 from nodes.render.sun import sun_direction_in_site, sun_position
 from schemas.messages import Annotation, BimElement, ElementFilter
 
@@ -78,8 +79,8 @@ def test_render_visibility_mask_and_ground_plane(ras, world):
 def test_render_ids_match_synthetic_truth(ras, small_site):
     """Element-ID render vs the synthetic site's truth with TRUE cameras, distortion included (>= 99.5 %)."""
     from constructaide.bimgeom import glb_to_meshes
+    from constructaide.modelscene import build_scene
     from constructaide.synth import truth
-    from nodes.render.scene import build_scene
 
     idx = truth.element_index(small_site)
     meshes = glb_to_meshes((small_site / "model" / "building.glb").read_bytes())

@@ -8,11 +8,9 @@ import pytest
 from render_scenes import four_box_model
 
 import constructaide  # noqa: F401  (EGL platform)
-from constructaide.camera import centered_intrinsics, invert_rigid, look_at, project_points
-from nodes.occlude.modeldepth import ModelRenderer, scaled_intrinsics
-from nodes.render.engine import scale_intrinsics
-from nodes.render.raster import GLRasterizer
-from nodes.render.scene import scene_from_model
+from constructaide.camera import centered_intrinsics, invert_rigid, look_at, project_points, scaled_intrinsics
+from constructaide.modelscene import scene_from_model
+from constructaide.modelview import GLRasterizer, ModelView
 
 ASPECT = 1.02
 W, H = 1280, 800
@@ -68,8 +66,8 @@ def test_model_depth_follows_the_pixel_aspect(k1: float) -> None:
     heights = {}
     for aspect in (ASPECT, 1.0):
         intr = _camera(k1, aspect)
-        r = ModelRenderer({"A": box((0.0, 0.0, 1.5), (2, 2, 3))})
-        maps = r.render(intr, WFC, W // 2, H // 2)
+        r = ModelView({"A": box((0.0, 0.0, 1.5), (2, 2, 3))})
+        maps = r.maps(intr, WFC, W // 2, H // 2)
         r.close()
         small = scaled_intrinsics(intr, W // 2, H // 2)
         assert small.fy_over_fx == pytest.approx(aspect)
@@ -95,8 +93,8 @@ def test_model_depth_follows_the_pixel_aspect(k1: float) -> None:
 
 def test_resized_intrinsics_keep_the_aspect() -> None:
     intr = _camera(-0.08)
-    for scaled in (scale_intrinsics(intr, 640, 400), scaled_intrinsics(intr, 640, 400)):
+    for scaled in (scaled_intrinsics(intr, 640, 400), scaled_intrinsics(intr, 640, 400)):
         assert scaled.f_px == pytest.approx(intr.f_px / 2) and scaled.fy_over_fx == pytest.approx(ASPECT)
     # A resize that changes the image's aspect changes the pixels' (fy scales with the height).
-    squashed = scale_intrinsics(intr, 640, 200)
+    squashed = scaled_intrinsics(intr, 640, 200)
     assert squashed.f_px * squashed.fy_over_fx == pytest.approx(intr.f_px * ASPECT / 4)

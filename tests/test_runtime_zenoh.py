@@ -24,7 +24,7 @@ def start_echo(site: str, port: int, *extra: str) -> subprocess.Popen[bytes]:
     )
 
 
-def stop(proc: subprocess.Popen[bytes]) -> None:
+def stop(proc: subprocess.Popen) -> None:
     if proc.poll() is None:
         proc.terminate()
         proc.wait(20)
@@ -99,16 +99,23 @@ def _wait_tokens_gone(bus, keyexpr: str, timeout: float = 20.0) -> list[str]:
         watcher.close()
 
 
-def test_router_joins_nodes_across_sessions_and_status_lists_them(hub_port: int) -> None:
-    """`constructaide router` lets client/peer sessions that only know the router meet; `status` sees the node."""
+def test_router_joins_nodes_across_sessions_and_status_lists_them() -> None:
+    """`constructaide router` lets client/peer sessions that only know the router meet; `status` sees the node. The
+    router binds a port the system picks and says which."""
     site = "rtr"
-    endpoint = f"tcp/127.0.0.1:{hub_port}"
     router = subprocess.Popen(
-        [sys.executable, "-m", "constructaide.app.cli", "router", "--listen", endpoint],
+        [sys.executable, "-m", "constructaide.app.cli", "router", "--listen", "tcp/127.0.0.1:0"],
         stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
     )
-    echo = start_echo(site, hub_port, "--mode", "client", "--connect", endpoint)
+    assert router.stderr is not None
+    line = router.stderr.readline()  # printed once the router is listening
+    assert line.startswith("router listening on tcp/127.0.0.1:"), line
+    endpoint = line.split()[3].rstrip(";,")
+    port = int(endpoint.rsplit(":", 1)[1])
+    assert port > 0
+    echo = start_echo(site, port, "--mode", "client", "--connect", endpoint)
     try:
         with open_bus(BusConfig(mode="client", connect=[endpoint])) as bus:
             regs = bus.collect(keys.pattern(keys.REGISTRATION, site=site))
@@ -138,6 +145,7 @@ def test_router_joins_nodes_across_sessions_and_status_lists_them(hub_port: int)
     finally:
         stop(echo)
         stop(router)
+        router.stderr.close()
 
 
 def test_blocked_publishers_wait_instead_of_dropping_the_peer() -> None:

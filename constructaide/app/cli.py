@@ -130,8 +130,8 @@ def _router(argv: list[str]) -> int:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    with open_bus(cfg):
-        print(f"router listening on {', '.join(cfg.listen)}; Ctrl-C to stop", file=sys.stderr)
+    with open_bus(cfg) as bus:
+        print(f"router listening on {', '.join(bus.locators())}; Ctrl-C to stop", file=sys.stderr, flush=True)
         stop.wait()
     return 0
 

@@ -30,8 +30,7 @@ from tqdm import tqdm
 
 from constructaide.app.launch import Launcher
 from constructaide.errors import UserError
-from constructaide.runtime import BusConfig, free_port, open_bus
-from constructaide.runtime.bus import port_free
+from constructaide.runtime import BusConfig, open_bus
 from schemas import codec, keys
 from schemas.messages import AnchorClicks, AnchorPoint, NeedsAnchor, OcclusionMask, Overlay, Photo
 
@@ -85,6 +84,21 @@ class _Arrivals:
                     return "timed out"
                 wake = quiet_secs - quiet if caught_up else stall_secs - quiet
                 self._cond.wait(min(deadline - now, max(0.05, wake)))
+
+
+def _http_port(requested: int | None) -> int:
+    """The workbench's TCP port: ``requested`` when it is free, else one the system picks now (an HTTP server in
+    another process; unlike the bus, a port lost to a race in between only makes its start fail loudly)."""
+    import socket
+
+    for port in ([requested] if requested else []) + [0]:
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+            try:
+                sock.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return int(sock.getsockname()[1])
+    raise UserError("no free TCP port for the workbench")
 
 
 def _anchor_messages(site: str, site_dir: Path, photos: dict[str, Photo]) -> list[AnchorClicks]:
@@ -186,8 +200,8 @@ def _latest_status(items: list) -> dict[str, str]:
 
 def main(argv: list[str]) -> int:
     from constructaide.app.cli import cache_dir
+    from constructaide.photos import photo_from_file
     from constructaide.synth import ensure_site
-    from nodes.ingest.photos import photo_from_file
 
     ap = argparse.ArgumentParser(prog="constructaide demo", description=__doc__)
     ap.add_argument("--size", default="default", choices=["small", "default", "large"], help="synthetic site size")
@@ -235,11 +249,11 @@ def main(argv: list[str]) -> int:
     log_dir = out / "logs" / f"{args.site}-{stamp}"
     ifc_path = site_dir / site_doc["paths"]["ifc"]
 
-    bus_cfg = BusConfig(hub_port=free_port())
     counts: Counter[str] = Counter()
+    # the demo's own session is the hub, on a loopback port the system picks; the nodes join it
     with (
-        Launcher(site=args.site, bus=bus_cfg, log_dir=log_dir) as launcher,
-        open_bus(bus_cfg) as bus,
+        open_bus(BusConfig(listen=["tcp/127.0.0.1:0"])) as bus,
+        Launcher(site=args.site, bus=BusConfig(hub_port=bus.listen_port()), log_dir=log_dir) as launcher,
         contextlib.ExitStack() as stack,
     ):
         print("[2/5] starting nodes", file=sys.stderr)
@@ -259,7 +273,7 @@ def main(argv: list[str]) -> int:
         launcher.start("dashboard", sets=[f"rerun='save:{rrd_path}'"])
         for name in PROCESSING_NODES:
             launcher.start(name)
-        wb_port = args.workbench_port if args.workbench_port and port_free(args.workbench_port) else free_port()
+        wb_port = _http_port(args.workbench_port)
         launcher.start("workbench", sets=[f"port={wb_port}"])
         workbench_url = f"http://127.0.0.1:{wb_port}/"
         launcher.wait_live(bus, ["recorder", "dashboard", "workbench", *PROCESSING_NODES])

@@ -14,7 +14,7 @@ from schemas import keys
 
 
 def main(argv: list[str]) -> int:
-    from nodes.ingest.photos import PhotoError, photo_from_file
+    from constructaide.photos import PhotoError, photo_from_file
 
     p = argparse.ArgumentParser(prog="constructaide push", description="Publish photo files (JPEG/PNG) on the bus.")
     p.add_argument("files", nargs="+", type=Path)

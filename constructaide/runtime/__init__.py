@@ -1,6 +1,6 @@
 """Node runtime: bus (zenoh or in-process), node contract and runner, config loading."""
 
-from constructaide.runtime.bus import Bus, BusConfig, Collector, ZenohBus, add_bus_args, free_port, open_bus
+from constructaide.runtime.bus import Bus, BusConfig, Collector, ZenohBus, add_bus_args, open_bus
 from constructaide.runtime.node import (
     Input,
     NodeContext,
@@ -19,7 +19,6 @@ __all__ = [
     "Collector",
     "ZenohBus",
     "add_bus_args",
-    "free_port",
     "open_bus",
     "Input",
     "NodeContext",

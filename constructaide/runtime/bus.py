@@ -13,7 +13,6 @@ import argparse
 import json
 import logging
 import os
-import socket
 import threading
 import time
 from collections.abc import Callable
@@ -166,9 +165,10 @@ ke_match = _ke_match
 class BusConfig:
     """How to join the bus. Defaults: peer on loopback, multicast scouting off, a hub port.
 
-    With no ``listen``/``connect`` given, the session listens on ``tcp/127.0.0.1:<hub_port>``
-    when that port is free (it becomes the hub), else on a free loopback port, and always
-    connects to the hub, so processes on one machine meet without a daemon.
+    With no ``listen``/``connect`` given (:attr:`embedded`), the session tries to listen on
+    ``tcp/127.0.0.1:<hub_port>`` (it becomes the hub); when that port is taken it listens on a port the system
+    picks and connects to the hub instead, so processes on one machine meet without a daemon. A session that
+    listens on port 0 can read the port it got back with :meth:`ZenohBus.listen_port`.
     """
 
     mode: str = "peer"
@@ -189,14 +189,20 @@ class BusConfig:
             ),
         )
 
-    def zenoh_config(self) -> Any:
+    @property
+    def embedded(self) -> bool:
+        """True when neither ``listen`` nor ``connect`` is given: the loopback hub scheme."""
+        return not self.listen and not self.connect
+
+    def zenoh_config(self, as_hub: bool = True) -> Any:
+        """The zenoh config; for :attr:`embedded` sessions ``as_hub`` says whether to listen on the hub port (else on
+        port 0, connecting to the hub)."""
         import zenoh
 
         listen, connect = list(self.listen), list(self.connect)
-        if not listen and not connect:
+        if self.embedded:
             hub = f"tcp/127.0.0.1:{self.hub_port}"
-            listen = [hub] if _port_free(self.hub_port) else ["tcp/127.0.0.1:0"]
-            connect = [] if listen == [hub] else [hub]
+            listen, connect = ([hub], []) if as_hub else (["tcp/127.0.0.1:0"], [hub])
         c = zenoh.Config()
         c.insert_json5("mode", json.dumps(self.mode))
         c.insert_json5("scouting/multicast/enabled", "false")
@@ -213,6 +219,8 @@ class BusConfig:
         if self.mode == "client":
             # Wait for a router that is still starting instead of failing at once.
             c.insert_json5("connect/timeout_ms", json.dumps(self.client_connect_timeout_ms))
+        if any(_port_of(e) == 0 for e in listen):
+            c.insert_json5("adminspace/enabled", "true")  # the port the system picked is read back from it
         for k, v in self.extra_json5.items():
             c.insert_json5(k, json.dumps(v))
         return c
@@ -235,26 +243,10 @@ def add_bus_args(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def _port_free(port: int) -> bool:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            s.bind(("127.0.0.1", port))
-        except OSError:
-            return False
-    return True
-
-
-def port_free(port: int) -> bool:
-    """Whether a loopback TCP port is free now."""
-    return _port_free(port)
-
-
-def free_port() -> int:
-    """A currently free loopback TCP port (for tests and demos)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+def _port_of(endpoint: str) -> int | None:
+    """The port of a ``proto/host:port`` endpoint (None when it has none)."""
+    tail = endpoint.split("#", 1)[0].rsplit(":", 1)
+    return int(tail[1]) if len(tail) == 2 and tail[1].isdigit() else None
 
 
 class _Closer:
@@ -276,12 +268,16 @@ class ZenohBus(Bus):
         zenoh.init_log_from_env_or("error")
         self._z = zenoh
         self.config = config or BusConfig()
+        self.is_hub = self.config.embedded
         try:
             self.session = zenoh.open(self.config.zenoh_config())
         except zenoh.ZError as e:
-            from constructaide.errors import UserError
+            if not (self.config.embedded and "listener" in str(e)):
+                from constructaide.errors import UserError
 
-            raise UserError(f"cannot open the zenoh session ({self.config.mode}): {e}") from None
+                raise UserError(f"cannot open the zenoh session ({self.config.mode}): {e}") from None
+            self.session = zenoh.open(self.config.zenoh_config(as_hub=False))  # the hub port is taken: join it
+            self.is_hub = False
         self._latched: dict[str, bytes] = {}
         self._latched_lock = threading.Lock()
         self._queryables: dict[str, Any] = {}
@@ -341,6 +337,27 @@ class ZenohBus(Bus):
 
         sub = self.session.liveliness().declare_subscriber(keyexpr, on_sample, history=True)
         return _Closer(sub.undeclare)
+
+    def locators(self) -> list[str]:
+        """The endpoints this session listens on, as bound (a port 0 endpoint shows the port the system picked)."""
+        if self.is_hub:
+            return [f"tcp/127.0.0.1:{self.config.hub_port}"]
+        listen = list(self.config.listen)
+        if listen and all(_port_of(e) != 0 for e in listen):
+            return listen
+        key = f"@/{self.session.info.zid()}/{self.config.mode}"  # the admin space (enabled for port 0 endpoints)
+        for reply in self.session.get(key, timeout=5.0):
+            if reply.ok is not None:
+                return [str(x) for x in json.loads(reply.ok.payload.to_bytes()).get("locators", [])]
+        return listen
+
+    def listen_port(self) -> int:
+        """The TCP port of this session's first TCP listening endpoint (e.g. the hub port for other processes)."""
+        for loc in self.locators():
+            port = _port_of(loc)
+            if loc.startswith("tcp/") and port:
+                return port
+        raise RuntimeError(f"the zenoh session listens on no TCP port ({self.locators()})")
 
     def close(self) -> None:
         for q in self._queryables.values():

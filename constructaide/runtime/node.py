@@ -47,9 +47,9 @@ from schemas.messages import Message, NodeError
 class Input:
     """One subscription: ``key`` is a template from :mod:`schemas.keys` (unfilled fields become ``*``).
 
-    ``handler`` names a method ``(msg, key) -> None`` of the node object; with ``raw=True`` it
-    receives the payload bytes instead of a decoded Struct. ``latched=True`` also fetches the
-    last value published as latched (e.g. the BIM model) when the node starts.
+    ``handler`` names a method ``(msg, key) -> None`` of the node object (``(msg) -> None`` with
+    ``with_key=False``); with ``raw=True`` it receives the payload bytes instead of a decoded Struct.
+    ``latched=True`` also fetches the last value published as latched (e.g. the BIM model) when the node starts.
     """
 
     key: str
@@ -58,6 +58,7 @@ class Input:
     raw: bool = False
     latched: bool = False
     fields: dict[str, str] = field(default_factory=dict)
+    with_key: bool = True
 
 
 @dataclass(frozen=True)
@@ -256,7 +257,11 @@ class RunningNode:
             self.ctx.error(self._topics.get(inp.handler, inp.key), f"cannot decode {inp.type.__name__}: {e}", key)
             return
         try:
-            getattr(self.obj, inp.handler)(msg, key)
+            handler = getattr(self.obj, inp.handler)
+            if inp.with_key:
+                handler(msg, key)
+            else:
+                handler(msg)
             self.processed += 1
         except Exception as e:  # the node survives any handler failure
             self.errors += 1

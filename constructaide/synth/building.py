@@ -94,6 +94,14 @@ def _label(ix: int, iy: int) -> str:
     return f"{chr(ord('A') + ix)}{iy + 1}"
 
 
+def _boxed(key: str, kind: tuple[str, str, str, int, str, str], lo: tuple, hi: tuple) -> Element:
+    """An element ``key`` of ``kind`` = (ifc_class, predefined_type, type_name, storey, material, task): a box from
+    corner ``lo`` to ``hi`` (metres)."""
+    e = Element(key, *kind)
+    e.add_box(lo, hi)
+    return e
+
+
 def design_building(size: SizeConfig) -> Building:
     """The building for a size: basement, ``size.storeys`` storeys, gable roof."""
     xs, ys = _grid(size.bays_x), _grid(size.bays_y)
@@ -109,19 +117,11 @@ def design_building(size: SizeConfig) -> Building:
 
     # Foundations and basement.
     z_b = -BASEMENT_DEPTH_M
+    footing = ("IfcFooting", "PAD_FOOTING", "Pad footing 1400x1400", -1, "concrete", "foundations")
     for iy, y in enumerate(ys):
         for ix, x in enumerate(xs):
-            e = Element(
-                f"B-FTG-{_label(ix, iy)}",
-                "IfcFooting",
-                "PAD_FOOTING",
-                "Pad footing 1400x1400",
-                -1,
-                "concrete",
-                "foundations",
-            )
-            e.add_box((x - 0.7, y - 0.7, z_b - SLAB_T_M - 0.6), (x + 0.7, y + 0.7, z_b - SLAB_T_M))
-            els.append(e)
+            lo, hi = (x - 0.7, y - 0.7, z_b - SLAB_T_M - 0.6), (x + 0.7, y + 0.7, z_b - SLAB_T_M)
+            els.append(_boxed(f"B-FTG-{_label(ix, iy)}", footing, lo, hi))
     e = Element("B-SLAB", "IfcSlab", "BASESLAB", "Base slab 300", -1, "concrete", "basement_slab")
     e.add_box((-hx - so, -hy - so, z_b - SLAB_T_M), (hx + so, hy + so, z_b))
     els.append(e)
@@ -144,46 +144,21 @@ def design_building(size: SizeConfig) -> Building:
         z_beam_bot = z_beam_top - BEAM_D_M
         steel = s == n - 1 and n > 1  # top-storey frame in steel
         frame_mat = "steel" if steel else "concrete"
+        column = ("IfcColumn", "COLUMN", "Steel column HEB 400" if steel else "Column 400x400", s, frame_mat)
+        beam = ("IfcBeam", "BEAM", "Steel beam IPE 500" if steel else "Beam 300x500", s, frame_mat, f"beams_{s}")
         for iy, y in enumerate(ys):
             for ix, x in enumerate(xs):
-                e = Element(
-                    f"L{s}-COL-{_label(ix, iy)}",
-                    "IfcColumn",
-                    "COLUMN",
-                    "Steel column HEB 400" if steel else "Column 400x400",
-                    s,
-                    frame_mat,
-                    f"columns_{s}",
-                )
-                e.add_box((x - c, y - c, z0), (x + c, y + c, z_beam_top))
-                els.append(e)
+                lo, hi = (x - c, y - c, z0), (x + c, y + c, z_beam_top)
+                els.append(_boxed(f"L{s}-COL-{_label(ix, iy)}", (*column, f"columns_{s}"), lo, hi))
         bw = BEAM_W_M / 2
         for iy, y in enumerate(ys):
             for ix in range(len(xs) - 1):
-                e = Element(
-                    f"L{s}-BM-{_label(ix, iy)}x",
-                    "IfcBeam",
-                    "BEAM",
-                    "Steel beam IPE 500" if steel else "Beam 300x500",
-                    s,
-                    frame_mat,
-                    f"beams_{s}",
-                )
-                e.add_box((xs[ix] + c, y - bw, z_beam_bot), (xs[ix + 1] - c, y + bw, z_beam_top))
-                els.append(e)
+                lo, hi = (xs[ix] + c, y - bw, z_beam_bot), (xs[ix + 1] - c, y + bw, z_beam_top)
+                els.append(_boxed(f"L{s}-BM-{_label(ix, iy)}x", beam, lo, hi))
         for ix, x in enumerate(xs):
             for iy in range(len(ys) - 1):
-                e = Element(
-                    f"L{s}-BM-{_label(ix, iy)}y",
-                    "IfcBeam",
-                    "BEAM",
-                    "Steel beam IPE 500" if steel else "Beam 300x500",
-                    s,
-                    frame_mat,
-                    f"beams_{s}",
-                )
-                e.add_box((x - bw, ys[iy] + c, z_beam_bot), (x + bw, ys[iy + 1] - c, z_beam_top))
-                els.append(e)
+                lo, hi = (x - bw, ys[iy] + c, z_beam_bot), (x + bw, ys[iy + 1] - c, z_beam_top)
+                els.append(_boxed(f"L{s}-BM-{_label(ix, iy)}y", beam, lo, hi))
         # Slab above this storey (the roof slab for the top storey).
         top = s == n - 1
         e = Element(

@@ -185,41 +185,9 @@ class DashboardNode:
             self._blueprint_cameras = cams
             self.rec.send_blueprint(make_blueprint(cams, self.config.overlay_mode), make_active=True, make_default=True)
 
-    def on_photo(self, msg: m.Photo, key: str) -> None:
-        self._log(self.scene.on_photo(msg))
-
-    def on_bim_model(self, msg: m.BimModel, key: str) -> None:
-        self._log(self.scene.on_bim_model(msg))
-
-    def on_bim_update(self, msg: m.BimUpdate, key: str) -> None:
-        self._log(self.scene.on_bim_update(msg))
-
-    def on_registration(self, msg: m.Registration, key: str) -> None:
-        self._log(self.scene.on_registration(msg))
-
-    def on_sparse(self, msg: m.SparseCloud, key: str) -> None:
-        self._log(self.scene.on_sparse(msg))
-
-    def on_overlay(self, msg: m.Overlay, key: str) -> None:
-        self._log(self.scene.on_overlay(msg))
-
-    def on_occlusion(self, msg: m.OcclusionMask, key: str) -> None:
-        self._log(self.scene.on_occlusion(msg))
-
-    def on_needs_anchor(self, msg: m.NeedsAnchor, key: str) -> None:
-        self._log(self.scene.on_needs_anchor(msg))
-
-    def on_annotation(self, msg: m.Annotation, key: str) -> None:
-        self._log(self.scene.on_annotation(msg))
-
-    def on_error(self, msg: m.NodeError, key: str) -> None:
-        self._log(self.scene.on_error(msg))
-
-    def on_photo_evidence(self, msg: m.PhotoEvidence, key: str) -> None:
-        self._log(self.scene.on_photo_evidence(msg))
-
-    def on_progress(self, msg: m.ProgressUpdate, key: str) -> None:
-        self._log(self.scene.on_progress(msg))
+    def on_message(self, msg: m.Message) -> None:
+        """Feed a message to the scene method named for its type in :data:`SUBSCRIPTIONS`; log the ops."""
+        self._log(getattr(self.scene, _SCENE_METHOD[type(msg)])(msg))
 
     def close(self) -> None:
         """Flush and close the sink (finishes the .rrd file)."""
@@ -227,27 +195,24 @@ class DashboardNode:
         self.rec.disconnect()
 
 
-SPEC = NodeSpec(
-    name="dashboard",
-    description="Streams the BIM, registered cameras with photos, sparse points, overlays and masks to rerun.",
-    config_type=Config,
-    factory=DashboardNode,
-    inputs=(
-        Input(keys.BIM_MODEL, m.BimModel, "on_bim_model", latched=True),
-        Input(keys.BIM_UPDATE, m.BimUpdate, "on_bim_update"),
-        Input(keys.PHOTO, m.Photo, "on_photo"),
-        Input(keys.REGISTRATION, m.Registration, "on_registration"),
-        Input(keys.SPARSE, m.SparseCloud, "on_sparse"),
-        Input(keys.OVERLAY, m.Overlay, "on_overlay"),
-        Input(keys.OCCLUSION, m.OcclusionMask, "on_occlusion"),
-        Input(keys.NEEDS_ANCHOR, m.NeedsAnchor, "on_needs_anchor"),
-        Input(keys.ANNOTATION, m.Annotation, "on_annotation"),
-        Input(keys.ERRORS, m.NodeError, "on_error"),
-        Input(keys.PHOTO_EVIDENCE, m.PhotoEvidence, "on_photo_evidence"),
-        Input(keys.PROGRESS, m.ProgressUpdate, "on_progress"),
-    ),
-    outputs=(),
+SUBSCRIPTIONS: tuple[tuple[str, type[m.Message], str], ...] = (  # (key template, message type, Scene method)
+    (keys.BIM_MODEL, m.BimModel, "on_bim_model"),
+    (keys.BIM_UPDATE, m.BimUpdate, "on_bim_update"),
+    (keys.PHOTO, m.Photo, "on_photo"),
+    (keys.REGISTRATION, m.Registration, "on_registration"),
+    (keys.SPARSE, m.SparseCloud, "on_sparse"),
+    (keys.OVERLAY, m.Overlay, "on_overlay"),
+    (keys.OCCLUSION, m.OcclusionMask, "on_occlusion"),
+    (keys.NEEDS_ANCHOR, m.NeedsAnchor, "on_needs_anchor"),
+    (keys.ANNOTATION, m.Annotation, "on_annotation"),
+    (keys.ERRORS, m.NodeError, "on_error"),
+    (keys.PHOTO_EVIDENCE, m.PhotoEvidence, "on_photo_evidence"),
+    (keys.PROGRESS, m.ProgressUpdate, "on_progress"),
 )
+_SCENE_METHOD = {t: method for _, t, method in SUBSCRIPTIONS}
+INPUTS = tuple(Input(k, t, "on_message", latched=t is m.BimModel, with_key=False) for k, t, _ in SUBSCRIPTIONS)
+DESCRIPTION = "Streams the BIM, registered cameras with photos, sparse points, overlays and masks to rerun."
+SPEC = NodeSpec("dashboard", DESCRIPTION, Config, DashboardNode, INPUTS, ())
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -31,11 +31,11 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-import cv2
 import numpy as np
 
 from constructaide import bimgeom, schedule4d
 from constructaide.camera import K_matrix
+from constructaide.imagecodec import decode_mask
 from schemas import keys
 from schemas import messages as m
 
@@ -547,9 +547,4 @@ class Scene:
 
 def decode_mask_png(png: bytes) -> np.ndarray:
     """(H, W) uint8 class image from an 8-bit mask PNG: 1 where the mask is > 127, else 0."""
-    if not png:
-        raise ValueError("occlusion mask has no PNG data")
-    img = cv2.imdecode(np.frombuffer(png, dtype=np.uint8), cv2.IMREAD_GRAYSCALE)
-    if img is None:
-        raise ValueError(f"occlusion mask is not a decodable image ({len(png)} bytes)")
-    return (img > 127).astype(np.uint8)
+    return decode_mask(png, what="occlusion mask").astype(np.uint8)

@@ -253,8 +253,10 @@ def _map_conversion(f: ifcopenshell.file) -> MapConversion | None:
         eastings=float(c.Eastings or 0.0),
         northings=float(c.Northings or 0.0),
         orthogonal_height=float(c.OrthogonalHeight or 0.0),
-        x_axis_abscissa=float(c.XAxisAbscissa) if c.XAxisAbscissa is not None else 1.0,
-        x_axis_ordinate=float(c.XAxisOrdinate) if c.XAxisOrdinate is not None else 0.0,
+        x_axis=(
+            float(c.XAxisAbscissa) if c.XAxisAbscissa is not None else 1.0,
+            float(c.XAxisOrdinate) if c.XAxisOrdinate is not None else 0.0,
+        ),
         scale=float(c.Scale) if c.Scale is not None else 1.0,
         crs_name=(crs.Name or "") if crs is not None else "",
         crs_description=(getattr(crs, "Description", None) or "") if crs is not None else "",

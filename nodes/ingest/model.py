@@ -48,17 +48,26 @@ class MapConversion:
     """IfcMapConversion (IFC4+) with its target IfcProjectedCRS: model -> map coordinates.
 
     ``eastings``/``northings``/``orthogonal_height`` are in map units; the x axis of the model
-    maps to the direction (``x_axis_abscissa``, ``x_axis_ordinate``) in the map.
+    maps to the direction ``x_axis`` = (XAxisAbscissa, XAxisOrdinate) in the map.
     """
 
     eastings: float
     northings: float
     orthogonal_height: float
-    x_axis_abscissa: float = 1.0
-    x_axis_ordinate: float = 0.0
+    x_axis: tuple[float, float] = (1.0, 0.0)
     scale: float = 1.0
     crs_name: str = ""
     crs_description: str = ""
+
+
+def _grouped(attr: str, doc: str) -> cached_property[dict[str, tuple[str, ...]]]:
+    """A cached property of :class:`SiteModel`: its elements' GlobalIds grouped by the element attribute ``attr``."""
+
+    def group(self: SiteModel) -> dict[str, tuple[str, ...]]:
+        return self._group(attr)
+
+    group.__doc__ = doc
+    return cached_property(group)
 
 
 @dataclass(frozen=True)
@@ -89,25 +98,10 @@ class SiteModel:
             out.setdefault(getattr(el, attr), []).append(gid)
         return {k: tuple(v) for k, v in sorted(out.items())}
 
-    @cached_property
-    def by_class(self) -> dict[str, tuple[str, ...]]:
-        """GlobalIds per IFC class."""
-        return self._group("ifc_class")
-
-    @cached_property
-    def by_type(self) -> dict[str, tuple[str, ...]]:
-        """GlobalIds per type object name ("" = untyped)."""
-        return self._group("type_name")
-
-    @cached_property
-    def by_material(self) -> dict[str, tuple[str, ...]]:
-        """GlobalIds per material name ("" = none)."""
-        return self._group("material")
-
-    @cached_property
-    def by_storey(self) -> dict[str, tuple[str, ...]]:
-        """GlobalIds per storey name ("" = not in a storey)."""
-        return self._group("storey")
+    by_class = _grouped("ifc_class", "GlobalIds per IFC class.")
+    by_type = _grouped("type_name", 'GlobalIds per type object name ("" = untyped).')
+    by_material = _grouped("material", 'GlobalIds per material name ("" = none).')
+    by_storey = _grouped("storey", 'GlobalIds per storey name ("" = not in a storey).')
 
     def bbox_m(self) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
         """(min (3,), max (3,)) over all elements, site-local metres."""

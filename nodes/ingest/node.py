@@ -18,63 +18,19 @@ import threading
 import time
 from pathlib import Path
 
-import msgspec
-
+from constructaide.photos import PhotoError, photo_from_bytes
 from constructaide.runtime import Input, NodeContext, NodeSpec, Output, run_node_cli
+from nodes.ingest.config import Config
 from nodes.ingest.ifc import load_site_model
 from nodes.ingest.model import SiteModel
-from nodes.ingest.photos import MAX_PIXELS, PhotoError, photo_from_bytes
 from nodes.ingest.revisions import diff_models, revision_id, to_bim_model
-from nodes.ingest.watcher import FolderWatcher, SeenHashes, content_hash
+from nodes.ingest.watcher import FolderWatcher, SeenHashes, Signature, content_hash, file_signature, settled_change
 from schemas import keys
 from schemas.messages import BimModel, BimUpdate, Photo
 from schemas.messages import NodeError as NodeErrorMsg
 
 UPLOAD = keys.UPLOAD
 """Raw image bytes put by camera software; ``camera`` = camera id or ``phone``."""
-
-
-class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
-    site: str = "demo"
-    tz: str = ""
-    """Site IANA time zone (e.g. "Europe/Amsterdam") for schedule dates and EXIF times without offset."""
-    ifc: tuple[str, ...] = ()
-    """IFC files forming the site model (architecture, structure, MEP parts)."""
-    schedule: str = ""
-    """Optional schedule file: MS Project XML, P6 XML/XER, CSV."""
-    on_missing: str = "error"
-    """Schedule references to elements not in the model: "error" (reject the schedule) or "drop"."""
-    watch_dir: str = ""
-    """Folder cameras upload into; a first-level sub-folder name is taken as the camera id."""
-    camera_id: str = ""
-    """Camera id for files directly in ``watch_dir`` ("" = phone photos)."""
-    poll_secs: float = 2.0
-    watch_model_files: bool = True
-    """Reload and publish a BimUpdate when the IFC/schedule files change."""
-    use_mtime: bool = False
-    """Accept photo files without EXIF time, stamped with the file's modification time."""
-    use_receive_time: bool = False
-    """Accept uploaded photos without EXIF time, stamped with the time they arrived."""
-    seen_path: str = ""
-    """File persisting the content hashes already published (dedupe across restarts); "" = the
-    hidden file ``.constructaide-seen`` in ``watch_dir`` when writable, else memory only."""
-    seen_capacity: int = 100_000
-    max_pixels: int = MAX_PIXELS
-    future_tolerance_s: float = 600.0
-    threads: int = 0
-    """Geometry threads (0 = all cores, at most 8)."""
-    terrain_height_m: float | None = None
-    """Site ground level in model metres (z up, after the origin offset), published with the model so the
-    occlude node hides elements below it; None = unknown (the occlude node then estimates it)."""
-
-
-Signature = tuple[tuple[int, int], ...]
-
-
-def settled_change(current: Signature, loaded: Signature | None, previous: Signature | None) -> bool:
-    """Whether to reload the model files: their (size, mtime_ns) per file differs from what was loaded and was the
-    same on the previous poll (a file still being written changes between polls)."""
-    return current != loaded and current == previous
 
 
 class IngestNode:
@@ -114,14 +70,7 @@ class IngestNode:
         return [Path(p) for p in self.config.ifc] + ([Path(self.config.schedule)] if self.config.schedule else [])
 
     def _signature(self) -> Signature:
-        out = []
-        for p in self._model_paths():
-            try:
-                st = p.stat()
-                out.append((st.st_size, st.st_mtime_ns))
-            except OSError:
-                out.append((-1, -1))
-        return tuple(out)
+        return file_signature(self._model_paths())
 
     def _load(self) -> SiteModel:
         c = self.config
@@ -281,3 +230,7 @@ SPEC = NodeSpec(
 
 def main(argv: list[str] | None = None) -> int:
     return run_node_cli(SPEC, argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

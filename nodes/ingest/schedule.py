@@ -15,19 +15,22 @@ import io
 import re
 import xml.etree.ElementTree as ET
 from collections.abc import Callable, Collection, Iterable, Mapping
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, cast
 from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 
 import msgspec
 
+from constructaide.schedule4d import earliest, latest
 from schemas.messages import ScheduleTask
 
 if TYPE_CHECKING:  # ifcopenshell is imported lazily: CSV / MS Project schedules do not need it
     import ifcopenshell
 
 TaskType = Literal["construction", "demolition", "temporary", "other"]
+Tasks = tuple[ScheduleTask, ...]
+ElementIndex = Mapping[str, tuple[str, str]]
+"""GlobalId -> (ifc_class, storey) of the site model's elements."""
 
 
 class ScheduleError(ValueError):
@@ -489,23 +492,9 @@ _CSV_COLUMNS: Mapping[str, tuple[str, ...]] = {
 _KINDS = ("construction", "demolition", "temporary", "other")
 
 
-@dataclass
-class _CsvTask:
-    name: str
-    start: int
-    finish: int
-    kind: TaskType
-    actual_start: int | None = None
-    actual_finish: int | None = None
-    elements: list[str] = field(default_factory=list)
-
-
 def tasks_from_csv(
-    path: str | Path,
-    tz: ZoneInfo,
-    elements: Mapping[str, tuple[str, str]] | None = None,
-    on_missing: str = "error",
-) -> tuple[ScheduleTask, ...]:
+    path: str | Path, tz: ZoneInfo, elements: ElementIndex | None = None, on_missing: str = "error"
+) -> Tasks:
     """Tasks from a CSV with a header row (names case-insensitive; ``,`` or ``;`` separated).
 
     Columns: ``global_id`` *or* ``ifc_class`` + ``storey`` (all elements of that class on that
@@ -539,7 +528,7 @@ def tasks_from_csv(
     for gid, (cls, storey) in (elements or {}).items():
         by_class_storey.setdefault((cls.lower(), storey), []).append(gid)
 
-    groups: dict[str, _CsvTask] = {}
+    groups: dict[str, ScheduleTask] = {}
     for lineno, row in enumerate(reader, start=2):
         if not any((v or "").strip() for v in row.values() if isinstance(v, str)):
             continue  # blank line (spreadsheet exports pad with empty rows)
@@ -568,40 +557,31 @@ def tasks_from_csv(
         if g is None:
             kind = get("task_type").lower()
             task_type = cast(TaskType, kind) if kind in _KINDS else "construction"
-            g = groups[task_id] = _CsvTask(get("task_name"), start, finish, task_type)
-        g.start, g.finish = min(g.start, start), max(g.finish, finish)
-        if a_start is not None:
-            g.actual_start = a_start if g.actual_start is None else min(g.actual_start, a_start)
-        if a_finish is not None:
-            g.actual_finish = a_finish if g.actual_finish is None else max(g.actual_finish, a_finish)
-        g.elements.extend(x for x in gids if x not in g.elements)
+            g = ScheduleTask(
+                task_id=task_id,
+                name=get("task_name"),
+                planned_start_ns=start,
+                planned_finish_ns=finish,
+                task_type=task_type,
+            )
+        groups[task_id] = msgspec.structs.replace(
+            g,
+            planned_start_ns=min(g.planned_start_ns, start),
+            planned_finish_ns=max(g.planned_finish_ns, finish),
+            actual_start_ns=earliest(g.actual_start_ns, a_start),
+            actual_finish_ns=latest(g.actual_finish_ns, a_finish),
+            element_ids=tuple(dict.fromkeys((*g.element_ids, *gids))),
+        )
     if not groups:
         raise ScheduleError(f"{p}: CSV has no rows")
-    tasks = [
-        ScheduleTask(
-            task_id=tid,
-            name=g.name,
-            planned_start_ns=g.start,
-            planned_finish_ns=g.finish,
-            actual_start_ns=g.actual_start,
-            actual_finish_ns=g.actual_finish,
-            element_ids=tuple(g.elements),
-            task_type=g.kind,
-        )
-        for tid, g in groups.items()
-    ]
+    tasks = list(groups.values())
     out = validate_tasks(tasks, str(p))
     if elements is not None:
         out = resolve_elements(out, elements.keys(), str(p), on_missing)
     return out
 
 
-def load_schedule(
-    path: str | Path,
-    tz: str,
-    elements: Mapping[str, tuple[str, str]] | None = None,
-    on_missing: str = "error",
-) -> tuple[ScheduleTask, ...]:
+def load_schedule(path: str | Path, tz: str, elements: ElementIndex | None = None, on_missing: str = "error") -> Tasks:
     """Load a schedule file by its extension: ``.xml`` (MS Project, or P6 when the root is
     ``APIBusinessObjects``), ``.xer`` (P6), ``.csv``, ``.ifc`` (IfcTasks only).
 

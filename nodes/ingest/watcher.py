@@ -15,7 +15,27 @@ from collections.abc import Iterable
 from pathlib import Path
 
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png")
+Signature = tuple[tuple[int, int], ...]
+"""(size, mtime_ns) per file; (-1, -1) for a file that cannot be read."""
 PARTIAL_SUFFIXES = (".part", ".tmp", ".partial", ".crdownload", ".filepart")
+
+
+def file_signature(paths: Iterable[Path]) -> Signature:
+    """The :data:`Signature` of files, in order."""
+    out = []
+    for p in paths:
+        try:
+            st = p.stat()
+            out.append((st.st_size, st.st_mtime_ns))
+        except OSError:
+            out.append((-1, -1))
+    return tuple(out)
+
+
+def settled_change(current: Signature, loaded: Signature | None, previous: Signature | None) -> bool:
+    """Whether to reload files: their signature differs from what was loaded and was the same on the previous poll
+    (a file still being written changes between polls)."""
+    return current != loaded and current == previous
 
 
 class SeenHashes:

@@ -31,7 +31,7 @@ Steps, all at working resolution except the last:
    least ``appearance_min_component_frac`` of the image) are added (occluders that do not move while
    the stack is taken, e.g. a site cabin that stands for a week); a photo without a stack (a phone
    photo) gets those pixels as its mask (status ok, ``num_views`` 0, no clean plate). ``"no_stack"``
-   only labels photos without a stack; ``"off"`` is the time-lapse alone (the previous behaviour).
+   only labels photos without a stack; ``"off"`` is the time-lapse alone.
    The model is used once it has seen ``appearance_min_frames`` masks; a fixed camera's background
    counts leave out the places where any of its frames saw something move. It relies on equipment
    having colours the static scene lacks (true of the synthetic site; a grey truck before a grey
@@ -39,17 +39,8 @@ Steps, all at working resolution except the last:
 8. the soft mask is upsampled to full resolution with a guided filter driven by the photo, only
    inside the mask's bounding box.
 
-The clean background plate is the photo outside the mask and the (upsampled) median inside.
-
-Measured and not kept (small / default synthetic site, ``bench/occlusion.py``): making the temporal
-guard require the nearest earlier and later neighbour to agree with each other inside the model
-(an occluder is an impulse over a background that is the same before and after; construction is
-not): it removed the one-day slab states but also trucks and the crane in front of the changing
-building (fixed-camera IoU 0.699 -> 0.702 small, 0.725 -> 0.714 default; over all earlier x later
-pairs: 0.685 / 0.675). Comparing with the best neighbour pixel within +-1 px (residual
-misalignment along the horizon): the crane's lattice, found through its fine detail, was lost
-(0.699 -> 0.375; as a seed-only condition +0.006 at twice the smoothing cost). Sky zeroed per
-neighbour instead of against the median: -0.005.
+The clean background plate is the photo outside the mask and the (upsampled) median inside. Variants measured
+and not kept are in BENCHMARKS.md (``occlusion notes``).
 """
 
 from __future__ import annotations
@@ -155,9 +146,7 @@ class ColourModel:
     every counted frame of the camera up to date by recounting only the pixels that entered or left the
     map (``image_of`` gives their working images; masks and maps are kept bit-packed, 1 bit per pixel), so
     the model depends on the frames' current masks, not on the order they came in (a frame whose image is
-    gone keeps the map it was counted with). Recounting only when the map had grown 10 % left frames
-    counted against places that provisional masks had flagged: the default site's hoarding green was
-    then learnt as a dynamic colour in some runs (phones' dynamic IoU 0.43-0.53 instead of 0.78).
+    gone keeps the map it was counted with).
 
     ``add`` replaces a photo's earlier contribution (its mask was recomputed); ``forget`` keeps the
     contribution but drops the per-photo record (bounded memory).
@@ -503,8 +492,7 @@ def vote_score(
     The guard counts every neighbour that sees the pixel (``stack.valid``), also where its own mask
     says occluder: a provisional mask that took the progress for an occluder (streaming: computed
     before the registration, or without a later frame) would otherwise switch the guard off there and
-    pass the error on to every frame whose stack holds it (small synthetic site, demo pipeline:
-    dynamic IoU 0.41 -> 0.51 without the colour model; batch bench unchanged, 0.562 -> 0.563).
+    pass the error on to every frame whose stack holds it.
     """
     q = 0.5 if params.vote_quantile is None else float(params.vote_quantile)
     hp = to_hsv(photo)
@@ -562,7 +550,7 @@ def smooth_scores(photo: F32, scores: list[F32], params: DynamicParams) -> list[
         smoothed = cv2.ximgproc.jointBilateralFilter(
             photo, stacked, params.bilateral_diameter_px, params.bilateral_sigma_color, params.bilateral_sigma_space_px
         )
-        out += [smoothed[..., c] for c in range(len(chunk))]
+        out += [np.asarray(smoothed[..., c], np.float32) for c in range(len(chunk))]
     return out
 
 
@@ -733,7 +721,8 @@ def clean_plate(photo_full: U8, mask_small: U8, mask: U8, background_small: F32,
     size = (X1 - X0, Y1 - Y0)
     bg = cv2.resize((background_small[y0:y1, x0:x1] * 255.0).astype(np.uint8), size, interpolation=cv2.INTER_LINEAR)
     covered = cv2.resize((count[y0:y1, x0:x1] > 0).astype(np.uint8), size, interpolation=cv2.INTER_NEAREST)
-    m = cv2.dilate(mask[Y0:Y1, X0:X1], np.ones((5, 5), np.uint8)) & (covered * 255)
+    dilated = np.asarray(cv2.dilate(mask[Y0:Y1, X0:X1], np.ones((5, 5), np.uint8)), np.uint8)
+    m = dilated & (np.asarray(covered, np.uint8) * np.uint8(255))
     alpha = cv2.GaussianBlur(m, (0, 0), 2.0).astype(np.float32) * np.float32(1.0 / 255.0)
     plate[Y0:Y1, X0:X1] = cv2.blendLinear(bg, np.ascontiguousarray(photo_full[Y0:Y1, X0:X1]), alpha, 1.0 - alpha)
     return plate
@@ -777,7 +766,7 @@ def _finish(
     photo_full: U8, small: U8, background: F32 | None, count: NDArray[np.int32] | None, params: DynamicParams
 ) -> tuple[U8, U8 | None]:
     """Full-resolution mask of a working-size 0/255 mask and the clean plate (None without a background)."""
-    soft = cv2.GaussianBlur(small.astype(np.float32) / 255.0, (3, 3), 0)
+    soft = np.asarray(cv2.GaussianBlur(small.astype(np.float32) / 255.0, (3, 3), 0), np.float32)
     mask = upsample_mask(soft, photo_full, params.guided_radius_px, params.guided_eps)
     if background is None or count is None:
         return mask, None

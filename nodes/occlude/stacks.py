@@ -184,7 +184,9 @@ class TimelapseStore:
             raise ValueError(f"photo {photo_id}: expected (H, W, 3) BGR, got shape {image_bgr.shape}")
         h_full, w_full = image_bgr.shape[:2]
         w, h, scale = working_size(w_full, h_full, self.working_width_px)
-        small = cv2.resize(image_bgr, (w, h), interpolation=cv2.INTER_AREA) if scale < 1.0 else image_bgr.copy()
+        small = np.asarray(
+            cv2.resize(image_bgr, (w, h), interpolation=cv2.INTER_AREA) if scale < 1.0 else image_bgr.copy(), np.uint8
+        )
         frame = StackFrame(photo_id, camera_id, int(capture_time_ns), small, scale, (w_full, h_full))
         if photo_id not in self.frames and camera_id is not None:
             self.by_camera.setdefault(camera_id, []).append(photo_id)
@@ -223,7 +225,7 @@ class TimelapseStore:
             if a == photo_id and b in self.frames:
                 out[b] = H
             elif b == photo_id and a in self.frames and a not in out:
-                out[a] = np.linalg.inv(H)
+                out[a] = np.asarray(np.linalg.inv(H), np.float64)
         frame = self.frames[photo_id]
         if frame.camera_id is not None:
             for nid in self.by_camera.get(frame.camera_id, ()):
@@ -253,18 +255,18 @@ class TimelapseStore:
         elif self.fixed_alignment != "shift":
             raise ValueError(f"unknown fixed_alignment {self.fixed_alignment!r} (shift or homography)")
         S = scale_matrix(self.frames[photo_id].scale)
-        H = np.linalg.inv(S) @ H_small @ scale_matrix(self.frames[nid].scale)
+        H = np.asarray(np.linalg.inv(S) @ H_small @ scale_matrix(self.frames[nid].scale), np.float64)
         self._shift_cache[key] = H
-        self._shift_cache[(nid, photo_id)] = np.linalg.inv(H)
+        self._shift_cache[(nid, photo_id)] = np.asarray(np.linalg.inv(H), np.float64)
         return H
 
     def _frame_features(self, photo_id: str) -> tuple[F64, NDArray[np.float32] | None]:
         """SIFT keypoints (N, 2) in working pixels and descriptors of a stored frame (cached)."""
         if photo_id not in self._features:
             grey = cv2.cvtColor(self.frames[photo_id].image_small, cv2.COLOR_BGR2GRAY)
-            kp, desc = cv2.SIFT_create(nfeatures=self.max_features).detectAndCompute(grey, None)
+            kp, desc = cv2.SIFT.create(nfeatures=self.max_features).detectAndCompute(grey, None)
             pts = np.array([k.pt for k in kp], np.float64).reshape(-1, 2)
-            self._features[photo_id] = (pts, desc)
+            self._features[photo_id] = (pts, None if desc is None else np.asarray(desc, np.float32))
         return self._features[photo_id]
 
     def _feature_homography(self, photo_id: str, nid: str, min_inliers: int = 40) -> F64 | None:
@@ -315,8 +317,11 @@ class TimelapseStore:
                 break
             nf = self.frames[nid]
             H_small = S_this @ cands[nid] @ np.linalg.inv(scale_matrix(nf.scale))
-            warped = cv2.warpPerspective(
-                nf.image_small, H_small, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+            warped = np.asarray(
+                cv2.warpPerspective(
+                    nf.image_small, H_small, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+                ),
+                np.uint8,
             )
             ones = np.full(nf.image_small.shape[:2], 255, np.uint8)
             cover = cv2.warpPerspective(ones, H_small, (w, h), flags=cv2.INTER_NEAREST, borderValue=0)
@@ -368,7 +373,9 @@ class TimelapseStore:
         H = self.candidate_neighbours(photo_id)[neighbour_id]
         h, w = frame.image_small.shape[:2]
         H_small = scale_matrix(frame.scale) @ H
-        return cv2.warpPerspective(image, H_small, (w, h), flags=cv2.INTER_NEAREST, borderValue=0)
+        return np.asarray(
+            cv2.warpPerspective(np.asarray(image), H_small, (w, h), flags=cv2.INTER_NEAREST, borderValue=0)
+        )
 
     def forget(self, photo_id: str) -> None:
         """Drop a photo and every homography that mentions it."""

@@ -32,8 +32,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from constructaide.modelview import ModelMaps
 from nodes.occlude.dynamic import upsample_mask
-from nodes.occlude.modeldepth import ModelMaps
 
 U8 = NDArray[np.uint8]
 F32 = NDArray[np.float32]
@@ -191,10 +191,10 @@ def superpixel_flood(
     without points (``params.propagation``). ``seed_occluded`` (h, w): pixels known occluded without points (the
     ground rule), seeds for the harmonic spreading. uint8 (h, w) 0/1."""
     h, w = photo_small.shape[:2]
-    lab = cv2.cvtColor(photo_small, cv2.COLOR_BGR2LAB)
+    lab = np.asarray(cv2.cvtColor(photo_small, cv2.COLOR_BGR2LAB), np.uint8)
     slic = cv2.ximgproc.createSuperpixelSLIC(lab, cv2.ximgproc.SLICO, params.slic_region_px, params.slic_ruler)
     slic.iterate(params.slic_iterations)
-    labels = slic.getLabels()
+    labels = np.asarray(slic.getLabels(), np.int32)
     nlab = int(labels.max()) + 1
     ui = np.clip(np.round(pixels_small[:, 0]).astype(np.int64), 0, w - 1)
     vi = np.clip(np.round(pixels_small[:, 1]).astype(np.int64), 0, h - 1)
@@ -208,8 +208,9 @@ def superpixel_flood(
         # the greedy rounds below are the safer spreading then)
         state = np.where(flooded, 1, np.where(n_judged > 0, -1, 0)).astype(np.int8)
         if seed_occluded is not None:  # e.g. the ground rule: superpixels mostly below the terrain
-            frac = np.bincount(labels.ravel(), weights=seed_occluded.ravel().astype(np.float64), minlength=nlab)
-            frac /= np.maximum(np.bincount(labels.ravel(), minlength=nlab), 1)
+            weights = seed_occluded.ravel().astype(np.float64)
+            frac = np.bincount(labels.ravel(), weights=weights, minlength=nlab).astype(np.float64)
+            frac = frac / np.maximum(np.bincount(labels.ravel(), minlength=nlab), 1)
             state[(state == 0) & (frac > 0.5)] = 1
         flooded = harmonic_labels(labels, lab, state, params.harmonic_sigma_lab) > 0.5
     elif params.propagate_rounds > 0 and flooded.any():
@@ -348,8 +349,11 @@ def static_mask(
     )
     soft = np.maximum(flood.astype(np.float32), ground.astype(np.float32))
     photo_f = photo_small.astype(np.float32) / 255.0
-    soft = cv2.ximgproc.jointBilateralFilter(
-        photo_f, soft, params.bilateral_diameter_px, params.bilateral_sigma_color, params.bilateral_sigma_space_px
+    soft = np.asarray(
+        cv2.ximgproc.jointBilateralFilter(
+            photo_f, soft, params.bilateral_diameter_px, params.bilateral_sigma_color, params.bilateral_sigma_space_px
+        ),
+        np.float32,
     )
     if params.restrict_to_model:
         soft = soft * maps.has_model.astype(np.float32)

@@ -14,47 +14,62 @@ File layout (one file per recorder run, ``<site>-<YYYYmmddTHHMMSSZ>.mcap``):
   flush-triggering message (default: every Photo), so a SIGKILLed recorder loses at most the
   event in progress; ``repair`` turns such a truncated file into a valid, indexed one.
 
-This module is the recorder's core: it uses the ``mcap`` package but no bus.
+This module is the recorder's core (writer, repair, replay): it uses the ``mcap`` package but no bus. Reading is
+:mod:`constructaide.recording`, shared with the render CLI, the app and the benches.
 """
 
 from __future__ import annotations
 
 import fnmatch
-import io
 import os
 import re
-import struct
 import time
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import IO, Any, Literal
+from typing import IO, Literal
 
 import msgspec
-from mcap.data_stream import ReadDataStream
-from mcap.opcode import Opcode
 from mcap.records import (
     Attachment,
     Channel,
-    Chunk,
-    DataEnd,
-    Footer,
-    Header,
     Message,
     Metadata,
     Schema,
 )
-from mcap.stream_reader import breakup_chunk
 from mcap.writer import CompressionType, Writer
 
+from constructaide.recording import (
+    INVALID_SCHEMA_NAME,
+    MCAP_MAGIC,
+    RecordedMessage,
+    RecordingError,
+    ScanState,
+    iter_messages,
+    iter_recording,
+    scan_records,
+)
 from schemas import codec
 from schemas import messages as m
 
-MCAP_MAGIC = b"\x89MCAP0\r\n"
+__all__ = [
+    "INVALID_SCHEMA_NAME",
+    "MCAP_MAGIC",
+    "RecordedMessage",
+    "RecordingError",
+    "RecordingWriter",
+    "ScanState",
+    "iter_messages",
+    "iter_recording",
+    "new_recording_path",
+    "repair",
+    "replay",
+    "scan_records",
+]
+
 MESSAGE_ENCODING = "msgpack"
 SCHEMA_ENCODING = "jsonschema"
-INVALID_SCHEMA_NAME = "constructaide.Invalid"
 INVALID_SCHEMA = b'{"description": "payload that did not decode as a ConstructAide message; bytes kept as received"}'
 PROFILE = "constructaide"
 METADATA_NAME = "constructaide.recording"
@@ -226,161 +241,6 @@ class RecordingWriter:
 
 
 _FLUSH_TYPES = frozenset(codec.type_name(t) for t in (m.Photo, m.BimModel, m.BimUpdate))
-
-
-# ---------------------------------------------------------------------------
-# Tolerant sequential scan (shared by reading, repair and replay)
-# ---------------------------------------------------------------------------
-
-
-@dataclass
-class ScanState:
-    """Where a scan stopped. ``complete``: the file ends in the closing magic after DataEnd;
-    ``data_complete``: DataEnd was reached (every message is there, the summary may be damaged)."""
-
-    complete: bool = False
-    data_complete: bool = False
-    stopped_at_byte: int = 0
-    reason: str = ""
-    file_size: int = 0
-    chunks: int = 0
-    schemas: dict[int, Schema] = field(default_factory=dict)
-    channels: dict[int, Channel] = field(default_factory=dict)
-
-
-_RECORD_READERS: dict[int, Callable[[ReadDataStream], Any]] = {
-    Opcode.HEADER: Header.read,
-    Opcode.SCHEMA: Schema.read,
-    Opcode.CHANNEL: Channel.read,
-    Opcode.CHUNK: Chunk.read,
-    Opcode.METADATA: Metadata.read,
-    Opcode.ATTACHMENT: Attachment.read,
-    Opcode.DATA_END: DataEnd.read,
-    Opcode.FOOTER: Footer.read,
-}
-
-
-def _parse_record(opcode: int, body: bytes) -> Any:
-    stream = ReadDataStream(io.BytesIO(body))
-    if opcode == Opcode.MESSAGE:
-        if len(body) < 22:
-            raise ValueError("message record shorter than its header")
-        return Message.read(stream, len(body))
-    reader = _RECORD_READERS.get(opcode)
-    if reader is None:
-        return None  # index/summary records and unknown opcodes: not data
-    record = reader(stream)
-    if stream.count > len(body):
-        raise ValueError(f"record {Opcode(opcode).name} overruns its length")
-    return record
-
-
-def scan_records(f: IO[bytes], state: ScanState) -> Iterator[Any]:
-    """Yield Schema, Channel, Message, Metadata and Attachment records in file order.
-
-    Chunks are opened (CRC checked) and yielded record by record only when whole and valid.
-    Stops quietly at the first truncated or corrupt record, or at DataEnd; ``state`` says where
-    and why. Raises ValueError when the file does not start with the MCAP magic.
-    """
-    f.seek(0, os.SEEK_END)
-    state.file_size = f.tell()
-    f.seek(0)
-    if f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
-        raise ValueError("not an MCAP file (bad magic)")
-    pos = len(MCAP_MAGIC)
-    while True:
-        state.stopped_at_byte = pos
-        head = f.read(9)
-        if len(head) < 9:
-            state.reason = "end of file before the footer (truncated)"
-            return
-        opcode, length = struct.unpack("<BQ", head)
-        if length > state.file_size - pos - 9:
-            state.reason = f"record at byte {pos} claims {length} bytes, file ends first (truncated)"
-            return
-        body = f.read(length)
-        try:
-            record = _parse_record(opcode, body)
-            inner = breakup_chunk(record, validate_crc=True) if isinstance(record, Chunk) else None
-        except Exception as exc:  # any parse failure marks the corruption point
-            state.reason = f"corrupt record at byte {pos}: {type(exc).__name__}: {exc}"
-            return
-        pos += 9 + length
-        if inner is not None:
-            state.chunks += 1
-            for rec in inner:
-                _note(rec, state)
-                yield rec
-        elif isinstance(record, DataEnd):
-            state.data_complete = True
-            state.stopped_at_byte = pos
-            tail = f.read()
-            # Summary section is a repeat of what we have; the file is complete if it ends in magic.
-            state.complete = tail.endswith(MCAP_MAGIC)
-            state.reason = "complete" if state.complete else "data section complete, summary truncated"
-            return
-        elif record is not None and not isinstance(record, Header | Footer):
-            _note(record, state)
-            yield record
-
-
-def _note(record: Any, state: ScanState) -> None:
-    if isinstance(record, Schema):
-        state.schemas[record.id] = record
-    elif isinstance(record, Channel):
-        state.channels[record.id] = record
-
-
-# ---------------------------------------------------------------------------
-# Reading
-# ---------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class RecordedMessage:
-    """One recorded payload: zenoh key, schema name, exact bytes, times in ns UTC."""
-
-    key: str
-    type_name: str
-    payload: bytes
-    log_time_ns: int
-    publish_time_ns: int
-
-
-class RecordingError(ValueError):
-    """A recording is truncated or corrupt (run ``constructaide recording repair``)."""
-
-
-def iter_messages(path: str | Path, *, allow_truncated: bool = False) -> Iterator[RecordedMessage]:
-    """Every message of a recording in file (= receive) order.
-
-    A file whose data section is truncated or corrupt yields its complete part, then raises
-    :class:`RecordingError` unless ``allow_truncated`` (a damaged summary section alone is fine).
-    """
-    path = Path(path)
-    state = ScanState()
-    with open(path, "rb") as f:
-        for rec in scan_records(f, state):
-            if isinstance(rec, Message):
-                channel = state.channels.get(rec.channel_id)
-                if channel is None:
-                    raise RecordingError(f"{path}: message on unknown channel {rec.channel_id}")
-                schema = state.schemas.get(channel.schema_id)
-                yield RecordedMessage(
-                    key=channel.topic,
-                    type_name=schema.name if schema is not None else "",
-                    payload=rec.data,
-                    log_time_ns=rec.log_time,
-                    publish_time_ns=rec.publish_time,
-                )
-    if not state.data_complete and not allow_truncated:
-        raise RecordingError(f"{path}: {state.reason}; run `constructaide recording repair {path}`")
-
-
-def iter_recording(path: str | Path, *, allow_truncated: bool = False) -> Iterator[tuple[str, str, bytes, int]]:
-    """``(key, type_name, payload bytes, log_time_ns)`` for every message, in file order."""
-    for msg in iter_messages(path, allow_truncated=allow_truncated):
-        yield msg.key, msg.type_name, msg.payload, msg.log_time_ns
 
 
 # ---------------------------------------------------------------------------

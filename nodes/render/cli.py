@@ -14,11 +14,9 @@ import argparse
 import datetime as dt
 from pathlib import Path
 
-import msgspec
-
 from constructaide.errors import UserError
+from constructaide.recording import RecordingError, decoded_messages
 from nodes.render.engine import ALL_MODES, RenderEngine
-from schemas import codec
 from schemas.messages import Annotation, BimModel, BimUpdate, ElementFilter, OcclusionMask, Photo, Registration
 
 
@@ -41,48 +39,35 @@ def _newest_recording() -> Path:
 
 
 def _read(path: Path, photo_id: str):
-    from mcap.reader import make_reader
-
+    """The model (and its updates since), photos, registrations, best masks and annotations for ``photo_id``."""
     model = None
     updates: list[BimUpdate] = []
     photos: dict[str, Photo] = {}
     regs: dict[str, Registration] = {}
     masks: dict[str, OcclusionMask] = {}
     anns: list[Annotation] = []
+    types = (BimModel, BimUpdate, Photo, Registration, OcclusionMask, Annotation)
     try:
-        with open(path, "rb") as f:
-            for schema, _channel, message in make_reader(f).iter_messages():
-                name = schema.name if schema is not None else ""
-                if name not in (
-                    "constructaide.BimModel",
-                    "constructaide.BimUpdate",
-                    "constructaide.Photo",
-                    "constructaide.Registration",
-                    "constructaide.OcclusionMask",
-                    "constructaide.Annotation",
-                ):
-                    continue
-                try:
-                    msg = codec.decode(message.data)
-                except msgspec.DecodeError:
-                    continue
-                if isinstance(msg, BimModel):
-                    model, updates = msg, []
-                elif isinstance(msg, BimUpdate):
-                    updates.append(msg)
-                elif isinstance(msg, Photo) and msg.photo_id.startswith(photo_id):
-                    photos[msg.photo_id] = msg
-                elif isinstance(msg, Registration) and msg.photo_id.startswith(photo_id) and msg.status != "failed":
-                    regs[msg.photo_id] = msg
-                elif isinstance(msg, OcclusionMask) and msg.photo_id.startswith(photo_id) and msg.status == "ok":
-                    old = masks.get(msg.photo_id)
-                    if old is None or msg.kind == "combined" or old.kind != "combined":
-                        masks[msg.photo_id] = msg
-                elif isinstance(msg, Annotation):
-                    anns.append(msg)
+        for _key, msg in decoded_messages(path, types):
+            if isinstance(msg, BimModel):
+                model, updates = msg, []
+            elif isinstance(msg, BimUpdate):
+                updates.append(msg)
+            elif isinstance(msg, Photo) and msg.photo_id.startswith(photo_id):
+                photos[msg.photo_id] = msg
+            elif isinstance(msg, Registration) and msg.photo_id.startswith(photo_id) and msg.status != "failed":
+                regs[msg.photo_id] = msg
+            elif isinstance(msg, OcclusionMask) and msg.photo_id.startswith(photo_id) and msg.status == "ok":
+                old = masks.get(msg.photo_id)
+                if old is None or msg.kind == "combined" or old.kind != "combined":
+                    masks[msg.photo_id] = msg
+            elif isinstance(msg, Annotation):
+                anns.append(msg)
+    except RecordingError as exc:
+        raise UserError(f"{exc}") from exc
     except OSError as exc:
         raise UserError(f"cannot read recording {path}: {exc}") from exc
-    except Exception as exc:  # mcap raises its own error types on corrupt files
+    except ValueError as exc:  # not an MCAP file at all
         raise UserError(
             f"{path} is not a readable MCAP recording ({exc}); try `constructaide recording repair`"
         ) from exc

@@ -15,18 +15,20 @@ import msgspec
 import numpy as np
 from numpy.typing import NDArray
 
-from constructaide.camera import pose_from_tuple
+from constructaide.bimgeom import Mesh, glb_to_meshes
+from constructaide.camera import pose_from_tuple, scaled_intrinsics
+from constructaide.imagecodec import decode_rgb, encode_png_rgb, mask_of_message
+from constructaide.modelscene import BimScene, build_scene
+from constructaide.modelview import GLRasterizer
 from nodes.render.overlays import MODES, ScheduleView, composite, render_overlay
 from nodes.render.photoreal import MaterialLibrary, PhotorealRenderer
-from nodes.render.raster import GLRasterizer
-from nodes.render.scene import BimScene, MeshDict, build_scene, load_glb_meshes
+from nodes.render.scene import filter_mask
 from nodes.render.sun import sun_direction_in_site, sun_position
 from schemas.messages import (
     Annotation,
     BimModel,
     BimUpdate,
     ElementFilter,
-    Intrinsics,
     LegendEntry,
     OcclusionMask,
     Overlay,
@@ -36,52 +38,6 @@ from schemas.messages import (
 )
 
 ALL_MODES = (*MODES, "photoreal")
-
-
-def decode_image(data: bytes) -> NDArray[np.uint8]:
-    """(H, W, 3) RGB uint8 of JPEG/PNG bytes; ValueError when undecodable."""
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-    if img is None:
-        raise ValueError("photo data is not a decodable JPEG/PNG image")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
-
-
-def encode_png(img: NDArray[np.uint8]) -> bytes:
-    """PNG bytes of an RGB or RGBA uint8 image."""
-    bgr = cv2.cvtColor(img, cv2.COLOR_RGBA2BGRA if img.shape[2] == 4 else cv2.COLOR_RGB2BGR)
-    ok, buf = cv2.imencode(".png", bgr, [cv2.IMWRITE_PNG_COMPRESSION, 1])
-    if not ok:
-        raise RuntimeError("PNG encoding failed")
-    return buf.tobytes()
-
-
-def decode_mask(mask: OcclusionMask, shape: tuple[int, int]) -> NDArray[np.bool_] | None:
-    """(H, W) bool occlusion of a usable mask message resized to ``shape``, else None."""
-    if mask.status != "ok" or not mask.mask_png:
-        return None
-    m = cv2.imdecode(np.frombuffer(mask.mask_png, np.uint8), cv2.IMREAD_GRAYSCALE)
-    if m is None:
-        raise ValueError(f"occlusion mask of {mask.photo_id} is not a decodable PNG")
-    if m.shape != shape:
-        m = cv2.resize(m, (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST)
-    return m > 127
-
-
-def scale_intrinsics(intr: Intrinsics, width_px: int, height_px: int) -> Intrinsics:
-    """Intrinsics of the same camera for an image resized to ``width_px`` x ``height_px`` (fx scales with the width,
-    fy with the height)."""
-    sx = width_px / intr.width_px
-    sy = height_px / intr.height_px
-    return Intrinsics(
-        width_px=width_px,
-        height_px=height_px,
-        f_px=intr.f_px * sx,
-        cx_px=(intr.cx_px + 0.5) * sx - 0.5,
-        cy_px=(intr.cy_px + 0.5) * sy - 0.5,
-        k1=intr.k1,
-        k2=intr.k2,
-        fy_over_fx=intr.fy_over_fx * sy / sx,
-    )
 
 
 @dataclass
@@ -94,7 +50,7 @@ class RenderEngine:
     model: BimModel | None = None
     scene: BimScene | None = None
     schedule: ScheduleView | None = None
-    meshes: MeshDict = field(default_factory=dict)
+    meshes: dict[str, Mesh] = field(default_factory=dict)
     annotations: list[Annotation] = field(default_factory=list)
     evidence: dict = field(default_factory=dict)
     _ras: GLRasterizer | None = None
@@ -108,7 +64,7 @@ class RenderEngine:
 
     def set_model(self, model: BimModel) -> None:
         """Replace the model (decodes its GLB)."""
-        self.meshes = load_glb_meshes(model.geometry_glb)
+        self.meshes = glb_to_meshes(model.geometry_glb)
         self._rebuild(model)
 
     def apply_update(self, update: BimUpdate) -> None:
@@ -120,7 +76,7 @@ class RenderEngine:
         gone = set(update.removed) | {e.global_id for e in update.changed}
         elements = [e for e in self.model.elements if e.global_id not in gone]
         elements += list(update.changed) + list(update.added)
-        self.meshes.update(load_glb_meshes(update.geometry_glb))
+        self.meshes.update(glb_to_meshes(update.geometry_glb))
         model = msgspec.structs.replace(
             self.model,
             revision=update.revision,
@@ -174,20 +130,20 @@ class RenderEngine:
         # The pixels are needed only to composite (an RGBA layer needs the size alone, which the message carries).
         img: NDArray[np.uint8] | None = None
         if composite_photo or mode == "photoreal" or photo.width_px <= 0 or photo.height_px <= 0:
-            img = decode_image(photo.data)
+            img = decode_rgb(photo.data, f"photo {photo.photo_id}")
             h, w = img.shape[:2]
         else:
             h, w = photo.height_px, photo.width_px
         intr = reg.intrinsics
         if (intr.width_px, intr.height_px) != (w, h):
-            intr = scale_intrinsics(intr, w, h)
+            intr = scaled_intrinsics(intr, w, h)
         if w > self.max_width_px:
             w, h = self.max_width_px, round(h * self.max_width_px / w)
-            img = None if img is None else cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
-            intr = scale_intrinsics(intr, w, h)
+            img = None if img is None else np.asarray(cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA), np.uint8)
+            intr = scaled_intrinsics(intr, w, h)
         wfc = pose_from_tuple(reg.world_from_camera)
         at = photo.capture_time_ns if at_ns is None else at_ns
-        occ = decode_mask(occlusion, (h, w)) if occlusion is not None else None
+        occ = mask_of_message(occlusion, (h, w))
         ground_z = self.model.terrain_height_m if self.model.terrain_height_m is not None else 0.0
         legend: tuple[LegendEntry, ...]
         if mode == "photoreal":
@@ -204,8 +160,6 @@ class RenderEngine:
                 label = "sun: default direction (model has no GPS position)"
             visible = self.schedule.built(at, basis="planned")
             if flt is not None:
-                from nodes.render.scene import filter_mask
-
                 visible &= filter_mask(self.scene, flt, self.schedule.task_elements)
             assert img is not None
             out = self._photoreal.render(
@@ -221,7 +175,7 @@ class RenderEngine:
             photo_id=photo.photo_id,
             mode=mode,  # type: ignore[arg-type]
             at_ns=at,
-            image_png=encode_png(out),
+            image_png=encode_png_rgb(out),
             legend=legend,
             filter=flt or ElementFilter(),
             camera_id=photo.camera_id,

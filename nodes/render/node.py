@@ -166,22 +166,17 @@ class RenderNode:
         self.engine.close()
 
 
-SPEC = NodeSpec(
-    name="render",
-    description="BIM overlays (4D state, progress, x-ray, future, edges, photoreal) for every registered photo",
-    config_type=Config,
-    factory=RenderNode,
-    inputs=(
-        Input(keys.BIM_MODEL, BimModel, "on_model", latched=True),
-        Input(keys.BIM_UPDATE, BimUpdate, "on_update"),
-        Input(keys.PHOTO, Photo, "on_photo"),
-        Input(keys.REGISTRATION, Registration, "on_registration"),
-        Input(keys.OCCLUSION, OcclusionMask, "on_occlusion"),
-        Input(keys.ANNOTATION, Annotation, "on_annotation"),
-        Input(keys.PROGRESS, ProgressUpdate, "on_progress"),
-    ),
-    outputs=(Output(keys.OVERLAY, Overlay),),
+INPUTS = (
+    Input(keys.BIM_MODEL, BimModel, "on_model", latched=True),
+    Input(keys.BIM_UPDATE, BimUpdate, "on_update"),
+    Input(keys.PHOTO, Photo, "on_photo"),
+    Input(keys.REGISTRATION, Registration, "on_registration"),
+    Input(keys.OCCLUSION, OcclusionMask, "on_occlusion"),
+    Input(keys.ANNOTATION, Annotation, "on_annotation"),
+    Input(keys.PROGRESS, ProgressUpdate, "on_progress"),
 )
+DESCRIPTION = "BIM overlays (4D state, progress, x-ray, future, edges, photoreal) for every registered photo"
+SPEC = NodeSpec("render", DESCRIPTION, Config, RenderNode, INPUTS, (Output(keys.OVERLAY, Overlay),))
 
 
 def main(argv: list[str] | None = None) -> int:

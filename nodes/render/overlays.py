@@ -27,9 +27,10 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from constructaide.modelscene import GROUND_INDEX, BimScene
+from constructaide.modelview import GLRasterizer, RasterResult
 from constructaide.schedule4d import ElementWindow, actual_state, element_windows, planned_state
-from nodes.render.raster import GLRasterizer, RasterResult
-from nodes.render.scene import GROUND_INDEX, BimScene, filter_mask
+from nodes.render.scene import filter_mask
 from schemas.messages import Annotation, BimModel, ElementFilter, ElementProgress, Intrinsics, LegendEntry
 
 MODES = ("state4d", "progress", "xray", "future", "edges", "progress_planned")
@@ -61,7 +62,7 @@ class ScheduleView:
     def from_model(cls, model: BimModel, scene: BimScene) -> ScheduleView:
         w = element_windows(model.tasks)
         return cls(
-            windows=[None] + [w.get(g) for g in scene.global_ids],
+            windows=[None, *(w.get(g) for g in scene.global_ids)],
             task_elements={t.task_id: t.element_ids for t in model.tasks},
         )
 
@@ -151,8 +152,8 @@ class ScheduleView:
         if ann.deleted or not ann.status:
             return
         for gid in ann.element_ids:
-            old = self.annotations.get(gid)
-            if old is None or old.created_ns <= ann.created_ns:
+            prev = self.annotations.get(gid)
+            if prev is None or prev.created_ns <= ann.created_ns:
                 self.annotations[gid] = ann
 
 
@@ -173,7 +174,7 @@ def class_rgb(ifc_class: str) -> tuple[int, int, int]:
     if ifc_class in fixed:
         return fixed[ifc_class]
     h = int(hashlib.sha1(ifc_class.encode()).hexdigest()[:4], 16) % 180
-    hsv = np.uint8([[[h, 180, 230]]])
+    hsv = np.array([[[h, 180, 230]]], np.uint8)
     r, g, b = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)[0, 0]
     return int(r), int(g), int(b)
 
@@ -228,7 +229,7 @@ def composite(photo_rgb: NDArray[np.uint8], layer_rgba: NDArray[np.uint8]) -> ND
     # Integer blend: (photo * (255 - a) + rgb * a) / 255, rounded.
     x = cv2.multiply(np.ascontiguousarray(photo_rgb), cv2.bitwise_not(a3), dtype=cv2.CV_16U)
     y = cv2.multiply(np.ascontiguousarray(layer_rgba[..., :3]), a3, dtype=cv2.CV_16U)
-    return cv2.convertScaleAbs(cv2.add(x, y), alpha=1.0 / 255.0)
+    return np.asarray(cv2.convertScaleAbs(cv2.add(x, y), alpha=1.0 / 255.0), np.uint8)
 
 
 @dataclass(frozen=True)

@@ -28,14 +28,15 @@ from __future__ import annotations
 import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from constructaide.camera import focal_xy
-from nodes.render.raster import GLRasterizer, render_geometry
-from nodes.render.scene import BimScene
+from constructaide.modelscene import BimScene
+from constructaide.modelview import GLRasterizer, render_geometry
 from schemas.messages import BimElement, Intrinsics
 
 # pyrender 0.1.45 computes scene bounds (needed for shadow maps) with ``np.infty``, removed in NumPy 2.
@@ -162,7 +163,7 @@ class PhotorealRenderer:
         self.rasterizer = rasterizer
         self.library = library or MaterialLibrary()
         self._cache_key: tuple | None = None
-        self._scenes = None
+        self._scenes: tuple[Any, Any] | None = None
 
     def _build(self, scene: BimScene, visible: NDArray[np.bool_], ground_z_m: float):
         import pyrender
@@ -286,6 +287,8 @@ class PhotorealRenderer:
         lin_with = _srgb_to_linear(warp(c_with, cv2.INTER_LINEAR).astype(np.float32) / 255.0)
         lin_without = _srgb_to_linear(warp(c_without, cv2.INTER_LINEAR).astype(np.float32) / 255.0)
         ground = warp((d_without > 0).astype(np.uint8), cv2.INTER_NEAREST) > 0
+        if geo.outside is not None:
+            ground &= ~geo.outside  # rays the render does not cover show the photo alone
         ids = self.rasterizer.render(scene, intr, world_from_camera, visible).ids
         obj = ids > 0
         free = np.ones((h, w), bool) if occlusion is None else ~occlusion

@@ -51,7 +51,7 @@ class IdImage:
 
 def scaled_intrinsics(intr: Intrinsics, scale: float) -> Intrinsics:
     """The same camera for its image resized by ``scale`` (sizes rounded)."""
-    return cam.scale_intrinsics(intr, max(1, round(intr.width_px * scale)), max(1, round(intr.height_px * scale)))
+    return cam.scaled_intrinsics(intr, max(1, round(intr.width_px * scale)), max(1, round(intr.height_px * scale)))
 
 
 class IdRenderer:

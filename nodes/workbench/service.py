@@ -80,7 +80,7 @@ def fit_intrinsics(intr: Intrinsics, width_px: int, height_px: int) -> Intrinsic
     """Intrinsics for the photo's stored size when a registration was solved at another size."""
     if width_px <= 0 or (intr.width_px, intr.height_px) == (width_px, height_px):
         return intr
-    return cam.scale_intrinsics(intr, width_px, height_px)
+    return cam.scaled_intrinsics(intr, width_px, height_px)
 
 
 def merged_model(model: BimModel, updates: list[Any]) -> BimModel:

@@ -1,4 +1,7 @@
-"""Element-ID, depth and shade rasters of a :class:`BimScene` seen by a distorted pinhole camera.
+"""The model seen from a camera: element-ID, depth and shade rasters, surface maps and depth lookups.
+
+:class:`GLRasterizer` renders a :class:`constructaide.modelscene.BimScene`; :class:`ModelView` wraps one for a set
+of meshes (per-element visibility, optional ground plane) and is what the render, occlude and register nodes use.
 
 The scene is drawn with a small OpenGL 3.3 program (one draw call, no multisampling, integer
 colour target) into an *undistorted* image that covers the distorted photo's field of view with
@@ -8,24 +11,27 @@ radial distortion model of :mod:`constructaide.camera` onto the photo's pixel gr
 The OpenGL context is EGL (headless) and thread-bound: create and use a :class:`GLRasterizer`
 on one thread. Outputs, all (H, W) at photo size, OpenCV pixel convention:
 
-* ``ids`` uint32: 1-based element index, 0 background, :data:`scene.GROUND_INDEX` ground plane;
+* ``ids`` uint32: 1-based element index, 0 background, :data:`constructaide.modelscene.GROUND_INDEX` ground plane;
 * ``depth_m`` float32: camera-frame z in metres, 0 where nothing was hit;
 * ``shade`` float32 in [0, 1]: per-face Lambert shade (fixed world light), 0 on background.
 """
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import os
 from dataclasses import dataclass
 from functools import lru_cache
 
+import cv2
+import msgspec
 import numpy as np
 from numpy.typing import NDArray
 
-from constructaide.camera import focal_xy, invert_rigid, pixels_to_normalized
+from constructaide.camera import focal_xy, invert_rigid, normalized_to_pixels, pixels_to_normalized, scaled_intrinsics
 from constructaide.gl import offscreen_renderer
-from nodes.render.scene import GROUND_INDEX, BimScene
+from constructaide.modelscene import GROUND_INDEX, BimScene, MeshDict, scene_from_meshes
 from schemas.messages import Intrinsics
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
@@ -85,12 +91,15 @@ class RenderGeometry:
     flattened pixels (nearest neighbour) for every photo pixel, or is ``None`` when the photo has
     no distortion and the render is the photo grid itself. ``map_x``/``map_y`` (H, W) float32 are
     the exact render coordinates for ``cv2.remap`` (bilinear resampling of colour renders).
+    ``outside`` (H, W) bool marks photo pixels whose ray the render does not cover (a strong distortion that folds
+    back, or that looks beyond three times the pinhole field of view): they show nothing; None when there are none.
     """
 
     render_intrinsics: Intrinsics
     lookup_flat: NDArray[np.int64] | None
     map_x: NDArray[np.float32] | None = None
     map_y: NDArray[np.float32] | None = None
+    outside: NDArray[np.bool_] | None = None
 
 
 def projection_from_intrinsics(intr: Intrinsics, near_m: float, far_m: float) -> NDArray[np.float64]:
@@ -120,24 +129,30 @@ def render_geometry(intr: Intrinsics, margin_px: int = 4) -> RenderGeometry:
         return RenderGeometry(render_intrinsics=intr, lookup_flat=None)
     w, h = intr.width_px, intr.height_px
     xy = _undistorted_grid(intr).reshape(-1, 2)
-    if not np.all(np.isfinite(xy)):
-        raise ValueError(f"distortion k1={intr.k1}, k2={intr.k2} is not invertible over the image")
     fx, fy = focal_xy(intr)
-    xmin, ymin = xy.min(0)
-    xmax, ymax = xy.max(0)
+    # the canvas covers the photo's rays within three times the pinhole field of view (an estimated distortion can
+    # fold the undistortion outwards); rays beyond it, or where the inversion fails, show nothing
+    half = np.array([w / fx, h / fy])
+    centre = np.array([intr.cx_px / fx, intr.cy_px / fy])
+    lo, hi = -centre - half, -centre + 2.0 * half
+    inside = np.all(np.isfinite(xy), axis=1) & np.all((xy >= lo) & (xy <= hi), axis=1)
+    if not inside.any():
+        raise ValueError(f"distortion k1={intr.k1}, k2={intr.k2} maps no pixel of the image to a usable ray")
+    xy = np.where(inside[:, None], xy, np.clip(np.nan_to_num(xy, nan=0.0), lo, hi))
+    xmin, ymin = xy[inside].min(0)
+    xmax, ymax = xy[inside].max(0)
     # Principal point on an integer pixel of the render grid.
     cx = float(np.floor(-xmin * fx) + margin_px)
     cy = float(np.floor(-ymin * fy) + margin_px)
     rw = int(np.ceil((xmax - xmin) * fx)) + 2 * margin_px + 2
     rh = int(np.ceil((ymax - ymin) * fy)) + 2 * margin_px + 2
-    if rw * rh > 16 * w * h:
-        raise ValueError(f"distortion k1={intr.k1}, k2={intr.k2} needs an unreasonably wide undistorted render")
     ru = np.clip(np.rint(xy[:, 0] * fx + cx).astype(np.int64), 0, rw - 1)
     rv = np.clip(np.rint(xy[:, 1] * fy + cy).astype(np.int64), 0, rh - 1)
     r_intr = Intrinsics(width_px=rw, height_px=rh, f_px=fx, cx_px=cx, cy_px=cy, fy_over_fx=intr.fy_over_fx)
-    map_x = (xy[:, 0] * fx + cx).astype(np.float32).reshape(h, w)
-    map_y = (xy[:, 1] * fy + cy).astype(np.float32).reshape(h, w)
-    return RenderGeometry(render_intrinsics=r_intr, lookup_flat=rv * rw + ru, map_x=map_x, map_y=map_y)
+    map_x = np.where(inside, xy[:, 0] * fx + cx, -1.0).astype(np.float32).reshape(h, w)
+    map_y = np.where(inside, xy[:, 1] * fy + cy, -1.0).astype(np.float32).reshape(h, w)
+    outside = None if inside.all() else ~inside.reshape(h, w)
+    return RenderGeometry(r_intr, rv * rw + ru, map_x, map_y, outside)
 
 
 def _undistorted_grid(intr: Intrinsics, step_px: int = 8) -> NDArray[np.float64]:
@@ -146,8 +161,6 @@ def _undistorted_grid(intr: Intrinsics, step_px: int = 8) -> NDArray[np.float64]
     Exact inversion on a grid every ``step_px`` pixels, bilinear in between (the map is smooth:
     error ~0.01 px), which is ~50x faster than inverting every pixel.
     """
-    import cv2
-
     w, h = intr.width_px, intr.height_px
     gu = np.arange(0, w - 1 + step_px, step_px, dtype=np.float64)
     gv = np.arange(0, h - 1 + step_px, step_px, dtype=np.float64)
@@ -408,14 +421,15 @@ class GLRasterizer:
         shape = (intr.height_px, intr.width_px)
         idx = geo.lookup_flat
         zs = self._last_depth_shade.reshape(-1, 2)[idx].reshape(*shape, 2)
-        return RasterResult(ids=raw.ids.ravel()[idx].reshape(shape), depth_m=zs[..., 0], shade=zs[..., 1])
+        ids = raw.ids.ravel()[idx].reshape(shape)
+        if geo.outside is not None:
+            ids[geo.outside] = 0
+            zs[geo.outside] = 0.0
+        return RasterResult(ids=ids, depth_m=zs[..., 0], shade=zs[..., 1])
 
     def close(self) -> None:
-        """Free this rasterizer's GL objects (call on the owning thread).
-
-        The EGL context itself is left to process exit: pyrender's ``delete`` terminates the
-        process-wide EGL display, which would break every other live renderer in the process.
-        """
+        """Free this rasterizer's GL objects and its EGL context (call on the owning thread; the process-wide EGL
+        display stays, see :mod:`constructaide.gl`)."""
         from OpenGL import GL
 
         try:
@@ -430,6 +444,199 @@ class GLRasterizer:
                 GL.glDeleteTextures([self._lut_tex])
         except Exception:  # context already gone (interpreter exit)
             pass
+        with contextlib.suppress(Exception):
+            self.offscreen.delete()  # only this context (constructaide.gl keeps the shared EGL display)
         self._vao = self._fbo = self._lut_tex = 0
         self._scene = None
         self._fbo_size = (0, 0)
+
+
+# -- surface maps and depth lookups on top of the rasterizer ----------------------------------------
+
+
+@dataclass
+class ModelMaps:
+    """Per-pixel model geometry for one camera at one image size (h, w).
+
+    ``depth_m``: float32 camera z in metres, ``inf`` where no model; ``normal_in_world``: float32 (h, w, 3) unit
+    normals (zero where no model), oriented towards the camera; ``point_in_world_m``: float32 (h, w, 3) surface
+    points (NaN where no model).
+    """
+
+    depth_m: NDArray[np.float32]
+    normal_in_world: NDArray[np.float32]
+    point_in_world_m: NDArray[np.float32]
+
+    @property
+    def has_model(self) -> NDArray[np.bool_]:
+        return np.isfinite(self.depth_m)
+
+
+def normals_from_depth(depth_m: NDArray[np.float32], intr: Intrinsics) -> tuple[NDArray[np.float32], ...]:
+    """Camera-frame points (h, w, 3) and unit normals (h, w, 3) of a pinhole depth map (``inf`` = no surface).
+
+    Normals are the cross product of one-sided differences, each taken on the side with the smaller depth jump
+    (depth edges do not smear; exact on planar faces), and face the camera; pixels without depth get NaN points
+    and zero normals.
+    """
+    h, w = depth_m.shape
+    fx, fy = focal_xy(intr)
+    u = np.arange(w, dtype=np.float32)[None, :]
+    v = np.arange(h, dtype=np.float32)[:, None]
+    z = depth_m.astype(np.float32)
+    with np.errstate(invalid="ignore"):  # 0 * inf on the principal point's row and column where no surface
+        pts = np.stack([(u - intr.cx_px) / fx * z, (v - intr.cy_px) / fy * z, z], axis=-1)
+    pts[~np.isfinite(z)] = np.nan
+
+    def one_sided(axis: int) -> NDArray[np.float32]:
+        fwd = np.roll(pts, -1, axis=axis) - pts
+        bwd = pts - np.roll(pts, 1, axis=axis)
+        fz = np.abs(fwd[..., 2])
+        bz = np.abs(bwd[..., 2])
+        fz = np.where(np.isfinite(fz), fz, np.inf)
+        bz = np.where(np.isfinite(bz), bz, np.inf)
+        return np.where((fz <= bz)[..., None], fwd, bwd)
+
+    n = np.cross(one_sided(1), one_sided(0))
+    norm = np.linalg.norm(n, axis=-1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        n = n / norm
+    n[np.sum(n * pts, axis=-1) > 0] *= -1.0  # towards the camera at the origin: n . p < 0
+    n[~np.isfinite(n).all(axis=-1)] = 0.0
+    return pts.astype(np.float32), n.astype(np.float32)
+
+
+def _pinhole(intr: Intrinsics) -> Intrinsics:
+    """The same camera without lens distortion."""
+    return msgspec.structs.replace(intr, k1=0.0, k2=0.0)
+
+
+class ModelView:
+    """A set of meshes (site-local metres, z up) seen from any camera: rasters, surface maps, depth lookups.
+
+    ``elements`` arguments name the meshes drawn (None: all); ``ground_z_m`` adds an opaque horizontal ground
+    plane at that height (None: none). One :class:`GLRasterizer`, created on the first render; call a view from
+    one thread only (the EGL context is bound to it).
+    """
+
+    def __init__(self, meshes: MeshDict | BimScene) -> None:
+        self._ras: GLRasterizer | None = None
+        self.scene = meshes if isinstance(meshes, BimScene) else scene_from_meshes(meshes)
+
+    @property
+    def empty(self) -> bool:
+        return self.scene.num_triangles == 0
+
+    def set_meshes(self, meshes: MeshDict | BimScene) -> None:
+        """Replace the meshes (the GL context is kept)."""
+        self.scene = meshes if isinstance(meshes, BimScene) else scene_from_meshes(meshes)
+
+    @property
+    def rasterizer(self) -> GLRasterizer:
+        if self._ras is None:
+            self._ras = GLRasterizer()
+        return self._ras
+
+    def visible(self, elements: set[str] | frozenset[str] | None = None) -> NDArray[np.bool_]:
+        """(num_elements + 1,) bool for :meth:`GLRasterizer.render`: the named elements (all when None)."""
+        vis = np.ones(self.scene.num_elements + 1, bool)
+        if elements is not None:
+            vis[1:] = [g in elements for g in self.scene.global_ids]
+        vis[0] = False
+        return vis
+
+    def raster(
+        self,
+        intr: Intrinsics,
+        world_from_camera: NDArray[np.float64],
+        elements: set[str] | frozenset[str] | None = None,
+        ground_z_m: float | None = None,
+    ) -> RasterResult:
+        """Element ids, depth and shade at the photo's size with its lens distortion (see :class:`RasterResult`)."""
+        wfc = np.asarray(world_from_camera, np.float64).reshape(4, 4)
+        return self.rasterizer.render(self.scene, intr, wfc, self.visible(elements), ground_z_m)
+
+    def depth_map(
+        self,
+        world_from_camera: NDArray[np.float64],
+        intr: Intrinsics,
+        elements: set[str] | frozenset[str] | None = None,
+        ground_z_m: float | None = None,
+    ) -> NDArray[np.float32]:
+        """(H, W) float32 camera-z depth (m) of the undistorted pinhole camera of ``intr`` (k1, k2 ignored); 0 where
+        nothing is hit."""
+        wfc = np.asarray(world_from_camera, np.float64).reshape(4, 4)
+        res = self.rasterizer.render_undistorted(self.scene, _pinhole(intr), wfc, self.visible(elements), ground_z_m)
+        return np.ascontiguousarray(res.depth_m, np.float32)
+
+    def depth_at(
+        self,
+        world_from_camera: NDArray[np.float64],
+        intr: Intrinsics,
+        pixels_px: NDArray[np.float64],
+        elements: set[str] | frozenset[str] | None = None,
+        ground_z_m: float | None = None,
+        max_relative_spread: float = 0.03,
+    ) -> NDArray[np.float64]:
+        """(N,) camera-z depth (m) of the model at distorted pixels (N, 2) of a photo; NaN where nothing is hit,
+        outside the image, or on a depth discontinuity (the 3x3 neighbourhood's spread above
+        ``max_relative_spread`` of the depth: a silhouette pixel does not take the background's depth)."""
+        px = np.asarray(pixels_px, np.float64).reshape(-1, 2)
+        out = np.full(len(px), np.nan)
+        if len(px) == 0:
+            return out
+        pinhole = _pinhole(intr)
+        depth = self.depth_map(world_from_camera, pinhole, elements, ground_z_m)
+        lo = cv2.erode(np.where(depth > 0, depth, np.inf).astype(np.float32), np.ones((3, 3), np.uint8))
+        hi = cv2.dilate(depth, np.ones((3, 3), np.uint8))
+        uv = np.round(normalized_to_pixels(pinhole, pixels_to_normalized(intr, px))).astype(int)
+        h, w = depth.shape
+        inside = (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] < w) & (uv[:, 1] < h)
+        u, v = uv[inside, 0], uv[inside, 1]
+        d, d_lo, d_hi = depth[v, u], lo[v, u], hi[v, u]
+        ok = (d > 0) & np.isfinite(d_lo) & (d_hi - d_lo <= max_relative_spread * d)
+        out[np.nonzero(inside)[0]] = np.where(ok, d, np.nan)
+        return out
+
+    def maps(
+        self,
+        intr: Intrinsics,
+        world_from_camera: NDArray[np.float64],
+        width_px: int,
+        height_px: int,
+        elements: set[str] | frozenset[str] | None = None,
+        ground_z_m: float | None = None,
+    ) -> ModelMaps:
+        """Depth, normals and world points of the model for a camera (full-resolution ``intr``) at image size
+        (width_px, height_px), lens distortion included (normals from the undistorted render's depth)."""
+        target = scaled_intrinsics(intr, width_px, height_px)
+        wfc = np.asarray(world_from_camera, np.float64).reshape(4, 4)
+        if self.empty:
+            return ModelMaps(
+                np.full((height_px, width_px), np.inf, np.float32),
+                np.zeros((height_px, width_px, 3), np.float32),
+                np.full((height_px, width_px, 3), np.nan, np.float32),
+            )
+        geo = render_geometry(target)
+        res = self.rasterizer.render_undistorted(
+            self.scene, geo.render_intrinsics, wfc, self.visible(elements), ground_z_m
+        )
+        depth_pin = np.where(res.depth_m > 0, res.depth_m, np.inf).astype(np.float32)
+        pts_cam, n_cam = normals_from_depth(depth_pin, geo.render_intrinsics)
+        if geo.lookup_flat is not None:
+            pts_cam = pts_cam.reshape(-1, 3)[geo.lookup_flat].reshape(height_px, width_px, 3)
+            n_cam = n_cam.reshape(-1, 3)[geo.lookup_flat].reshape(height_px, width_px, 3)
+            if geo.outside is not None:
+                pts_cam[geo.outside] = np.nan
+                n_cam[geo.outside] = 0.0
+        depth = pts_cam[..., 2].copy()
+        depth[~np.isfinite(depth)] = np.inf
+        R = wfc[:3, :3].astype(np.float32)
+        t = wfc[:3, 3].astype(np.float32)
+        return ModelMaps(depth.astype(np.float32), (n_cam @ R.T).astype(np.float32), (pts_cam @ R.T + t))
+
+    def close(self) -> None:
+        """Free the GL objects and context (call on the rendering thread)."""
+        if self._ras is not None:
+            self._ras.close()
+            self._ras = None
