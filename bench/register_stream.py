@@ -35,10 +35,11 @@ from PIL import Image  # noqa: E402
 
 from constructaide import camera as cam  # noqa: E402
 from constructaide.bimgeom import glb_to_meshes  # noqa: E402
+from constructaide.schedule4d import standing_elements  # noqa: E402
 from constructaide.synth import ensure_site  # noqa: E402
 from constructaide.synth.truth import load_cameras, load_depth, load_ids, true_camera  # noqa: E402
 from nodes.ingest.photos import exif_focal  # noqa: E402
-from nodes.register.bimdepth import MeshDepthLookup, standing_elements  # noqa: E402
+from nodes.register.bimdepth import MeshDepthLookup  # noqa: E402
 from nodes.register.photo import FrameImage, PhotoInput  # noqa: E402
 from nodes.register.streaming import StreamConfig, StreamingRegistrar  # noqa: E402
 

@@ -335,8 +335,11 @@ def try_relative_pose(recon: Reconstruction, ref: int, idx: int, cfg: MapperConf
         tr = tracks_all[sel]
         known = tr >= 0
         known[known] = np.all(np.isfinite(recon.points[tr[known]]), axis=1)
-        if not cfg.trust_model_points:  # unconfirmed model points have the depth of whatever the model shows
-            known &= ~(recon.point_from_model[np.maximum(tr, 0)] & ~recon.point_confirmed[np.maximum(tr, 0)])
+        if (
+            not cfg.trust_model_points and known.any()
+        ):  # unconfirmed model points: the depth of whatever the model shows
+            k = np.nonzero(known)[0]
+            known[k] = ~(recon.point_from_model[tr[k]] & ~recon.point_confirmed[tr[k]])
         source = np.zeros(0, np.int64)  # the clicks the ratios come from (none for track points)
         if known.sum() >= 5:
             ratios = (recon.points[tr[known]] @ T_r[:3, :3].T + T_r[:3, 3])[:, 2] / X[known, 2]

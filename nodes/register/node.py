@@ -15,7 +15,8 @@ import numpy as np
 
 from constructaide.bimgeom import glb_to_meshes
 from constructaide.runtime import Input, NodeContext, NodeSpec, Output, run_node_cli
-from nodes.register.bimdepth import MeshDepthLookup, standing_elements
+from constructaide.schedule4d import standing_elements
+from nodes.register.bimdepth import MeshDepthLookup
 from nodes.register.photo import FrameImage, PhotoInput
 from nodes.register.streaming import Outcome, StreamConfig, StreamingRegistrar
 from schemas import keys
