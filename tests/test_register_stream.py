@@ -13,8 +13,9 @@ from test_register_stream_scene import PlaneScene, anchor_clicks, encode_jpeg, j
 from constructaide import camera as cam
 from constructaide.anchorsolve import DegenerateAnchors
 from nodes.register.fastpath import FastPathConfig
+from nodes.register.pose import rotation_deviation
 from nodes.register.streaming import FrameImage, PhotoInput, StreamConfig, StreamingRegistrar
-from nodes.register.viewpoints import ViewpointGraph, rotation_deviation, rotation_homography
+from nodes.register.viewpoints import ViewpointGraph, rotation_homography
 
 W, H = 640, 360
 

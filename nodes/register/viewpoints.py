@@ -50,35 +50,6 @@ def rotation_homography(
     return H / H[2, 2]
 
 
-def rotation_deviation(
-    this_from_other: np.ndarray, intr_other: Intrinsics, cx_px: float, cy_px: float
-) -> tuple[float, float]:
-    """How far a homography is from a pure rotation + zoom about a common camera centre.
-
-    For ``H = K_this R K_other^-1`` with square pixels and principal point (cx, cy) of this image, the rows of
-    ``H K_other`` minus the principal-point terms are ``f_this`` times orthonormal rows. Returns the implied focal
-    of this image (px) and the deviation (0 for an exact rotation; relative norm mismatch / cosine of the angles
-    between the rows). A plane seen from two different centres gives a clearly non-zero deviation.
-    """
-    M = np.asarray(this_from_other, np.float64) @ cam.K_matrix(intr_other)
-    r3 = M[2]
-    n3 = np.linalg.norm(r3)
-    if n3 < 1e-15:
-        return float("nan"), float("inf")
-    r1 = M[0] - cx_px * r3
-    r2 = M[1] - cy_px * r3
-    n1, n2 = np.linalg.norm(r1), np.linalg.norm(r2)
-    f1, f2 = n1 / n3, n2 / n3
-    f = 0.5 * (f1 + f2)
-    dev = max(
-        abs(f1 - f2) / max(float(f), 1e-12),
-        abs(r1 @ r2) / (n1 * n2 + 1e-18),
-        abs(r1 @ r3) / (n1 * n3 + 1e-18),
-        abs(r2 @ r3) / (n2 * n3 + 1e-18),
-    )
-    return float(f), float(dev)
-
-
 class ViewpointGraph:
     """Incremental same-viewpoint graph with at most ``max_neighbours`` per photo (oldest edges dropped)."""
 
