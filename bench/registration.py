@@ -798,7 +798,7 @@ def main(argv: list[str] | None = None) -> int:
             continue
         parts = set_name.split("-")
         size, seed = parts[1], int(parts[2]) if len(parts) > 2 else 0
-        n = args.default_site_runs if size == "default" else runs
+        n = args.default_site_runs if size == "default" else min(runs, args.synthetic_runs)
         srows, note = synth_rows(size, seed, n, cfgs, first, pycolmap_runs=1 if size == "default" else 3)
         rows += srows
         if note:

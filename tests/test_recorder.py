@@ -108,6 +108,16 @@ def sample_messages() -> list[tuple[str, m.Message]]:
             m.Annotation(site=SITE, annotation_id="a1", kind="occluder", polygon_px=((0, 0), (1, 0), (1, 1))),
         ),
         (keys.key(keys.ERRORS, site=SITE), m.NodeError(site=SITE, node="register", topic="x", reason="boom")),
+        (
+            keys.key(keys.PHOTO_EVIDENCE, site=SITE, photo="p0"),
+            m.PhotoEvidence(
+                site=SITE,
+                photo_id="p0",
+                capture_time_ns=1,
+                elements=(m.ElementEvidence(global_id="a", state="built", confidence=0.9, visible_px=100),),
+            ),
+        ),
+        (keys.key(keys.PROGRESS, site=SITE), m.ProgressUpdate(site=SITE, as_of_ns=1, photo_id="p0")),
     ]
     assert {type(msg) for _, msg in out} == set(m.MESSAGE_TYPES), "sample list must cover every message type"
     return out
