@@ -113,7 +113,6 @@ def sample_messages() -> list[tuple[str, m.Message]]:
             m.PhotoEvidence(
                 site=SITE,
                 photo_id="p0",
-                capture_time_ns=1,
                 elements=(m.ElementEvidence(global_id="a", state="built", confidence=0.9, visible_px=100),),
             ),
         ),
