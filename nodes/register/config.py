@@ -101,6 +101,11 @@ class MapperConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     # their clicks alone (synthetic site: 0-250 per anchor, fixed cameras 40 m from the building; temple 600-800,
     # fountain 1900-2400).
     release_min_observations: int = 300
+    # ... and only when at least this many photos carry clicks (one photo's clicks fix its own pose but hardly the
+    # reconstruction's scale; 1: release a single anchor too).
+    release_min_anchors: int = 1
+    # With a single anchor the release's principal points and aspects need this many times the usual evidence.
+    single_anchor_wald_factor: float = 5.0
     # Points per image in that final adjustment (its longest tracks; 0 = every triangulated point). The incremental
     # adjustments keep ba_points_per_image for speed; the final one uses all (fountain-P11: centre error over six
     # click-noise draws, earlier seeding and second anchor, 8.8 -> 7.8 mm mean).

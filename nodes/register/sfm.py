@@ -175,6 +175,31 @@ def reconstruct(
     dirty = True  # something was added since the last full bundle adjustment
     pruned: set[int] = set()  # registered images detached from the tracks their camera does not explain
     since_full = 0
+
+    def ask_anchor(candidates: list[int]) -> bool:
+        """Ask for clicks on ``candidates`` in turn (each request recorded); True once one is anchored."""
+        nonlocal dirty
+        for u in candidates:
+            name = recon.images[u].name
+            reason = f"only {counts[u]} matches to triangulated tracks (< {cfg.min_track_matches})"
+            if u in failed_pnp and recon.images[u].message:
+                reason = recon.images[u].message.removeprefix("needs anchor clicks: ")
+            recon.needs_anchor = [r for r in recon.needs_anchor if r[0] != name] + [(name, reason, counts[u])]
+            clicks = clicks_for(u, reason, counts[u])
+            if clicks is None:
+                recon.images[u].message = f"needs anchor clicks: {reason}"
+                continue
+            try:
+                register_anchor(recon, u, clicks, cfg)
+            except DegenerateAnchors as e:
+                recon.images[u].status, recon.images[u].message = "failed", f"anchor clicks rejected: {e}"
+                continue
+            failed_pnp.clear()
+            dirty = True
+            note(f"anchor {name}")
+            return True
+        return False
+
     while True:
         # Homography transfer from every clicked image to unregistered images.
         added = True
@@ -236,34 +261,22 @@ def reconstruct(
             else:
                 failed_pnp.add(u)
             continue
-        b = bootstrap_next(recon, unreg, cfg) if cfg.bootstrap else -1
-        if b >= 0:
-            failed_pnp.clear()
-            dirty = True
-            if not recheck_with_clicks(b):
-                note(f"relative pose {recon.images[b].name}")
-            continue
-        # No image has enough tracks: ask for an anchor, fewest matched tracks first.
-        got = False
-        for u in anchor_request_order(recon, unreg, counts, cfg):
-            name = recon.images[u].name
-            reason = f"only {counts[u]} matches to triangulated tracks (< {cfg.min_track_matches})"
-            if u in failed_pnp and recon.images[u].message:
-                reason = recon.images[u].message.removeprefix("needs anchor clicks: ")
-            recon.needs_anchor = [r for r in recon.needs_anchor if r[0] != name] + [(name, reason, counts[u])]
-            clicks = clicks_for(u, reason, counts[u])
-            if clicks is None:
-                recon.images[u].message = f"needs anchor clicks: {reason}"
+        # No image has enough tracks. While the frame rests on fewer than min_anchors photos' clicks, the widest
+        # view is asked for clicks first (a second anchor fixes the frame better than any bootstrap); otherwise,
+        # or unanswered, the relative-pose bootstrap; then anchors are asked for, fewest matched tracks first.
+        order = anchor_request_order(recon, unreg, counts, cfg)
+        n_anchors = sum(1 for im in recon.images if im.status == "anchor")
+        widest = order[:1] if n_anchors < cfg.min_anchors and request_anchor is not None else []
+        got = ask_anchor(widest)
+        if not got and cfg.bootstrap:
+            b = bootstrap_next(recon, unreg, cfg)
+            if b >= 0:
+                failed_pnp.clear()
+                dirty = True
+                if not recheck_with_clicks(b):
+                    note(f"relative pose {recon.images[b].name}")
                 continue
-            try:
-                register_anchor(recon, u, clicks, cfg)
-            except DegenerateAnchors as e:
-                recon.images[u].status, recon.images[u].message = "failed", f"anchor clicks rejected: {e}"
-                continue
-            failed_pnp.clear()
-            got = dirty = True
-            note(f"anchor {name}")
-            break
+        got = got or ask_anchor([u for u in order if u not in widest])
         if not got:
             break
     if since_full:
