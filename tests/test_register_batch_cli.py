@@ -127,6 +127,9 @@ def test_register_cli_on_temple(tmp_path, capsys):
     assert rc == 0
     report = json.loads((out / "report.json").read_text())
     assert report["num_registered"] == 16, report["unregistered"]
+    # The ring closes: its verified pairs agree with the final poses (loop consistency).
+    pc = report["pair_consistency"]
+    assert pc["pairs"] >= 30 and pc["median"] > 0.9, pc
     printed = capsys.readouterr().out
     assert "registered 16/16" in printed
     assert isinstance(report["anchors_released"], bool) and report["principal_points_refined"] is False

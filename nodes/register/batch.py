@@ -36,6 +36,7 @@ from nodes.register.colmap_io import ColmapImage, ColmapModel, write_text_model
 from nodes.register.config import MapperConfig
 from nodes.register.densify import DensifyParams, densify_reconstruction
 from nodes.register.features import Features, extract_features
+from nodes.register.pose import epipolar_agreement
 from nodes.register.recon import Clicks, Reconstruction, add_image
 from nodes.register.sfm import reconstruct
 from schemas.messages import GeoPoint
@@ -267,6 +268,35 @@ def image_report(recon: Reconstruction) -> list[dict]:
     return out
 
 
+def pair_consistency(recon: Reconstruction, cfg: MapperConfig) -> dict:
+    """Loop consistency of the result: for every verified pair of registered images, the fraction of its matches
+    within 2 % of the width of their epipolar lines under the final poses (a loop that did not close leaves the
+    pairs across the seam inconsistent). Returns the pair count, the median and the worst fraction, and the pairs
+    below 0.5 (image names and fraction)."""
+    reg = set(recon.registered_indices())
+    fracs: list[tuple[float, str, str]] = []
+    for (a, b), g in recon.pairs.items():
+        if a not in reg or b not in reg:
+            continue
+        ia, ib = recon.images[a], recon.images[b]
+        xa = cam.pixels_to_normalized(ia.camera, ia.features.keypoints_px[g.matches[:, 0]].astype(np.float64))
+        xb = cam.pixels_to_normalized(ib.camera, ib.features.keypoints_px[g.matches[:, 1]].astype(np.float64))
+        thr = 2 * cfg.pnp_inlier_frac * ib.width_px
+        ok, n = epipolar_agreement(xa, xb, cam.invert_rigid(ib.pose) @ ia.pose, ib.camera.f_px, thr)
+        if n:
+            fracs.append((ok / n, ia.name, ib.name))
+    if not fracs:
+        return {"pairs": 0}
+    vals = np.array([f for f, _, _ in fracs])
+    bad = sorted((f, a, b) for f, a, b in fracs if f < 0.5)
+    return {
+        "pairs": len(fracs),
+        "median": float(np.median(vals)),
+        "worst": float(vals.min()),
+        "inconsistent": [{"images": [a, b], "fraction": round(f, 3)} for f, a, b in bad[:20]],
+    }
+
+
 def run_batch(
     images_dir: Path,
     anchors_path: Path,
@@ -359,6 +389,7 @@ def run_batch(
         "needs_anchor": [{"image": n, "reason": r, "num_matched_tracks": c} for n, r, c in recon.needs_anchor],
         "images": image_report(recon),
         "densify": dense_stats,
+        "pair_consistency": pair_consistency(recon, cfg),
         "timings_secs": {"features": features_secs, **recon.timings_secs, "total": time.perf_counter() - t0},
     }
     (out_dir / "report.json").write_text(json.dumps(report, indent=2))
