@@ -50,12 +50,12 @@ from _report import table, write_section  # noqa: E402
 from pipeline import run_demo  # noqa: E402
 
 from constructaide.bimgeom import glb_to_meshes  # noqa: E402
-from constructaide.camera import project_points  # noqa: E402
+from constructaide.camera import project_points, scaled_intrinsics  # noqa: E402
 from constructaide.schedule4d import element_windows  # noqa: E402
 from constructaide.synth import ensure_site  # noqa: E402
 from constructaide.synth.truth import element_states, load_cameras, load_depth, true_camera  # noqa: E402
 from nodes.progress.batch import read_inputs  # noqa: E402
-from nodes.progress.modelview import LayerRenderer, scaled_intrinsics  # noqa: E402
+from nodes.progress.modelview import LayerRenderer  # noqa: E402
 
 TZ = "Europe/Amsterdam"
 POP_WIDTH = 640

@@ -21,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -128,7 +129,7 @@ def render_geometry(intr: Intrinsics, margin_px: int = 4) -> RenderGeometry:
     if intr.k1 == 0.0 and intr.k2 == 0.0:
         return RenderGeometry(render_intrinsics=intr, lookup_flat=None)
     w, h = intr.width_px, intr.height_px
-    xy = _undistorted_grid(intr).reshape(-1, 2)
+    xy = undistorted_grid(intr).reshape(-1, 2)
     fx, fy = focal_xy(intr)
     # the canvas covers the photo's rays within three times the pinhole field of view (an estimated distortion can
     # fold the undistortion outwards); rays beyond it, or where the inversion fails, show nothing
@@ -155,7 +156,7 @@ def render_geometry(intr: Intrinsics, margin_px: int = 4) -> RenderGeometry:
     return RenderGeometry(r_intr, rv * rw + ru, map_x, map_y, outside)
 
 
-def _undistorted_grid(intr: Intrinsics, step_px: int = 8) -> NDArray[np.float64]:
+def undistorted_grid(intr: Intrinsics, step_px: int = 8) -> NDArray[np.float64]:
     """(H, W, 2) undistorted normalised coordinates of every photo pixel.
 
     Exact inversion on a grid every ``step_px`` pixels, bilinear in between (the map is smooth:
@@ -183,6 +184,57 @@ def scene_far_m(scene: BimScene, world_from_camera: NDArray[np.float64], extra_m
         ]
     )
     return float(np.linalg.norm(corners - c, axis=1).max() * 1.5 + extra_m + 1.0)
+
+
+def vertex_array(arrays: Sequence[NDArray[np.generic]], dynamic: bool = False) -> tuple[int, list[int]]:
+    """A GL vertex array with one buffer per array, attribute location = position in ``arrays``: uint32 arrays as
+    integer attributes, others as float (N,) or (N, k). Returns (vao, buffers); needs a current context."""
+    from OpenGL import GL
+
+    vao = GL.glGenVertexArrays(1)
+    GL.glBindVertexArray(vao)
+    bufs = list(GL.glGenBuffers(len(arrays)))
+    usage = GL.GL_DYNAMIC_DRAW if dynamic else GL.GL_STATIC_DRAW
+    for loc, (buf, arr) in enumerate(zip(bufs, arrays, strict=True)):
+        data = np.ascontiguousarray(arr)
+        GL.glBindBuffer(GL.GL_ARRAY_BUFFER, buf)
+        GL.glBufferData(GL.GL_ARRAY_BUFFER, max(data.nbytes, 4), data if data.size else None, usage)
+        GL.glEnableVertexAttribArray(loc)
+        size = data.shape[1] if data.ndim == 2 else 1
+        if data.dtype == np.uint32:
+            GL.glVertexAttribIPointer(loc, size, GL.GL_UNSIGNED_INT, 0, ctypes.c_void_p(0))
+        else:
+            GL.glVertexAttribPointer(loc, size, GL.GL_FLOAT, GL.GL_FALSE, 0, ctypes.c_void_p(0))
+    GL.glBindVertexArray(0)
+    return vao, bufs
+
+
+def id_framebuffer(
+    w: int, h: int, value_format: int, old_fbo: int = 0, old_rbos: Sequence[int] = ()
+) -> tuple[int, list[int]]:
+    """A bound (w, h) framebuffer: uint32 ids at colour 0, ``value_format`` (a GL float format) at colour 1, 32-bit
+    float depth; ``old_fbo`` / ``old_rbos`` are deleted first. Returns (fbo, renderbuffers)."""
+    from OpenGL import GL
+
+    if old_fbo:
+        GL.glDeleteFramebuffers(1, [old_fbo])
+        GL.glDeleteRenderbuffers(len(old_rbos), list(old_rbos))
+    fbo = GL.glGenFramebuffers(1)
+    GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, fbo)
+    rbos = list(GL.glGenRenderbuffers(3))
+    for rbo, fmt, attach in zip(
+        rbos,
+        (GL.GL_R32UI, value_format, GL.GL_DEPTH_COMPONENT32F),
+        (GL.GL_COLOR_ATTACHMENT0, GL.GL_COLOR_ATTACHMENT1, GL.GL_DEPTH_ATTACHMENT),
+        strict=True,
+    ):
+        GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, rbo)
+        GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, fmt, w, h)
+        GL.glFramebufferRenderbuffer(GL.GL_FRAMEBUFFER, attach, GL.GL_RENDERBUFFER, rbo)
+    status = GL.glCheckFramebufferStatus(GL.GL_FRAMEBUFFER)
+    if status != GL.GL_FRAMEBUFFER_COMPLETE:
+        raise RuntimeError(f"OpenGL framebuffer incomplete ({status})")
+    return fbo, rbos
 
 
 class GLRasterizer:
@@ -227,34 +279,13 @@ class GLRasterizer:
         self._u_cam = GL.glGetUniformLocation(self._program, "camera_from_world")
         self._u_vis = GL.glGetUniformLocation(self._program, "visible")
 
-    @staticmethod
-    def _make_vao(positions: NDArray[np.float32], index: NDArray[np.uint32], shade: NDArray[np.float32]):
-        from OpenGL import GL
-
-        vao = GL.glGenVertexArrays(1)
-        GL.glBindVertexArray(vao)
-        bufs = list(GL.glGenBuffers(3))
-        for loc, (buf, arr) in enumerate(zip(bufs, (positions, index, shade), strict=True)):
-            data = np.ascontiguousarray(arr)
-            GL.glBindBuffer(GL.GL_ARRAY_BUFFER, buf)
-            GL.glBufferData(GL.GL_ARRAY_BUFFER, data.nbytes, data if data.size else None, GL.GL_STATIC_DRAW)
-            GL.glEnableVertexAttribArray(loc)
-            if loc == 0:
-                GL.glVertexAttribPointer(loc, 3, GL.GL_FLOAT, GL.GL_FALSE, 0, ctypes.c_void_p(0))
-            elif loc == 1:
-                GL.glVertexAttribIPointer(loc, 1, GL.GL_UNSIGNED_INT, 0, ctypes.c_void_p(0))
-            else:
-                GL.glVertexAttribPointer(loc, 1, GL.GL_FLOAT, GL.GL_FALSE, 0, ctypes.c_void_p(0))
-        GL.glBindVertexArray(0)
-        return vao, bufs
-
     def _upload(self, scene: BimScene) -> None:
         from OpenGL import GL
 
         if self._vao:
             GL.glDeleteVertexArrays(1, [self._vao])
             GL.glDeleteBuffers(len(self._buffers), self._buffers)
-        self._vao, self._buffers = self._make_vao(scene.positions_m, scene.element_index, scene.shade)
+        self._vao, self._buffers = vertex_array((scene.positions_m, scene.element_index, scene.shade))
         self._num_vertices = len(scene.element_index)
         rows = (scene.num_elements + 1 + _LUT_WIDTH - 1) // _LUT_WIDTH
         if self._lut_tex:
@@ -288,8 +319,8 @@ class GLRasterizer:
         x0, x1, y0, y1 = c[0] - extent_m, c[0] + extent_m, c[1] - extent_m, c[1] + extent_m
         quad = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y0], [x1, y1], [x0, y1]], np.float64)
         pos = np.column_stack([quad, np.full(6, ground_z_m)]).astype(np.float32)
-        self._ground_vao, self._ground_buffers = self._make_vao(
-            pos, np.full(6, GROUND_INDEX, np.uint32), np.full(6, 0.5, np.float32)
+        self._ground_vao, self._ground_buffers = vertex_array(
+            (pos, np.full(6, GROUND_INDEX, np.uint32), np.full(6, 0.5, np.float32))
         )
 
     def _ensure_fbo(self, w: int, h: int) -> None:
@@ -298,24 +329,7 @@ class GLRasterizer:
         if self._fbo and self._fbo_size == (w, h):
             GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._fbo)
             return
-        if self._fbo:
-            GL.glDeleteFramebuffers(1, [self._fbo])
-            GL.glDeleteRenderbuffers(len(self._rbos), self._rbos)
-        self._fbo = GL.glGenFramebuffers(1)
-        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._fbo)
-        self._rbos = list(GL.glGenRenderbuffers(3))
-        for rbo, fmt, attach in zip(
-            self._rbos,
-            (GL.GL_R32UI, GL.GL_RG32F, GL.GL_DEPTH_COMPONENT32F),
-            (GL.GL_COLOR_ATTACHMENT0, GL.GL_COLOR_ATTACHMENT1, GL.GL_DEPTH_ATTACHMENT),
-            strict=True,
-        ):
-            GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, rbo)
-            GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, fmt, w, h)
-            GL.glFramebufferRenderbuffer(GL.GL_FRAMEBUFFER, attach, GL.GL_RENDERBUFFER, rbo)
-        status = GL.glCheckFramebufferStatus(GL.GL_FRAMEBUFFER)
-        if status != GL.GL_FRAMEBUFFER_COMPLETE:
-            raise RuntimeError(f"OpenGL framebuffer incomplete ({status})")
+        self._fbo, self._rbos = id_framebuffer(w, h, GL.GL_RG32F, self._fbo, self._rbos)
         self._fbo_size = (w, h)
 
     # -- rendering ----------------------------------------------------------------------------------

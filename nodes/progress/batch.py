@@ -27,11 +27,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from zoneinfo import ZoneInfo
 
-import msgspec
-
 from constructaide.errors import UserError
+from constructaide.recording import RecordingError, decoded_messages
 from nodes.progress.engine import EngineParams, ProgressEngine
-from schemas import codec
 from schemas.messages import (
     Annotation,
     BimModel,
@@ -58,25 +56,15 @@ DEVIATIONS = ("ahead", "on_time", "behind", "not_built", "unknown")
 
 
 def iter_recording(path: Path) -> Iterator[Message]:
-    """Decoded ConstructAide messages of an MCAP recording in log-time order (undecodable payloads skipped)."""
-    from mcap.reader import make_reader
-
+    """Decoded ConstructAide messages of an MCAP recording in file (= receive, log-time) order (undecodable
+    payloads skipped)."""
     if not path.is_file():
         raise UserError(f"no such recording: {path}")
     try:
-        with path.open("rb") as f:
-            for _schema, _channel, rec in make_reader(f).iter_messages(log_time_order=True):
-                try:
-                    yield codec.decode(rec.data)
-                except (msgspec.DecodeError, msgspec.ValidationError):
-                    continue
-    except UserError:
-        raise
-    except Exception as e:  # the mcap reader raises several types on damaged files
-        raise UserError(
-            f"{path}: cannot read the recording ({type(e).__name__}: {e}); "
-            "try `constructaide recording repair FILE` first"
-        ) from e
+        for _key, msg in decoded_messages(path):
+            yield msg
+    except RecordingError as e:
+        raise UserError(str(e)) from e
 
 
 @dataclass

@@ -19,7 +19,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from constructaide.bimgeom import glb_to_meshes, load_bim_model_glb
-from constructaide.camera import invert_rigid, pose_from_tuple
+from constructaide.camera import invert_rigid, pose_from_tuple, scaled_intrinsics
+from constructaide.imagecodec import decode_rgb, mask_of_message
 from constructaide.schedule4d import ElementWindow, element_windows
 from nodes.progress.evidence import ElementCue, EvidenceParams, MaterialModel, colour_bins, photo_evidence, to_lab
 from nodes.progress.fusion import (
@@ -32,7 +33,7 @@ from nodes.progress.fusion import (
     estimate,
     working_midpoint,
 )
-from nodes.progress.modelview import LayerRenderer, Mesh, scaled_intrinsics
+from nodes.progress.modelview import LayerRenderer, Mesh
 from nodes.progress.plates import ReferencePlate, same_segment
 from schemas.messages import (
     SPARSE_POINT_FROM_MODEL,
@@ -103,22 +104,6 @@ class PhotoRecord:
     filename: str
     cues: dict[int, tuple[str, int, float]]
     processing_ms: float
-
-
-def _decode_rgb(data: bytes, what: str) -> NDArray[np.uint8]:
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-    if img is None:
-        raise ValueError(f"{what}: not a decodable JPEG/PNG image ({len(data)} bytes)")
-    return np.asarray(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), np.uint8)
-
-
-def _decode_mask(msg: OcclusionMask, shape: tuple[int, int]) -> NDArray[np.bool_] | None:
-    if msg.status != "ok" or not msg.mask_png:
-        return None
-    m = cv2.imdecode(np.frombuffer(msg.mask_png, np.uint8), cv2.IMREAD_GRAYSCALE)
-    if m is None:
-        raise ValueError(f"occlusion mask ({msg.kind}) of {msg.photo_id} is not a decodable PNG")
-    return cv2.resize(m, (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST) > 127
 
 
 class ProgressEngine:
@@ -285,12 +270,12 @@ class ProgressEngine:
         kinds = self.masks.get(photo_id, {})
         combined = kinds.get("combined")
         if combined is not None and combined.status == "ok":
-            m = _decode_mask(combined, shape)
+            m = mask_of_message(combined, shape)
             return m if m is not None else np.zeros(shape, bool)
         out = np.zeros(shape, bool)
         for kind in ("dynamic", "static", "user"):
             msg = kinds.get(kind)
-            m = _decode_mask(msg, shape) if msg is not None else None
+            m = mask_of_message(msg, shape)
             if m is not None:
                 out |= m
         return out
@@ -355,7 +340,7 @@ class ProgressEngine:
             raise ValueError(f"photo {photo_id} cannot be processed yet (model, photo and registration needed)")
         assert self.renderer is not None and self.model is not None
         photo, reg = self.photos[photo_id], self.registrations[photo_id]
-        rgb = _decode_rgb(photo.data, f"photo {photo_id}")
+        rgb = decode_rgb(photo.data, f"photo {photo_id}")
         h, w = rgb.shape[:2]
         W = min(self.params.working_width_px, w)
         H = max(1, round(h * W / w))

@@ -30,6 +30,7 @@ import numpy as np
 
 from constructaide.camera import focal_xy, pose_from_tuple
 from constructaide.errors import UserError
+from constructaide.imagecodec import decode_bgr, decode_unchanged, encode_png
 from nodes.progress.batch import RecordedInputs, iso, iter_recording, read_inputs, run_engine
 from nodes.progress.engine import ProgressEngine
 from schemas.messages import Overlay, Registration
@@ -113,19 +114,12 @@ def _overlays(path: Path, mode: str) -> dict[str, Overlay]:
     return {m.photo_id: m for m in iter_recording(path) if isinstance(m, Overlay) and m.mode == mode}
 
 
-def _image(data: bytes, flags: int = cv2.IMREAD_COLOR) -> np.ndarray:
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
-    if img is None:
-        raise ValueError("undecodable image in the recording")
-    return img
-
-
 def overlaid(photo_jpeg: bytes, overlay: Overlay | None) -> np.ndarray:
     """(H, W, 3) BGR: the photo with an overlay (RGBA layer or RGB composite) blended in."""
-    img = _image(photo_jpeg)
+    img = decode_bgr(photo_jpeg, "photo")
     if overlay is None or not overlay.image_png:
         return img
-    ov = _image(overlay.image_png, cv2.IMREAD_UNCHANGED)
+    ov: np.ndarray = decode_unchanged(overlay.image_png, "overlay")
     if ov.shape[:2] != img.shape[:2]:
         ov = cv2.resize(ov, (img.shape[1], img.shape[0]), interpolation=cv2.INTER_NEAREST)
     if ov.ndim == 3 and ov.shape[2] == 4:
@@ -219,8 +213,7 @@ def export_bcf(engine: ProgressEngine, inputs: RecordedInputs, recording: Path, 
             if version == "3.0":
                 kw["aspect_ratio"] = c["aspect"]
             cam = mdl.PerspectiveCamera(**kw)  # type: ignore[arg-type]
-            ok, buf = cv2.imencode(".png", overlaid(inputs.photos[best].data, overlays.get(best)))
-            snapshot = buf.tobytes() if ok else None
+            snapshot = encode_png(overlaid(inputs.photos[best].data, overlays.get(best)))
         info = mdl.VisualizationInfo(components=comps, perspective_camera=cam, guid=topic.guid)
         handler = vi.VisualizationInfoHandler(info, snapshot=snapshot)
         topic.add_visinfo_handler(handler, "snapshot.png" if snapshot else None)
@@ -254,7 +247,7 @@ def export_mp4(inputs: RecordedInputs, recording: Path, out_dir: Path, overlay: 
     frames: dict[str, int] = {}
     for cam, photos in sorted(by_cam.items()):
         photos.sort(key=lambda p: p.capture_time_ns)
-        first = _image(photos[0].data)
+        first = decode_bgr(photos[0].data, "photo")
         h, w = first.shape[:2]
         scale = min(1.0, 1280.0 / w)
         W, H = int(w * scale) // 2 * 2, int(h * scale) // 2 * 2
@@ -262,7 +255,7 @@ def export_mp4(inputs: RecordedInputs, recording: Path, out_dir: Path, overlay: 
             stream = container.add_stream("libx264", rate=int(round(fps)))
             stream.width, stream.height, stream.pix_fmt = W, H, "yuv420p"
             for p in photos:
-                img = overlaid(p.data, overlays.get(p.photo_id)) if overlay else _image(p.data)
+                img = overlaid(p.data, overlays.get(p.photo_id)) if overlay else decode_bgr(p.data, "photo")
                 img = cv2.resize(img, (W, H), interpolation=cv2.INTER_AREA)
                 rgb = np.asarray(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), np.uint8)
                 frame = av.VideoFrame.from_ndarray(rgb, format="rgb24")

@@ -17,18 +17,18 @@ thread (the EGL context is thread-bound).
 
 from __future__ import annotations
 
-import ctypes
 from collections.abc import Mapping
 from dataclasses import dataclass
-from functools import lru_cache
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from constructaide.camera import focal_xy, invert_rigid, pixels_to_normalized
+from constructaide.camera import invert_rigid
 from constructaide.gl import offscreen_renderer
-from schemas.messages import Intrinsics
+from constructaide.modelscene import build_scene
+from constructaide.modelview import id_framebuffer, projection_from_intrinsics, render_geometry, vertex_array
+from schemas.messages import BimElement, Intrinsics
 
 Mesh = tuple[NDArray[np.float64], NDArray[np.int32]]
 _NEAR_M = 0.05
@@ -86,76 +86,6 @@ class Layers:
         return np.minimum(self.depth_front_m, self.depth_built_m)
 
 
-def flatten_meshes(global_ids: list[str], meshes: Mapping[str, Mesh]) -> tuple[NDArray[np.float32], NDArray[np.uint32]]:
-    """Unshared triangle soup of the elements in ``global_ids`` order: positions (3T, 3) float32 metres and the
-    1-based element index per vertex (3T,) uint32. Elements without a mesh get no triangles."""
-    pos: list[NDArray[np.float64]] = []
-    idx: list[NDArray[np.uint32]] = []
-    for i, gid in enumerate(global_ids, start=1):
-        mesh = meshes.get(gid)
-        if mesh is None:
-            continue
-        v, f = np.asarray(mesh[0], np.float64), np.asarray(mesh[1], np.int64)
-        tris = v[f].reshape(-1, 3)
-        pos.append(tris)
-        idx.append(np.full(len(tris), i, np.uint32))
-    if not pos:
-        return np.zeros((0, 3), np.float32), np.zeros(0, np.uint32)
-    return np.vstack(pos).astype(np.float32), np.concatenate(idx)
-
-
-def projection_from_intrinsics(intr: Intrinsics, near_m: float, far_m: float) -> NDArray[np.float64]:
-    """(4, 4) OpenGL clip_from_camera of an OpenCV pinhole; GL row ``j`` (from the bottom) = pixel row ``v = j``."""
-    w, h = intr.width_px, intr.height_px
-    fx, fy = focal_xy(intr)
-    P = np.zeros((4, 4))
-    P[0, 0] = 2.0 * fx / w
-    P[0, 2] = (2.0 * intr.cx_px + 1.0) / w - 1.0
-    P[1, 1] = 2.0 * fy / h
-    P[1, 2] = (2.0 * intr.cy_px + 1.0) / h - 1.0
-    P[2, 2] = (far_m + near_m) / (far_m - near_m)
-    P[2, 3] = -2.0 * far_m * near_m / (far_m - near_m)
-    P[3, 2] = 1.0
-    return P
-
-
-def undistorted_grid(intr: Intrinsics, step_px: int = 8) -> NDArray[np.float64]:
-    """(H, W, 2) undistorted normalised coordinates of every pixel: exact on a grid every ``step_px`` pixels,
-    bilinear in between (the map is smooth)."""
-    import cv2
-
-    w, h = intr.width_px, intr.height_px
-    gu = np.arange(0, w - 1 + step_px, step_px, dtype=np.float64)
-    gv = np.arange(0, h - 1 + step_px, step_px, dtype=np.float64)
-    uu, vv = np.meshgrid(gu, gv)
-    grid = pixels_to_normalized(intr, np.stack([uu.ravel(), vv.ravel()], axis=1)).reshape(len(gv), len(gu), 2)
-    mu, mv = np.meshgrid(np.arange(w, dtype=np.float32) / step_px, np.arange(h, dtype=np.float32) / step_px)
-    out = [cv2.remap(np.ascontiguousarray(grid[..., c], np.float32), mu, mv, cv2.INTER_LINEAR) for c in range(2)]
-    return np.stack(out, axis=-1).astype(np.float64)
-
-
-@lru_cache(maxsize=32)
-def canvas_lookup(intr: Intrinsics, margin_px: int = 2) -> tuple[Intrinsics, NDArray[np.int64] | None]:
-    """Undistorted canvas covering a distorted camera and the flat canvas index of every photo pixel (nearest),
-    or ``(intr, None)`` without distortion."""
-    if intr.k1 == 0.0 and intr.k2 == 0.0:
-        return intr, None
-    w, h = intr.width_px, intr.height_px
-    xy = undistorted_grid(intr).reshape(-1, 2)
-    if not np.all(np.isfinite(xy)):
-        raise ValueError(f"distortion k1={intr.k1}, k2={intr.k2} is not invertible over the image")
-    fx, fy = focal_xy(intr)
-    (x0, y0), (x1, y1) = xy.min(0), xy.max(0)
-    cx, cy = float(np.floor(-x0 * fx) + margin_px), float(np.floor(-y0 * fy) + margin_px)
-    cw, ch = int(np.ceil((x1 - x0) * fx)) + 2 * margin_px + 2, int(np.ceil((y1 - y0) * fy)) + 2 * margin_px + 2
-    if cw * ch > 16 * w * h:
-        raise ValueError(f"distortion k1={intr.k1}, k2={intr.k2} needs an unreasonably wide canvas")
-    cu = np.clip(np.rint(xy[:, 0] * fx + cx).astype(np.int64), 0, cw - 1)
-    cv = np.clip(np.rint(xy[:, 1] * fy + cy).astype(np.int64), 0, ch - 1)
-    canvas = Intrinsics(width_px=cw, height_px=ch, f_px=fx, cx_px=cx, cy_px=cy, fy_over_fx=intr.fy_over_fx)
-    return canvas, cv * cw + cu
-
-
 class LayerRenderer:
     """Draws :class:`Layers` of one model (see :meth:`set_model`) for any camera; owns one EGL context."""
 
@@ -196,24 +126,13 @@ class LayerRenderer:
         from OpenGL import GL
 
         self._current()
-        positions, elements = flatten_meshes(global_ids, meshes)
+        scene = build_scene([BimElement(global_id=g, ifc_class="", geometry_ref=g) for g in global_ids], meshes)
+        positions, elements = scene.positions_m, scene.element_index
         if self._vao:
             GL.glDeleteVertexArrays(1, [self._vao])
             GL.glDeleteBuffers(len(self._buffers), self._buffers)
-        self._vao = GL.glGenVertexArrays(1)
-        GL.glBindVertexArray(self._vao)
-        self._buffers = list(GL.glGenBuffers(3))
         codes = np.zeros(len(elements), np.uint32)
-        for loc, (buf, arr) in enumerate(zip(self._buffers, (positions, elements, codes), strict=True)):
-            data = np.ascontiguousarray(arr)
-            GL.glBindBuffer(GL.GL_ARRAY_BUFFER, buf)
-            GL.glBufferData(GL.GL_ARRAY_BUFFER, max(data.nbytes, 4), data if data.size else None, GL.GL_DYNAMIC_DRAW)
-            GL.glEnableVertexAttribArray(loc)
-            if loc == 0:
-                GL.glVertexAttribPointer(loc, 3, GL.GL_FLOAT, GL.GL_FALSE, 0, ctypes.c_void_p(0))
-            else:
-                GL.glVertexAttribIPointer(loc, 1, GL.GL_UNSIGNED_INT, 0, ctypes.c_void_p(0))
-        GL.glBindVertexArray(0)
+        self._vao, self._buffers = vertex_array((positions, elements, codes), dynamic=True)
         self._elements = elements
         self.num_elements = len(global_ids)
         self._bbox = (positions.min(0), positions.max(0)) if len(positions) else (np.zeros(3), np.zeros(3))
@@ -224,23 +143,7 @@ class LayerRenderer:
         if self._fbo and self._fbo_size == (w, h):
             GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._fbo)
             return
-        if self._fbo:
-            GL.glDeleteFramebuffers(1, [self._fbo])
-            GL.glDeleteRenderbuffers(len(self._rbos), self._rbos)
-        self._fbo = GL.glGenFramebuffers(1)
-        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._fbo)
-        self._rbos = list(GL.glGenRenderbuffers(3))
-        for rbo, fmt, attach in zip(
-            self._rbos,
-            (GL.GL_R32UI, GL.GL_R32F, GL.GL_DEPTH_COMPONENT32F),
-            (GL.GL_COLOR_ATTACHMENT0, GL.GL_COLOR_ATTACHMENT1, GL.GL_DEPTH_ATTACHMENT),
-            strict=True,
-        ):
-            GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, rbo)
-            GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, fmt, w, h)
-            GL.glFramebufferRenderbuffer(GL.GL_FRAMEBUFFER, attach, GL.GL_RENDERBUFFER, rbo)
-        if GL.glCheckFramebufferStatus(GL.GL_FRAMEBUFFER) != GL.GL_FRAMEBUFFER_COMPLETE:
-            raise RuntimeError("OpenGL framebuffer incomplete")
+        self._fbo, self._rbos = id_framebuffer(w, h, GL.GL_R32F, self._fbo, self._rbos)
         self._fbo_size = (w, h)
 
     def _pass(self, w: int, h: int, skip_front: bool) -> tuple[NDArray[np.uint32], NDArray[np.float32]]:
@@ -283,7 +186,8 @@ class LayerRenderer:
         self._current()
         code_of = np.where(built, 1, np.where(candidates, 2, 0)).astype(np.uint32)
         codes = np.ascontiguousarray(code_of[self._elements])
-        canvas, lookup = canvas_lookup(intr)
+        geo = render_geometry(intr, margin_px=2)
+        canvas, lookup = geo.render_intrinsics, geo.lookup_flat
         w, h = canvas.width_px, canvas.height_px
         camera_from_world = invert_rigid(np.asarray(world_from_camera, np.float64))
         lo, hi = self._bbox
@@ -335,6 +239,9 @@ class LayerRenderer:
         if lookup is not None:
             shape = (intr.height_px, intr.width_px)
             out = [a.ravel()[lookup].reshape(shape) for a in out]
+            if geo.outside is not None:  # rays the canvas does not cover show nothing
+                for a, empty in zip(out, (0, np.inf, 0, np.inf, 0), strict=True):
+                    a[geo.outside] = empty
         return Layers(
             out[0].astype(np.uint32),
             out[1].astype(np.float32),
@@ -362,19 +269,3 @@ class LayerRenderer:
             pass
         self._vao = self._fbo = 0
         self._fbo_size = (0, 0)
-
-
-def scaled_intrinsics(intr: Intrinsics, width_px: int, height_px: int) -> Intrinsics:
-    """The same camera for an image resized to ``width_px`` x ``height_px`` (fx scales with the width, fy with the
-    height; pixel centres stay centres)."""
-    sx, sy = width_px / intr.width_px, height_px / intr.height_px
-    return Intrinsics(
-        width_px=width_px,
-        height_px=height_px,
-        f_px=intr.f_px * sx,
-        cx_px=(intr.cx_px + 0.5) * sx - 0.5,
-        cy_px=(intr.cy_px + 0.5) * sy - 0.5,
-        k1=intr.k1,
-        k2=intr.k2,
-        fy_over_fx=intr.fy_over_fx * sy / sx,
-    )

@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from constructaide.camera import normalized_to_pixels, rotation_angle_deg
-from nodes.progress.modelview import undistorted_grid
+from constructaide.modelview import undistorted_grid
 from schemas.messages import Intrinsics
 
 F32 = NDArray[np.float32]
