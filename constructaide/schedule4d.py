@@ -158,10 +158,6 @@ def states_at(tasks: Iterable[ScheduleTask], element_ids: Iterable[str], at_ns: 
     return {gid: planned_state(windows.get(gid), at_ns) for gid in element_ids}
 
 
-STANDING_STATES: frozenset[State] = frozenset({"complete", "under_demolition", "unscheduled"})
-"""States in which an element stands whole (what a camera sees of the model at that time)."""
-
-
 def standing_elements(tasks: Iterable[ScheduleTask], element_ids: Iterable[str]) -> Callable[[int], set[str] | None]:
     """``elements_at(t_ns)``: the elements of ``element_ids`` standing at ``t_ns`` by the schedule.
 
@@ -175,10 +171,6 @@ def standing_elements(tasks: Iterable[ScheduleTask], element_ids: Iterable[str])
         return lambda t_ns: None
 
     def elements_at(t_ns: int) -> set[str] | None:
-        return {
-            gid
-            for gid in ids
-            if (actual_state(windows.get(gid), t_ns) or planned_state(windows.get(gid), t_ns)) in STANDING_STATES
-        }
+        return {gid for gid in ids if stands(windows.get(gid), t_ns)}
 
     return elements_at

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from constructaide.imagecodec import decode_bgr, decode_gray
 from schemas.messages import GeoPoint
 
 
@@ -26,17 +27,14 @@ class FrameImage:
                 raise ValueError(f"expected a uint8 grey or BGR image, got {img.dtype} {img.shape}")
             self._bgr = img if img.ndim == 3 else cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
 
-    def _decode(self, flag: int) -> np.ndarray:
+    def _encoded(self) -> bytes:
         assert self._data is not None
-        img = cv2.imdecode(np.frombuffer(self._data, np.uint8), flag)
-        if img is None:
-            raise ValueError("photo bytes are not a decodable image")
-        return img
+        return self._data
 
     def bgr(self) -> np.ndarray:
         """Full-resolution BGR uint8 (H, W, 3)."""
         if self._bgr is None:
-            self._bgr = self._decode(cv2.IMREAD_COLOR)
+            self._bgr = decode_bgr(self._encoded(), "photo")
         return self._bgr
 
     def gray(self) -> np.ndarray:
@@ -49,7 +47,7 @@ class FrameImage:
         """Grey image at ``scale`` of full resolution; 0.5 decodes JPEG directly at half size (fast)."""
         if scale not in self._small:
             if scale == 0.5 and self._data is not None and self._bgr is None:
-                self._small[scale] = self._decode(cv2.IMREAD_REDUCED_GRAYSCALE_2)
+                self._small[scale] = decode_gray(self._encoded(), "photo", reduced=2)
             elif scale == 1.0:
                 self._small[scale] = self.gray()
             else:

@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 
 from constructaide.modelscene import GROUND_INDEX, BimScene
 from constructaide.modelview import GLRasterizer, RasterResult
-from constructaide.schedule4d import ElementWindow, actual_state, element_windows, planned_state
+from constructaide.schedule4d import ElementWindow, element_windows, planned_state, stands
 from nodes.render.scene import filter_mask
 from schemas.messages import Annotation, BimModel, ElementFilter, ElementProgress, Intrinsics, LegendEntry
 
@@ -44,7 +44,6 @@ XRAY_RGBA = (0, 220, 255, 110)
 FUTURE_RGBA = (255, 170, 0, 120)
 EDGE_RGBA = (255, 230, 40, 255)
 
-_BUILT_STATES = ("complete", "under_demolition", "unscheduled")
 _JUDGED = {"ahead": 0, "on_time": 1, "behind": 2}
 
 
@@ -70,8 +69,7 @@ class ScheduleView:
         """(n + 1,) bool: element stands at ``at_ns``. ``basis``: "planned" or "actual" (actual when known)."""
         out = np.zeros(len(self.windows), bool)
         for i, w in enumerate(self.windows[1:], start=1):
-            state = actual_state(w, at_ns) if basis == "actual" else None
-            out[i] = (state if state is not None else planned_state(w, at_ns)) in _BUILT_STATES
+            out[i] = stands(w, at_ns, "actual" if basis == "actual" else "planned")
         return out
 
     def future(self, at_ns: int) -> NDArray[np.bool_]:

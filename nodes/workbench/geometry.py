@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 
 from constructaide import camera as cam
 from constructaide.bimgeom import load_bim_model_glb
+from constructaide.modelscene import build_scene
 from constructaide.schedule4d import ElementWindow, element_windows, planned_state, stands
 from schemas.messages import BimElement, BimModel
 
@@ -62,6 +63,8 @@ class ModelGeometry:
         self.elements: list[BimElement] = list(model.elements)
         self.index_of = {e.global_id: i for i, e in enumerate(self.elements)}
         meshes = load_bim_model_glb(model)
+        self.scene = build_scene(self.elements, meshes)
+        """The same elements as one soup for the GL rasterizer (index i + 1 = ``elements[i]``)."""
         tris: list[NDArray[np.float64]] = []
         owner: list[NDArray[np.int32]] = []
         for i, e in enumerate(self.elements):

@@ -23,11 +23,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from constructaide import camera as cam
+from constructaide import imagecodec
 from constructaide.anchorsolve import MIN_CLICKS, AnchorSolution, DegenerateAnchors, solve_anchor
 from constructaide.bimgeom import glb_to_meshes, meshes_to_glb
 from nodes.workbench import regions
 from nodes.workbench.geometry import GROW_BY, ModelGeometry
-from nodes.workbench.idrender import IdImage, IdRenderer, scaled_intrinsics
+from nodes.workbench.idrender import IdImage, IdRenderer, intrinsics_scaled_by
 from nodes.workbench.state import EventHub, SiteState
 from schemas import keys
 from schemas.messages import AnchorClicks, AnchorPoint, Annotation, BimModel, Intrinsics, Message, Photo, Registration
@@ -59,21 +60,12 @@ class ApiError(Exception):
         self.reason = reason
 
 
-def encode_png(img: NDArray[Any]) -> bytes:
-    """PNG of an RGB / RGBA / gray uint8 image."""
-    if img.ndim == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_RGBA2BGRA if img.shape[2] == 4 else cv2.COLOR_RGB2BGR)
-    ok, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, 1])
-    if not ok:
-        raise RuntimeError("PNG encoding failed")
-    return buf.tobytes()
-
-
 def decode_rgb(data: bytes) -> NDArray[np.uint8]:
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-    if img is None:
-        raise ApiError(422, "stored image is not a decodable JPEG/PNG")
-    return np.asarray(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), np.uint8)
+    """(H, W, 3) RGB of a stored JPEG/PNG; ApiError 422 when undecodable."""
+    try:
+        return imagecodec.decode_rgb(data)
+    except ValueError as e:
+        raise ApiError(422, "stored image is not a decodable JPEG/PNG") from e
 
 
 def fit_intrinsics(intr: Intrinsics, width_px: int, height_px: int) -> Intrinsics:
@@ -252,12 +244,13 @@ class Workbench:
     def thumbnail(self, photo_id: str) -> bytes:
         p = self.photo(photo_id)
         if photo_id not in self._thumbs:
-            img = cv2.imdecode(np.frombuffer(p.data, np.uint8), cv2.IMREAD_REDUCED_COLOR_2)
-            if img is None:
-                raise ApiError(422, f"photo {photo_id} is not a decodable image")
+            try:
+                img = imagecodec.decode_bgr(p.data, reduced=2)
+            except ValueError as e:
+                raise ApiError(422, f"photo {photo_id} is not a decodable image") from e
             h = round(img.shape[0] * THUMB_WIDTH_PX / img.shape[1])
-            ok, buf = cv2.imencode(".jpg", cv2.resize(img, (THUMB_WIDTH_PX, h), interpolation=cv2.INTER_AREA))
-            self._thumbs[photo_id] = buf.tobytes()
+            small = np.asarray(cv2.resize(img, (THUMB_WIDTH_PX, h), interpolation=cv2.INTER_AREA), np.uint8)
+            self._thumbs[photo_id] = imagecodec.encode_jpeg(small, quality=95)
         return self._thumbs[photo_id]
 
     def overlay_png(self, photo_id: str, mode: str) -> bytes:
@@ -316,7 +309,7 @@ class Workbench:
                 self._renders[key] = hit
                 while len(self._renders) > 48:
                     self._renders.popitem(last=False)
-        scaled = cam.PinholeCamera(scaled_intrinsics(camera.intrinsics, hit.scale), camera.world_from_camera)
+        scaled = cam.PinholeCamera(intrinsics_scaled_by(camera.intrinsics, hit.scale), camera.world_from_camera)
         return hit, scaled if hit.scale < 1.0 else camera
 
     def _outline(self, img: IdImage, mask: NDArray[np.bool_]) -> list[list[list[float]]]:
@@ -327,10 +320,10 @@ class Workbench:
         m = self.state.masks.get((photo_id, "combined")) or self.state.masks.get((photo_id, "static"))
         if m is None or m.status != "ok" or not m.mask_png:
             return None
-        arr = cv2.imdecode(np.frombuffer(m.mask_png, np.uint8), cv2.IMREAD_GRAYSCALE)
-        if arr is None:
+        try:
+            return imagecodec.mask_of_message(m, shape)
+        except ValueError:
             return None
-        return cv2.resize(arr, (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST) > 127
 
     # -- picks ------------------------------------------------------------------------------------------------
 
@@ -457,10 +450,10 @@ class Workbench:
                 kind = str(body.get("kind", "combined"))
                 p = self.photo(photo_id)
                 png = self.mask_png(photo_id, kind)
-                gray = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_GRAYSCALE)
-                if gray is None:
-                    raise ApiError(422, f"the {kind} mask of photo {photo_id} is not a decodable PNG")
-                m = np.asarray(gray > 127, bool)
+                try:
+                    m = imagecodec.decode_mask(png)
+                except ValueError as e:
+                    raise ApiError(422, f"the {kind} mask of photo {photo_id} is not a decodable PNG") from e
                 part = regions.component_at(m, float(body["u"]), float(body["v"]))
                 if not part.any():
                     raise ApiError(404, f"no {kind} occlusion region under that pixel")
@@ -654,7 +647,11 @@ class Workbench:
             src = self.state.photos[best.photo_id]
             H = np.asarray(best.this_from_neighbour, np.float64).reshape(3, 3)
             rgba = regions.warp_region(decode_rgb(src.data), H, (h, w), region)
-            return encode_png(rgba), {"direction": "backward", "source_photo_id": src.photo_id, "at_ns": at_ns}
+            return imagecodec.encode_png_rgb(rgba), {
+                "direction": "backward",
+                "source_photo_id": src.photo_id,
+                "at_ns": at_ns,
+            }
         img, _ = self._render(photo_id, at_ns)
         now, _ = self._render(photo_id)
         layer = np.zeros((*img.ids.shape, 4), np.uint8)
@@ -668,7 +665,7 @@ class Workbench:
         layer = np.asarray(cv2.resize(layer, (w, h), interpolation=cv2.INTER_NEAREST), np.uint8)
         if region is not None:
             layer[~region, 3] = 0
-        return encode_png(layer), {"direction": "forward", "source_photo_id": None, "at_ns": at_ns}
+        return imagecodec.encode_png_rgb(layer), {"direction": "forward", "source_photo_id": None, "at_ns": at_ns}
 
     def preview(self, photo_id: str, element_ids: list[str]) -> bytes:
         """The photo with the render node's photoreal composite inside the selected elements' visible parts."""
@@ -688,7 +685,7 @@ class Workbench:
         mask = cv2.resize(mask.astype(np.uint8), (photo.shape[1], photo.shape[0]), interpolation=cv2.INTER_NEAREST) > 0
         out = photo.copy()
         out[mask] = real[mask]
-        return encode_png(out)
+        return imagecodec.encode_png_rgb(out)
 
     def registration_of(self, photo_id: str) -> Registration | None:
         return self.state.registrations.get(photo_id)
