@@ -10,6 +10,7 @@ from render_scenes import box
 from constructaide import imagecodec, schedule4d
 from constructaide.camera import centered_intrinsics, invert_rigid, look_at, project_points, scaled_intrinsics
 from constructaide.modelview import ModelView
+from constructaide.sampling import farthest_point_order
 from schemas.messages import OcclusionMask, ScheduleTask
 
 DAY_NS = 86_400 * 10**9
@@ -134,3 +135,23 @@ def test_a_distortion_that_folds_back_renders_what_it_covers() -> None:
     assert outside is not None and outside.any() and not outside[90, 160]
     assert (ras.ids[outside] == 0).all() and not np.isfinite(maps.depth_m[outside]).any()
     view.close()
+
+
+def test_reduced_decode_halves_the_size() -> None:
+    bgr = np.random.default_rng(1).integers(0, 256, (40, 60, 3), dtype=np.uint8)
+    jpeg = imagecodec.encode_jpeg(bgr, 95)
+    assert imagecodec.decode_bgr(jpeg, reduced=2).shape == (20, 30, 3)
+    assert imagecodec.decode_gray(jpeg, reduced=2).shape == (20, 30)
+
+
+def test_farthest_point_order_spreads_and_never_repeats() -> None:
+    pts = np.array([[0.0, 0.0], [1.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0], [0.0, 10.0]])
+    order = farthest_point_order(pts, [0])
+    assert sorted(order.tolist()) == list(range(len(pts)))  # every point once, duplicates included
+    assert order[1] == 3  # the far corner first
+    assert set(order[2:4].tolist()) == {2, 4}  # then the two other corners (4 before its duplicate 5)
+    assert order[-1] in (1, 5)
+    # an extra reference point (not a candidate) pushes the picks away from it
+    t = np.array([[-5.0], [-1.0], [1.0], [6.0]])
+    assert farthest_point_order(t, [1, 2], also_from=[[0.0]]).tolist() == [1, 2, 3, 0]
+    assert farthest_point_order(pts, [2], n=2).tolist() == [2, 4]

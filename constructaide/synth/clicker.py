@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 from constructaide import camera as cam
 from constructaide.anchorsolve import MIN_CLICKS as SOLVE_MIN_CLICKS
 from constructaide.bimgeom import glb_to_meshes
+from constructaide.sampling import farthest_point_order
 from schemas.messages import Intrinsics
 
 from .truth import element_index, load_cameras, load_depth, load_ids, true_camera
@@ -70,13 +71,7 @@ class Clicks:
 def spread_sample(px: F64, n: int, rng: np.random.Generator) -> NDArray[np.int64]:
     """Indices of ``n`` of the (M, 2) pixels spread over the image by greedy farthest-point sampling (the first
     one random)."""
-    idx = [int(rng.integers(len(px)))]
-    dist = np.linalg.norm(px - px[idx[0]], axis=1)
-    for _ in range(min(n, len(px)) - 1):
-        k = int(np.argmax(dist))
-        idx.append(k)
-        dist = np.minimum(dist, np.linalg.norm(px - px[k], axis=1))
-    return np.array(idx, dtype=np.int64)
+    return farthest_point_order(px, [int(rng.integers(len(px)))], n)
 
 
 def photo_rng(seed: int, photo_rel: str) -> np.random.Generator:

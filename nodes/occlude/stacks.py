@@ -22,6 +22,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from constructaide.sampling import farthest_point_order
+
 U8 = NDArray[np.uint8]
 F64 = NDArray[np.float64]
 
@@ -78,14 +80,7 @@ def spread_order(ids: list[str], times_ns: list[int], photo_time_ns: int) -> lis
     for side in (np.flatnonzero(t < 0), np.flatnonzero(t >= 0)):
         if len(side):
             picked.append(int(side[np.argmin(np.abs(t[side]))]))
-    rest = [i for i in range(len(ids)) if i not in picked]
-    chosen_t = [0.0] + [t[i] for i in picked]
-    while rest:
-        gaps = [min(abs(t[i] - c) for c in chosen_t) for i in rest]
-        j = rest.pop(int(np.argmax(gaps)))
-        picked.append(j)
-        chosen_t.append(t[j])
-    return [ids[i] for i in picked]
+    return [ids[i] for i in farthest_point_order(t[:, None], picked, also_from=[[0.0]])]
 
 
 def alignment_tile_ncc(a_bgr: U8, b_bgr: U8, valid: NDArray[np.bool_], grid: int = 4, quantile: float = 25.0) -> float:
