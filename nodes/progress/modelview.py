@@ -146,8 +146,12 @@ class LayerRenderer:
         self._fbo, self._rbos = id_framebuffer(w, h, GL.GL_R32F, self._fbo, self._rbos)
         self._fbo_size = (w, h)
 
-    def _pass(self, w: int, h: int, skip_front: bool) -> tuple[NDArray[np.uint32], NDArray[np.float32]]:
-        """Built elements into depth only, then candidates into ids + z; returns (ids, z) in GL row order."""
+    def _pass(
+        self, w: int, h: int, skip_front: bool, draws: tuple[tuple[int, bool], ...] = ((1, False), (2, True))
+    ) -> tuple[NDArray[np.uint32], NDArray[np.float32]]:
+        """Cleared targets, then each ``(code, colour)`` of ``draws`` in turn: the elements of that code into depth,
+        and into ids + z when ``colour`` (default: built into depth only, then candidates); returns (ids, z) in GL
+        row order."""
         from OpenGL import GL
 
         GL.glClearBufferuiv(GL.GL_COLOR, 0, np.zeros(4, np.uint32))
@@ -155,7 +159,7 @@ class LayerRenderer:
         GL.glClearBufferfv(GL.GL_DEPTH, 0, np.ones(1, np.float32))
         n = len(self._elements)
         GL.glUniform1i(self._u["skip_front"], int(skip_front))
-        for code, colour in ((1, False), (2, True)):
+        for code, colour in draws:
             GL.glColorMask(colour, colour, colour, colour)
             GL.glUniform1ui(self._u["draw_code"], code)
             GL.glDrawArrays(GL.GL_TRIANGLES, 0, n)
@@ -211,19 +215,7 @@ class LayerRenderer:
         GL.glUniformMatrix4fv(self._u["camera_from_world"], 1, GL.GL_TRUE, camera_from_world.astype(np.float32))
         GL.glPixelStorei(GL.GL_PACK_ALIGNMENT, 1)
         GL.glPixelStorei(GL.GL_UNPACK_ALIGNMENT, 1)
-        # built alone: draw built as colour (code 1 as the "candidate" of a pass with nothing in depth)
-        GL.glUniform1i(self._u["skip_front"], 0)
-        GL.glClearBufferuiv(GL.GL_COLOR, 0, np.zeros(4, np.uint32))
-        GL.glClearBufferfv(GL.GL_COLOR, 1, np.full(4, np.inf, np.float32))
-        GL.glClearBufferfv(GL.GL_DEPTH, 0, np.ones(1, np.float32))
-        GL.glUniform1ui(self._u["draw_code"], 1)
-        GL.glDrawArrays(GL.GL_TRIANGLES, 0, len(self._elements))
-        GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT0)
-        ids_b = np.empty((h, w), np.uint32)
-        GL.glReadPixels(0, 0, w, h, GL.GL_RED_INTEGER, GL.GL_UNSIGNED_INT, ids_b)
-        GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT1)
-        z_b = np.empty((h, w), np.float32)
-        GL.glReadPixels(0, 0, w, h, GL.GL_RED, GL.GL_FLOAT, z_b)
+        ids_b, z_b = self._pass(w, h, skip_front=False, draws=((1, True),))  # built alone
         ids_f, z_f = self._pass(w, h, skip_front=False)
         GL.glActiveTexture(GL.GL_TEXTURE0)
         GL.glBindTexture(GL.GL_TEXTURE_2D, self._front_tex)

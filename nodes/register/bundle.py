@@ -40,7 +40,19 @@ def undistort_batch(xy_d: np.ndarray, k1: np.ndarray, k2: np.ndarray, iterations
 
 
 @dataclass
-class BundleProblem:
+class CameraArrays:
+    """Per-camera arrays of a bundle adjustment: ``camera_from_world`` (C, 4, 4), intrinsics (C,)."""
+
+    camera_from_world: np.ndarray
+    f_px: np.ndarray
+    cx_px: np.ndarray
+    cy_px: np.ndarray
+    k1: np.ndarray
+    k2: np.ndarray
+
+
+@dataclass
+class BundleProblem(CameraArrays):
     """Arrays of a bundle adjustment. C cameras, P points, M observations, K clicks.
 
     ``camera_from_world`` (C, 4, 4); intrinsics arrays (C,); ``points_in_world`` (P, 3);
@@ -50,12 +62,6 @@ class BundleProblem:
     pose updates about the current camera centre.
     """
 
-    camera_from_world: np.ndarray
-    f_px: np.ndarray
-    cx_px: np.ndarray
-    cy_px: np.ndarray
-    k1: np.ndarray
-    k2: np.ndarray
     pose_fixed: np.ndarray
     intrinsics_fixed: np.ndarray
     points_in_world: np.ndarray
@@ -128,15 +134,9 @@ class BundleOptions:
 
 
 @dataclass
-class BundleResult:
+class BundleResult(CameraArrays):
     """Adjusted arrays (same layout as the problem) and per-observation residual norms (M,) in px."""
 
-    camera_from_world: np.ndarray
-    f_px: np.ndarray
-    cx_px: np.ndarray
-    cy_px: np.ndarray
-    k1: np.ndarray
-    k2: np.ndarray
     points_in_world: np.ndarray
     obs_error_px: np.ndarray
     click_error_px: np.ndarray

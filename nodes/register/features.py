@@ -81,6 +81,31 @@ def extract_features(
     return Features(pts.astype(np.float32), desc, sizes.astype(np.float32), w, h)
 
 
+def _top_two(
+    A: np.ndarray, BT: np.ndarray, chunk_rows: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per row of ``A @ BT`` (one float32 product per chunk of ``chunk_rows`` rows): the best column and its
+    value, the second-best column and its value, and every column's maximum: ``(j1, s1, j2, s2, col_best)``."""
+    n = len(A)
+    j1 = np.empty(n, dtype=np.int64)
+    j2 = np.empty(n, dtype=np.int64)
+    s1 = np.empty(n, dtype=np.float32)
+    s2 = np.empty(n, dtype=np.float32)
+    col_best = np.full(BT.shape[1], -np.inf, dtype=np.float32)
+    for r0 in range(0, n, chunk_rows):
+        S = A[r0 : r0 + chunk_rows] @ BT
+        np.maximum(col_best, S.max(0), out=col_best)
+        rows = np.arange(len(S))
+        j = S.argmax(1)
+        j1[r0 : r0 + len(S)] = j
+        s1[r0 : r0 + len(S)] = S[rows, j]
+        S[rows, j] = -np.inf
+        k = S.argmax(1)
+        j2[r0 : r0 + len(S)] = k
+        s2[r0 : r0 + len(S)] = S[rows, k]
+    return j1, s1, j2, s2, col_best
+
+
 def match_features(a: Features, b: Features, ratio: float = 0.8, chunk_rows: int = 2048) -> np.ndarray:
     """Mutual nearest-neighbour matches passing Lowe's ratio test: (M, 2) int indices (into a, into b).
 
@@ -92,22 +117,7 @@ def match_features(a: Features, b: Features, ratio: float = 0.8, chunk_rows: int
         return np.zeros((0, 2), dtype=int)
     if a.descriptors_pca is not None and b.descriptors_pca is not None:
         return _match_pca(a, b, ratio, chunk_rows)
-    da = _unit_rows(a.descriptors)
-    dbT = _unit_rows(b.descriptors).T
-    n = len(da)
-    best_j = np.empty(n, dtype=np.int64)
-    s1 = np.empty(n, dtype=np.float32)
-    s2 = np.empty(n, dtype=np.float32)
-    col_best = np.full(dbT.shape[1], -np.inf, dtype=np.float32)
-    for r0 in range(0, n, chunk_rows):
-        S = da[r0 : r0 + chunk_rows] @ dbT
-        np.maximum(col_best, S.max(0), out=col_best)
-        rows = np.arange(len(S))
-        j = S.argmax(1)
-        best_j[r0 : r0 + len(S)] = j
-        s1[r0 : r0 + len(S)] = S[rows, j]
-        S[rows, j] = -np.inf
-        s2[r0 : r0 + len(S)] = S.max(1)
+    best_j, s1, _, s2, col_best = _top_two(_unit_rows(a.descriptors), _unit_rows(b.descriptors).T, chunk_rows)
     # Ratio test on distances, squared: d1 < r d2  <=>  2 - 2 s1 < r^2 (2 - 2 s2).
     d1_sq = np.maximum(2 - 2 * s1, 0)
     d2_sq = np.maximum(2 - 2 * s2, 0)
@@ -122,20 +132,7 @@ def _match_pca(a: Features, b: Features, ratio: float, chunk_rows: int) -> np.nd
     similarities of those two candidates."""
     pa = np.ascontiguousarray(a.descriptors_pca, dtype=np.float32)
     pbT = np.ascontiguousarray(b.descriptors_pca, dtype=np.float32).T
-    n = len(pa)
-    j1 = np.empty(n, dtype=np.int64)
-    j2 = np.empty(n, dtype=np.int64)
-    s1 = np.empty(n, dtype=np.float32)
-    col_best = np.full(pbT.shape[1], -np.inf, dtype=np.float32)
-    for r0 in range(0, n, chunk_rows):
-        S = pa[r0 : r0 + chunk_rows] @ pbT
-        np.maximum(col_best, S.max(0), out=col_best)
-        rows = np.arange(len(S))
-        j = S.argmax(1)
-        j1[r0 : r0 + len(S)] = j
-        s1[r0 : r0 + len(S)] = S[rows, j]
-        S[rows, j] = -np.inf
-        j2[r0 : r0 + len(S)] = S.argmax(1)
+    j1, s1, j2, _, col_best = _top_two(pa, pbT, chunk_rows)
     da = _unit_rows(a.descriptors)
     db = _unit_rows(b.descriptors)
     e1 = np.einsum("ij,ij->i", da, db[j1])
