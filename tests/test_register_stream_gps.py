@@ -85,7 +85,7 @@ def test_pnp_refused_when_gps_contradicts_it(scene) -> None:
 
 
 def test_register_node_hands_the_photo_gps_to_the_registrar() -> None:
-    from nodes.register.node import _photo_input
+    from nodes.register.inbox import photo_input as _photo_input
     from schemas.messages import Photo
 
     g = gps_at(10.0, -5.0)

@@ -8,16 +8,12 @@ updates) only feeds the depth lookup that gives anchor features 3D points; it ne
 
 from __future__ import annotations
 
-from collections import OrderedDict
-
 import msgspec
-import numpy as np
 
-from constructaide.bimgeom import glb_to_meshes
 from constructaide.runtime import Input, NodeContext, NodeSpec, Output, run_node_cli
-from constructaide.schedule4d import standing_elements
 from nodes.register.bimdepth import MeshDepthLookup
-from nodes.register.photo import FrameImage, PhotoInput
+from nodes.register.bimsite import BimMeshes
+from nodes.register.inbox import Inbox, click_arrays, dropped_registration, photo_input, sparse_cloud
 from nodes.register.streaming import Outcome, StreamConfig, StreamingRegistrar
 from schemas import keys
 from schemas.messages import (
@@ -52,53 +48,27 @@ class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=Tr
     stream: StreamConfig = StreamConfig()
 
 
-def _photo_input(msg: Photo) -> PhotoInput:
-    if not msg.data:
-        raise ValueError(f"photo {msg.photo_id} has no image data")
-    return PhotoInput(
-        photo_id=msg.photo_id,
-        image=FrameImage(data=msg.data),
-        camera_id=msg.camera_id,
-        capture_time_ns=msg.capture_time_ns,
-        focal_px=msg.focal_px,
-        width_px=msg.width_px,
-        height_px=msg.height_px,
-        gps=msg.gps,
-    )
-
-
 class RegisterNode:
     def __init__(self, config: Config, ctx: NodeContext) -> None:
-        if config.max_pending < 1:
-            raise ValueError("max_pending must be >= 1")
         self.config = config
         self.ctx = ctx
+        self.inbox = Inbox(config.max_pending, config.max_pending_anchors, config.keep_recent_photos)
         self.registrar = StreamingRegistrar(config.stream, site=ctx.site)
-        self.pending: OrderedDict[str, Photo] = OrderedDict()
-        self.pending_anchors: OrderedDict[str, AnchorClicks] = OrderedDict()
-        self.recent: OrderedDict[str, Photo] = OrderedDict()
-        self.asked_anchor: set[str] = set()
-        self.meshes: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-        self.ref_of: dict[str, str] = {}
-        self.tasks: tuple = ()
-        self.terrain_height_m: float | None = None
+        self.bim = BimMeshes()
         self.sparse_revision = 0
         self._map_changes = 0
 
     # -- handlers -------------------------------------------------------------
 
     def on_photo(self, msg: Photo, key: str) -> None:
-        photo = _photo_input(msg)
-        if msg.photo_id in self.pending_anchors:
-            clicks = self.pending_anchors.pop(msg.photo_id)
-            self._register_anchor(msg, clicks)
+        photo = photo_input(msg)
+        if msg.photo_id in self.inbox.pending_anchors:
+            self._register_anchor(msg, self.inbox.pending_anchors.pop(msg.photo_id))
             self._retry_pending()
             return
         if not self.registrar.has_registrations():
             self._enqueue(msg)
-            group = msg.camera_id or f"phone:{msg.photo_id}"
-            if group not in self.asked_anchor:
-                self.asked_anchor.add(group)
+            if self.inbox.first_ask(msg):
                 self._publish_needs_anchor(msg.photo_id, "no registered photos yet: please click anchors on this photo")
             return
         out = self.registrar.register(photo)
@@ -106,87 +76,59 @@ class RegisterNode:
         if out.registration.status == "failed":
             self._enqueue(msg)
         else:
-            self._remember(msg)
+            self.inbox.remember(msg)
             if out.map_changed:
                 self._retry_pending()
 
     def on_anchors(self, msg: AnchorClicks, key: str) -> None:
         if len(msg.points) < 4:
             raise ValueError(f"anchor clicks for {msg.photo_id}: need at least 4 points, got {len(msg.points)}")
-        photo = self.pending.pop(msg.photo_id, None) or self.recent.get(msg.photo_id)
+        photo = self.inbox.photo_for_clicks(msg.photo_id)
         if photo is None:
             if msg.photo_id in self.registrar.poses:
                 self._check_late_clicks(msg)
                 return
-            self._keep_anchors(msg)
+            self.inbox.keep_anchors(msg)
             self.ctx.log.info("anchors for %s wait for the photo", msg.photo_id)
             return
         try:
             self._register_anchor(photo, msg)
         except ValueError:
             if msg.photo_id not in self.registrar.poses:
-                self.pending[msg.photo_id] = photo  # keep the photo for corrected clicks
+                self.inbox.pending[msg.photo_id] = photo  # keep the photo for corrected clicks
             raise
         self._retry_pending()
 
     def on_bim_model(self, msg: BimModel, key: str) -> None:
-        self.meshes = dict(glb_to_meshes(msg.geometry_glb))
-        self.ref_of = {e.global_id: (e.geometry_ref or e.global_id) for e in msg.elements}
-        self.tasks = msg.tasks
-        self.terrain_height_m = msg.terrain_height_m
+        self.bim.set_model(msg)
         self._rebuild_depth()
 
     def on_bim_update(self, msg: BimUpdate, key: str) -> None:
-        for gid in msg.removed:
-            self.meshes.pop(self.ref_of.pop(gid, gid), None)
-        for e in (*msg.added, *msg.changed):
-            self.ref_of[e.global_id] = e.geometry_ref or e.global_id
-        self.meshes.update(glb_to_meshes(msg.geometry_glb))
-        if msg.tasks is not None:
-            self.tasks = msg.tasks
+        self.bim.apply_update(msg)
         self._rebuild_depth()
 
     # -- internals ------------------------------------------------------------
 
     def _rebuild_depth(self) -> None:
-        if not self.config.use_bim_depth or not self.meshes:
-            self.registrar.depth_lookup = None
-            return
-        # Schedule states are per GlobalId; meshes are keyed by geometry_ref.
-        gid_of = {ref: gid for gid, ref in self.ref_of.items()}
-        by_gid = standing_elements(self.tasks, set(gid_of.values()) | {r for r in self.meshes if r not in gid_of})
-
-        def refs_at(t_ns: int) -> set[str] | None:
-            gids = by_gid(t_ns)
-            if gids is None:
-                return None
-            return {ref for ref in self.meshes if gid_of.get(ref, ref) in gids}
-
         old = self.registrar.depth_lookup
         if isinstance(old, MeshDepthLookup):
             old.close()
+        self.registrar.depth_lookup = None
+        if not self.config.use_bim_depth or not self.bim.meshes:
+            return
         try:
             self.registrar.depth_lookup = MeshDepthLookup(
-                self.meshes, elements_at=refs_at, ground_height_m=self.terrain_height_m
+                self.bim.meshes, elements_at=self.bim.refs_at(), ground_height_m=self.bim.terrain_height_m
             )
         except ValueError as e:
-            self.registrar.depth_lookup = None
             self.ctx.log.warning("no depth lookup: %s", e)
-
-    def _keep_anchors(self, clicks: AnchorClicks) -> None:
-        """Hold clicks until their photo is pushed (the oldest pushed out beyond ``max_pending_anchors``)."""
-        self.pending_anchors[clicks.photo_id] = clicks
-        while len(self.pending_anchors) > self.config.max_pending_anchors:
-            self.pending_anchors.popitem(last=False)
 
     def _check_late_clicks(self, clicks: AnchorClicks) -> None:
         """Clicks for a photo registered meanwhile whose pixels are no longer kept (a request answered after the
         photo registered on its own): they check that registration. Within ``late_click_max_frac`` of the width
         (median) they confirm it (logged); otherwise they are kept for the photo's next push (which re-anchors it)
         and the error says so."""
-        px = np.array([p.pixel_px for p in clicks.points], np.float64)
-        pts = np.array([p.point_in_world_m for p in clicks.points], np.float64)
-        off_px = self.registrar.click_disagreement_px(clicks.photo_id, px, pts)
+        off_px = self.registrar.click_disagreement_px(clicks.photo_id, *click_arrays(clicks))
         width_px = self.registrar.poses[clicks.photo_id].intrinsics.width_px
         if off_px <= self.config.late_click_max_frac * width_px:
             self.ctx.log.info(
@@ -195,7 +137,7 @@ class RegisterNode:
                 off_px,
             )
             return
-        self._keep_anchors(clicks)
+        self.inbox.keep_anchors(clicks)
         raise ValueError(
             f"clicks for {clicks.photo_id} disagree with its registration (median {off_px:.1f} px off) and its pixels "
             f"are no longer kept (only the last {self.config.keep_recent_photos} photos are): the clicks are kept; "
@@ -203,48 +145,28 @@ class RegisterNode:
         )
 
     def _register_anchor(self, photo: Photo, clicks: AnchorClicks) -> None:
-        px = np.array([p.pixel_px for p in clicks.points], np.float64)
-        pts = np.array([p.point_in_world_m for p in clicks.points], np.float64)
-        out = self.registrar.register_anchor(_photo_input(photo), px, pts, focal_px=clicks.focal_px)
+        px, pts = click_arrays(clicks)
+        out = self.registrar.register_anchor(photo_input(photo), px, pts, focal_px=clicks.focal_px)
         self._publish(out)
-        self._remember(photo)
-
-    def _remember(self, msg: Photo) -> None:
-        if self.config.keep_recent_photos <= 0:
-            return
-        self.recent[msg.photo_id] = msg
-        self.recent.move_to_end(msg.photo_id)
-        while len(self.recent) > self.config.keep_recent_photos:
-            self.recent.popitem(last=False)
+        self.inbox.remember(photo)
 
     def _retry_pending(self) -> None:
         """Try the waiting photos again while the map grows (each registration can connect others)."""
         grown = True
-        while grown and self.pending:
+        while grown and self.inbox.pending:
             grown = False
-            for msg in sorted(self.pending.values(), key=lambda p: p.capture_time_ns):
-                out = self.registrar.retry(_photo_input(msg))
-                if out is None:
+            for msg in self.inbox.waiting_by_time():
+                out = self.registrar.retry(photo_input(msg))
+                if out is None or out.registration.status == "failed":
                     continue
-                if out.registration.status == "failed":
-                    continue
-                del self.pending[msg.photo_id]
+                del self.inbox.pending[msg.photo_id]
                 self._publish(out, ask=False)
-                self._remember(msg)
+                self.inbox.remember(msg)
                 grown = grown or out.map_changed
 
     def _enqueue(self, msg: Photo) -> None:
-        self.pending[msg.photo_id] = msg
-        while len(self.pending) > self.config.max_pending:
-            _, old = self.pending.popitem(last=False)
-            reg = Registration(
-                site=self.ctx.site,
-                photo_id=old.photo_id,
-                camera_id=old.camera_id,
-                capture_time_ns=old.capture_time_ns,
-                status="failed",
-                message=f"dropped from the waiting queue ({self.config.max_pending} photos wait for anchors)",
-            )
+        for old in self.inbox.enqueue(msg):
+            reg = dropped_registration(self.ctx.site, old, self.config.max_pending)
             self.ctx.publish(
                 keys.key(keys.REGISTRATION, site=self.ctx.site, camera=old.camera_id, photo=old.photo_id), reg
             )
@@ -274,19 +196,8 @@ class RegisterNode:
                 self._publish_sparse()
 
     def _publish_sparse(self) -> None:
-        arr = self.registrar.sparse_arrays()
         self.sparse_revision += 1
-        cloud = SparseCloud(
-            site=self.ctx.site,
-            revision=self.sparse_revision,
-            photo_ids=tuple(arr["photo_ids"]),  # type: ignore[arg-type]
-            points_xyz_f32=np.ascontiguousarray(arr["points_xyz"], "<f4").tobytes(),
-            colors_rgb_u8=np.ascontiguousarray(arr["colors_rgb"], np.uint8).tobytes(),
-            obs_point_i32=np.ascontiguousarray(arr["obs_point"], "<i4").tobytes(),
-            obs_photo_i32=np.ascontiguousarray(arr["obs_photo"], "<i4").tobytes(),
-            obs_pixel_f32=np.ascontiguousarray(arr["obs_pixel"], "<f4").tobytes(),
-            point_flags_u8=np.ascontiguousarray(arr["point_flags"], np.uint8).tobytes(),
-        )
+        cloud = sparse_cloud(self.ctx.site, self.sparse_revision, self.registrar.sparse_arrays())
         self.ctx.publish(keys.key(keys.SPARSE, site=self.ctx.site), cloud)
 
 

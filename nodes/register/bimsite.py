@@ -1,0 +1,52 @@
+"""The BIM as the register node's depth lookup needs it (pure): meshes by geometry_ref, the GlobalId of each, the
+schedule and the terrain height, kept current through model updates."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from constructaide.bimgeom import glb_to_meshes
+from constructaide.schedule4d import standing_elements
+from schemas.messages import BimModel, BimUpdate, ScheduleTask
+
+
+class BimMeshes:
+    """Meshes (site-local metres) keyed by geometry_ref, with the model's schedule and terrain height."""
+
+    def __init__(self) -> None:
+        self.meshes: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        self.ref_of: dict[str, str] = {}
+        self.tasks: tuple[ScheduleTask, ...] = ()
+        self.terrain_height_m: float | None = None
+
+    def set_model(self, msg: BimModel) -> None:
+        self.meshes = dict(glb_to_meshes(msg.geometry_glb))
+        self.ref_of = {e.global_id: (e.geometry_ref or e.global_id) for e in msg.elements}
+        self.tasks = msg.tasks
+        self.terrain_height_m = msg.terrain_height_m
+
+    def apply_update(self, msg: BimUpdate) -> None:
+        for gid in msg.removed:
+            self.meshes.pop(self.ref_of.pop(gid, gid), None)
+        for e in (*msg.added, *msg.changed):
+            self.ref_of[e.global_id] = e.geometry_ref or e.global_id
+        self.meshes.update(glb_to_meshes(msg.geometry_glb))
+        if msg.tasks is not None:
+            self.tasks = msg.tasks
+
+    def refs_at(self) -> Callable[[int], set[str] | None]:
+        """``refs_at(t_ns)``: the mesh refs of the elements standing at ``t_ns`` by the schedule (None: all; meshes
+        no element names stand by their own name)."""
+        gid_of = {ref: gid for gid, ref in self.ref_of.items()}
+        by_gid = standing_elements(self.tasks, set(gid_of.values()) | {r for r in self.meshes if r not in gid_of})
+        refs = list(self.meshes)
+
+        def refs_at(t_ns: int) -> set[str] | None:
+            gids = by_gid(t_ns)
+            if gids is None:
+                return None
+            return {ref for ref in refs if gid_of.get(ref, ref) in gids}
+
+        return refs_at

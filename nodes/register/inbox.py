@@ -1,0 +1,118 @@
+"""What the register node holds between messages (pure): photos waiting for anchors, clicks waiting for their
+photo, recently registered photos (late clicks can still re-anchor them), and the message conversions at the shell.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from collections.abc import Mapping
+
+import numpy as np
+
+from nodes.register.photo import FrameImage, PhotoInput
+from schemas.messages import AnchorClicks, Photo, Registration, SparseCloud
+
+
+def photo_input(msg: Photo) -> PhotoInput:
+    """The registrar's view of a Photo message (pixels decoded lazily)."""
+    if not msg.data:
+        raise ValueError(f"photo {msg.photo_id} has no image data")
+    return PhotoInput(
+        photo_id=msg.photo_id,
+        image=FrameImage(data=msg.data),
+        camera_id=msg.camera_id,
+        capture_time_ns=msg.capture_time_ns,
+        focal_px=msg.focal_px,
+        width_px=msg.width_px,
+        height_px=msg.height_px,
+        gps=msg.gps,
+    )
+
+
+def click_arrays(clicks: AnchorClicks) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (N, 2) px and model points (N, 3) m of anchor clicks."""
+    px = np.array([p.pixel_px for p in clicks.points], np.float64)
+    pts = np.array([p.point_in_world_m for p in clicks.points], np.float64)
+    return px, pts
+
+
+def dropped_registration(site: str, photo: Photo, max_pending: int) -> Registration:
+    """The failed Registration of a photo pushed out of the full waiting queue."""
+    return Registration(
+        site=site,
+        photo_id=photo.photo_id,
+        camera_id=photo.camera_id,
+        capture_time_ns=photo.capture_time_ns,
+        status="failed",
+        message=f"dropped from the waiting queue ({max_pending} photos wait for anchors)",
+    )
+
+
+def sparse_cloud(site: str, revision: int, arr: Mapping[str, np.ndarray | list[str]]) -> SparseCloud:
+    """SparseCloud message of the registrar's ``sparse_arrays()`` (little-endian packed arrays)."""
+    return SparseCloud(
+        site=site,
+        revision=revision,
+        photo_ids=tuple(arr["photo_ids"]),  # type: ignore[arg-type]
+        points_xyz_f32=np.ascontiguousarray(arr["points_xyz"], "<f4").tobytes(),
+        colors_rgb_u8=np.ascontiguousarray(arr["colors_rgb"], np.uint8).tobytes(),
+        obs_point_i32=np.ascontiguousarray(arr["obs_point"], "<i4").tobytes(),
+        obs_photo_i32=np.ascontiguousarray(arr["obs_photo"], "<i4").tobytes(),
+        obs_pixel_f32=np.ascontiguousarray(arr["obs_pixel"], "<f4").tobytes(),
+        point_flags_u8=np.ascontiguousarray(arr["point_flags"], np.uint8).tobytes(),
+    )
+
+
+class Inbox:
+    """Bounded holding areas, oldest out first: ``pending`` photos (not registrable yet), ``pending_anchors``
+    (clicks whose photo has not come), ``recent`` registered photos (0 kept when ``max_recent`` is 0)."""
+
+    def __init__(self, max_pending: int, max_pending_anchors: int, max_recent: int) -> None:
+        if max_pending < 1:
+            raise ValueError("max_pending must be >= 1")
+        self.max_pending = max_pending
+        self.max_pending_anchors = max_pending_anchors
+        self.max_recent = max_recent
+        self.pending: OrderedDict[str, Photo] = OrderedDict()
+        self.pending_anchors: OrderedDict[str, AnchorClicks] = OrderedDict()
+        self.recent: OrderedDict[str, Photo] = OrderedDict()
+        self.asked_groups: set[str] = set()
+
+    def enqueue(self, photo: Photo) -> list[Photo]:
+        """Let a photo wait; returns the photos pushed out (oldest first)."""
+        self.pending[photo.photo_id] = photo
+        dropped = []
+        while len(self.pending) > self.max_pending:
+            dropped.append(self.pending.popitem(last=False)[1])
+        return dropped
+
+    def keep_anchors(self, clicks: AnchorClicks) -> None:
+        """Hold clicks until their photo is pushed."""
+        self.pending_anchors[clicks.photo_id] = clicks
+        while len(self.pending_anchors) > self.max_pending_anchors:
+            self.pending_anchors.popitem(last=False)
+
+    def remember(self, photo: Photo) -> None:
+        """Keep a registered photo's bytes (the most recent ``max_recent``)."""
+        if self.max_recent <= 0:
+            return
+        self.recent[photo.photo_id] = photo
+        self.recent.move_to_end(photo.photo_id)
+        while len(self.recent) > self.max_recent:
+            self.recent.popitem(last=False)
+
+    def photo_for_clicks(self, photo_id: str) -> Photo | None:
+        """The photo clicks arrived for: taken out of the waiting queue, else a recent one, else None."""
+        return self.pending.pop(photo_id, None) or self.recent.get(photo_id)
+
+    def first_ask(self, photo: Photo) -> bool:
+        """True the first time a photo of its camera (or the phone photo itself) is to be asked for anchors."""
+        group = photo.camera_id or f"phone:{photo.photo_id}"
+        if group in self.asked_groups:
+            return False
+        self.asked_groups.add(group)
+        return True
+
+    def waiting_by_time(self) -> list[Photo]:
+        """The waiting photos in capture-time order."""
+        return sorted(self.pending.values(), key=lambda p: p.capture_time_ns)
