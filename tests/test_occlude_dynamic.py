@@ -412,7 +412,8 @@ def _vehicle_image(rng: np.random.Generator, background: np.ndarray, box: np.nda
 @pytest.fixture(scope="module")
 def trained_colour_model():
     """A colour model that learnt from the time-lapse masks of a fixed camera whose vehicle moves."""
-    from nodes.occlude.dynamic import ColourModel, DynamicParams
+    from nodes.occlude.colour import ColourModel
+    from nodes.occlude.dynamic import DynamicParams
 
     frames = dynamic_sequence(7, 6, gains=(1.0, 0.9, 1.1, 1.0, 0.95, 1.05))
     store = _store(frames, working_width_px=480)
@@ -493,7 +494,7 @@ def test_colour_model_finds_a_parked_occluder_and_vetoes_static_colours(trained_
 
 
 def test_colour_model_bookkeeping() -> None:
-    from nodes.occlude.dynamic import ColourModel
+    from nodes.occlude.colour import ColourModel
 
     rng = np.random.default_rng(1)
     img = textured_background(rng, 60, 80)
@@ -518,7 +519,7 @@ def test_colour_model_bookkeeping() -> None:
 
 
 def test_colour_model_leaves_a_cameras_moved_places_out_of_the_background() -> None:
-    from nodes.occlude.dynamic import ColourModel
+    from nodes.occlude.colour import ColourModel
 
     rng = np.random.default_rng(2)
     images = {f"f{i}": textured_background(rng, 60, 80) for i in range(3)}
@@ -559,7 +560,7 @@ def test_colour_model_is_exact_and_independent_of_the_order_masks_came_in() -> N
     """Every frame's background counts leave out exactly the camera's current moved-place map, whatever the
     order of the (re)computed masks: a small place flagged only by a provisional mask (a tenth of the map) is
     background again in every frame once that mask is replaced."""
-    from nodes.occlude.dynamic import ColourModel
+    from nodes.occlude.colour import ColourModel
 
     rng = np.random.default_rng(3)
     images = {f"f{i}": textured_background(rng, 60, 80) for i in range(4)}
@@ -590,7 +591,8 @@ def test_colour_model_is_exact_and_independent_of_the_order_masks_came_in() -> N
 
 
 def test_colour_pixel_veto_drops_a_shadow_and_needs_a_model_that_recognises_its_masks(trained_colour_model) -> None:
-    from nodes.occlude.dynamic import ColourModel, DynamicParams
+    from nodes.occlude.colour import ColourModel
+    from nodes.occlude.dynamic import DynamicParams
 
     rng = np.random.default_rng(8)
     h, w = 270, 480

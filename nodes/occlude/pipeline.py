@@ -34,7 +34,8 @@ from constructaide.bimgeom import glb_to_meshes, load_bim_model_glb
 from constructaide.camera import resized_pixels
 from constructaide.imagecodec import decode_bgr, decode_mask, encode_jpeg, encode_png
 from constructaide.modelview import ModelMaps, ModelView
-from nodes.occlude.dynamic import ColourModel, DynamicParams, dynamic_mask, recombine
+from nodes.occlude.colour import ColourModel
+from nodes.occlude.dynamic import DynamicParams, dynamic_mask, recombine
 from nodes.occlude.stacks import TimelapseStore, scale_matrix, working_size
 from nodes.occlude.static import StaticParams, estimate_point_normals, estimate_terrain_height, static_mask
 from nodes.occlude.user import UserCorrections
