@@ -44,7 +44,7 @@ class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=Tr
     late_click_max_frac: float = 0.02
     """Clicks arriving for a registered photo whose pixels are gone confirm its registration when their median
     distance to the projected model points is at most this fraction of the width (else an error asks for the photo
-    again; correct automatic poses on the synthetic default site put clicks <= 0.6 % of the width off)."""
+    again)."""
     stream: StreamConfig = StreamConfig()
 
 

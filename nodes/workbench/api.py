@@ -527,7 +527,7 @@ class HttpServer:
         self.sock = socket.socket(family, socket.SOCK_STREAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         # Accepted connections inherit it: a response written in two parts (head, body) must not wait for the
-        # client's delayed ACK (Nagle), which costs ~40 ms per request on loopback.
+        # client's delayed ACK (Nagle).
         self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         try:
             self.sock.bind((host, port))
