@@ -208,32 +208,68 @@ def vertex_array(arrays: Sequence[NDArray[np.generic]], dynamic: bool = False) -
     return vao, bufs
 
 
-def id_framebuffer(
-    w: int, h: int, value_format: int, old_fbo: int = 0, old_rbos: Sequence[int] = ()
-) -> tuple[int, list[int]]:
-    """A bound (w, h) framebuffer: uint32 ids at colour 0, ``value_format`` (a GL float format) at colour 1, 32-bit
-    float depth; ``old_fbo`` / ``old_rbos`` are deleted first. Returns (fbo, renderbuffers)."""
-    from OpenGL import GL
+class IdTarget:
+    """An offscreen framebuffer kept across renders of the same size: uint32 ids at colour 0, ``channels`` (1 or
+    2) float32 values at colour 1, 32-bit float depth. Use on the thread of the current GL context."""
 
-    if old_fbo:
-        GL.glDeleteFramebuffers(1, [old_fbo])
-        GL.glDeleteRenderbuffers(len(old_rbos), list(old_rbos))
-    fbo = GL.glGenFramebuffers(1)
-    GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, fbo)
-    rbos = list(GL.glGenRenderbuffers(3))
-    for rbo, fmt, attach in zip(
-        rbos,
-        (GL.GL_R32UI, value_format, GL.GL_DEPTH_COMPONENT32F),
-        (GL.GL_COLOR_ATTACHMENT0, GL.GL_COLOR_ATTACHMENT1, GL.GL_DEPTH_ATTACHMENT),
-        strict=True,
-    ):
-        GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, rbo)
-        GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, fmt, w, h)
-        GL.glFramebufferRenderbuffer(GL.GL_FRAMEBUFFER, attach, GL.GL_RENDERBUFFER, rbo)
-    status = GL.glCheckFramebufferStatus(GL.GL_FRAMEBUFFER)
-    if status != GL.GL_FRAMEBUFFER_COMPLETE:
-        raise RuntimeError(f"OpenGL framebuffer incomplete ({status})")
-    return fbo, rbos
+    def __init__(self, channels: int) -> None:
+        if channels not in (1, 2):
+            raise ValueError("an IdTarget holds 1 or 2 value channels")
+        self.channels = channels
+        self.fbo = 0
+        self.size = (0, 0)
+        self._rbos: list[int] = []
+
+    def bind(self, w: int, h: int) -> None:
+        """Bind the (w, h) framebuffer (made, or remade at a new size, as needed)."""
+        from OpenGL import GL
+
+        if self.fbo and self.size == (w, h):
+            GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self.fbo)
+            return
+        self.delete()
+        self.fbo = GL.glGenFramebuffers(1)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self.fbo)
+        self._rbos = list(GL.glGenRenderbuffers(3))
+        value_format = GL.GL_R32F if self.channels == 1 else GL.GL_RG32F
+        for rbo, fmt, attach in zip(
+            self._rbos,
+            (GL.GL_R32UI, value_format, GL.GL_DEPTH_COMPONENT32F),
+            (GL.GL_COLOR_ATTACHMENT0, GL.GL_COLOR_ATTACHMENT1, GL.GL_DEPTH_ATTACHMENT),
+            strict=True,
+        ):
+            GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, rbo)
+            GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, fmt, w, h)
+            GL.glFramebufferRenderbuffer(GL.GL_FRAMEBUFFER, attach, GL.GL_RENDERBUFFER, rbo)
+        status = GL.glCheckFramebufferStatus(GL.GL_FRAMEBUFFER)
+        if status != GL.GL_FRAMEBUFFER_COMPLETE:
+            raise RuntimeError(f"OpenGL framebuffer incomplete ({status})")
+        self.size = (w, h)
+
+    def read(self) -> tuple[NDArray[np.uint32], NDArray[np.float32]]:
+        """Ids (h, w) and values (h, w) or (h, w, 2) of the bound framebuffer, in GL row order."""
+        from OpenGL import GL
+
+        w, h = self.size
+        GL.glPixelStorei(GL.GL_PACK_ALIGNMENT, 1)
+        GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT0)
+        ids = np.empty((h, w), np.uint32)
+        GL.glReadPixels(0, 0, w, h, GL.GL_RED_INTEGER, GL.GL_UNSIGNED_INT, ids)
+        GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT1)
+        values = np.empty((h, w) if self.channels == 1 else (h, w, 2), np.float32)
+        GL.glReadPixels(0, 0, w, h, GL.GL_RED if self.channels == 1 else GL.GL_RG, GL.GL_FLOAT, values)
+        return ids, values
+
+    def delete(self) -> None:
+        """Free the framebuffer (a no-op when there is none)."""
+        from OpenGL import GL
+
+        if self.fbo:
+            GL.glDeleteFramebuffers(1, [self.fbo])
+            GL.glDeleteRenderbuffers(len(self._rbos), self._rbos)
+        self.fbo = 0
+        self.size = (0, 0)
+        self._rbos = []
 
 
 class GLRasterizer:
@@ -255,9 +291,7 @@ class GLRasterizer:
         self._scene: BimScene | None = None
         self._lut_tex = 0
         self._lut_shape = (0, 0)
-        self._fbo = 0
-        self._fbo_size = (0, 0)
-        self._rbos: list[int] = []
+        self._target = IdTarget(2)
         self._last_depth_shade = np.zeros((0, 0, 2), np.float32)
         self._build_program()
 
@@ -322,15 +356,6 @@ class GLRasterizer:
             (pos, np.full(6, GROUND_INDEX, np.uint32), np.full(6, 0.5, np.float32))
         )
 
-    def _ensure_fbo(self, w: int, h: int) -> None:
-        from OpenGL import GL
-
-        if self._fbo and self._fbo_size == (w, h):
-            GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._fbo)
-            return
-        self._fbo, self._rbos = id_framebuffer(w, h, GL.GL_RG32F, self._fbo, self._rbos)
-        self._fbo_size = (w, h)
-
     # -- rendering ----------------------------------------------------------------------------------
 
     def render_undistorted(
@@ -376,7 +401,7 @@ class GLRasterizer:
             lut,
         )
 
-        self._ensure_fbo(w, h)
+        self._target.bind(w, h)
         GL.glDrawBuffers(2, [GL.GL_COLOR_ATTACHMENT0, GL.GL_COLOR_ATTACHMENT1])
         GL.glViewport(0, 0, w, h)
         GL.glDisable(GL.GL_MULTISAMPLE)
@@ -401,13 +426,7 @@ class GLRasterizer:
         GL.glBindVertexArray(0)
         GL.glUseProgram(0)
 
-        GL.glPixelStorei(GL.GL_PACK_ALIGNMENT, 1)
-        GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT0)
-        ids = np.empty((h, w), np.uint32)
-        GL.glReadPixels(0, 0, w, h, GL.GL_RED_INTEGER, GL.GL_UNSIGNED_INT, ids)
-        GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT1)
-        zs = np.empty((h, w, 2), np.float32)
-        GL.glReadPixels(0, 0, w, h, GL.GL_RG, GL.GL_FLOAT, zs)
+        ids, zs = self._target.read()
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, 0)
         self._last_depth_shade = zs
         return RasterResult(ids=ids, depth_m=zs[..., 0], shade=zs[..., 1])
@@ -450,18 +469,16 @@ class GLRasterizer:
             if self._vao:
                 GL.glDeleteVertexArrays(1, [self._vao])
                 GL.glDeleteBuffers(len(self._buffers), self._buffers)
-            if self._fbo:
-                GL.glDeleteFramebuffers(1, [self._fbo])
-                GL.glDeleteRenderbuffers(len(self._rbos), self._rbos)
+            self._target.delete()
             if self._lut_tex:
                 GL.glDeleteTextures([self._lut_tex])
         except Exception:  # context already gone (interpreter exit)
             pass
         with contextlib.suppress(Exception):
             self.offscreen.delete()  # only this context (constructaide.gl keeps the shared EGL display)
-        self._vao = self._fbo = self._lut_tex = 0
+        self._vao = self._lut_tex = 0
         self._scene = None
-        self._fbo_size = (0, 0)
+        self._target = IdTarget(2)
 
 
 # -- surface maps and depth lookups on top of the rasterizer ----------------------------------------

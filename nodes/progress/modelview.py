@@ -27,7 +27,7 @@ from numpy.typing import NDArray
 from constructaide.camera import invert_rigid
 from constructaide.gl import offscreen_renderer
 from constructaide.modelscene import build_scene
-from constructaide.modelview import id_framebuffer, projection_from_intrinsics, render_geometry, vertex_array
+from constructaide.modelview import IdTarget, projection_from_intrinsics, render_geometry, vertex_array
 from schemas.messages import BimElement, Intrinsics
 
 Mesh = tuple[NDArray[np.float64], NDArray[np.int32]]
@@ -94,9 +94,7 @@ class LayerRenderer:
         self._program = 0
         self._vao = 0
         self._buffers: list[int] = []
-        self._fbo = 0
-        self._fbo_size = (0, 0)
-        self._rbos: list[int] = []
+        self._target = IdTarget(1)
         self._front_tex = 0
         self._elements = np.zeros(0, np.uint32)
         self._bbox = (np.zeros(3), np.zeros(3))
@@ -137,17 +135,8 @@ class LayerRenderer:
         self.num_elements = len(global_ids)
         self._bbox = (positions.min(0), positions.max(0)) if len(positions) else (np.zeros(3), np.zeros(3))
 
-    def _ensure_fbo(self, w: int, h: int) -> None:
-        from OpenGL import GL
-
-        if self._fbo and self._fbo_size == (w, h):
-            GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._fbo)
-            return
-        self._fbo, self._rbos = id_framebuffer(w, h, GL.GL_R32F, self._fbo, self._rbos)
-        self._fbo_size = (w, h)
-
     def _pass(
-        self, w: int, h: int, skip_front: bool, draws: tuple[tuple[int, bool], ...] = ((1, False), (2, True))
+        self, skip_front: bool, draws: tuple[tuple[int, bool], ...] = ((1, False), (2, True))
     ) -> tuple[NDArray[np.uint32], NDArray[np.float32]]:
         """Cleared targets, then each ``(code, colour)`` of ``draws`` in turn: the elements of that code into depth,
         and into ids + z when ``colour`` (default: built into depth only, then candidates); returns (ids, z) in GL
@@ -164,13 +153,7 @@ class LayerRenderer:
             GL.glUniform1ui(self._u["draw_code"], code)
             GL.glDrawArrays(GL.GL_TRIANGLES, 0, n)
         GL.glColorMask(True, True, True, True)
-        GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT0)
-        ids = np.empty((h, w), np.uint32)
-        GL.glReadPixels(0, 0, w, h, GL.GL_RED_INTEGER, GL.GL_UNSIGNED_INT, ids)
-        GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT1)
-        z = np.empty((h, w), np.float32)
-        GL.glReadPixels(0, 0, w, h, GL.GL_RED, GL.GL_FLOAT, z)
-        return ids, z
+        return self._target.read()
 
     # -- rendering ----------------------------------------------------------------------------------
 
@@ -199,7 +182,7 @@ class LayerRenderer:
         far = float(np.linalg.norm(corners - world_from_camera[:3, 3], axis=1).max() * 1.5 + 1.0)
         clip_from_world = projection_from_intrinsics(canvas, _NEAR_M, far) @ camera_from_world
 
-        self._ensure_fbo(w, h)
+        self._target.bind(w, h)
         GL.glUseProgram(self._program)
         GL.glBindVertexArray(self._vao)
         if codes.size:
@@ -215,15 +198,15 @@ class LayerRenderer:
         GL.glUniformMatrix4fv(self._u["camera_from_world"], 1, GL.GL_TRUE, camera_from_world.astype(np.float32))
         GL.glPixelStorei(GL.GL_PACK_ALIGNMENT, 1)
         GL.glPixelStorei(GL.GL_UNPACK_ALIGNMENT, 1)
-        ids_b, z_b = self._pass(w, h, skip_front=False, draws=((1, True),))  # built alone
-        ids_f, z_f = self._pass(w, h, skip_front=False)
+        ids_b, z_b = self._pass(skip_front=False, draws=((1, True),))  # built alone
+        ids_f, z_f = self._pass(skip_front=False)
         GL.glActiveTexture(GL.GL_TEXTURE0)
         GL.glBindTexture(GL.GL_TEXTURE_2D, self._front_tex)
         GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MIN_FILTER, GL.GL_NEAREST)
         GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MAG_FILTER, GL.GL_NEAREST)
         GL.glTexImage2D(GL.GL_TEXTURE_2D, 0, GL.GL_R32UI, w, h, 0, GL.GL_RED_INTEGER, GL.GL_UNSIGNED_INT, ids_f)
         GL.glUniform1i(self._u["front_ids"], 0)
-        ids_s, _ = self._pass(w, h, skip_front=True)
+        ids_s, _ = self._pass(skip_front=True)
         GL.glBindVertexArray(0)
         GL.glUseProgram(0)
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, 0)
@@ -253,11 +236,9 @@ class LayerRenderer:
             if self._vao:
                 GL.glDeleteVertexArrays(1, [self._vao])
                 GL.glDeleteBuffers(len(self._buffers), self._buffers)
-            if self._fbo:
-                GL.glDeleteFramebuffers(1, [self._fbo])
-                GL.glDeleteRenderbuffers(len(self._rbos), self._rbos)
+            self._target.delete()
             GL.glDeleteTextures([self._front_tex])
         except Exception:  # context already gone at interpreter exit
             pass
-        self._vao = self._fbo = 0
-        self._fbo_size = (0, 0)
+        self._vao = 0
+        self._target = IdTarget(1)
