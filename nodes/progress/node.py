@@ -19,17 +19,7 @@ from nodes.progress.engine import EngineParams, ProgressEngine
 from nodes.progress.evidence import EvidenceParams
 from nodes.progress.fusion import FusionParams
 from schemas import keys
-from schemas.messages import (
-    Annotation,
-    BimModel,
-    BimUpdate,
-    OcclusionMask,
-    Photo,
-    PhotoEvidence,
-    ProgressUpdate,
-    Registration,
-    SparseCloud,
-)
+from schemas import messages as m
 
 
 class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
@@ -70,32 +60,32 @@ class ProgressNode:
 
     # -- inputs ---------------------------------------------------------------------------------------
 
-    def on_model(self, msg: BimModel, key: str) -> None:
+    def on_model(self, msg: m.BimModel, key: str) -> None:
         self.engine.set_model(msg)
         self.ctx.log.info("model %s: %d elements, %d tasks", msg.revision, len(msg.elements), len(msg.tasks))
         self._publish_update(list(self.engine.global_ids))
         for pid in sorted(self.waiting):
             self._try(pid)
 
-    def on_update(self, msg: BimUpdate, key: str) -> None:
+    def on_update(self, msg: m.BimUpdate, key: str) -> None:
         self.engine.apply_update(msg)
         self._publish_update(list(self.engine.global_ids))
 
-    def on_photo(self, msg: Photo, key: str) -> None:
+    def on_photo(self, msg: m.Photo, key: str) -> None:
         self.engine.add_photo(msg)
         while len(self.engine.photos) > self.config.max_photos:
             old = next((p for p in self.engine.photos if p in self.engine.records), next(iter(self.engine.photos)))
             self.engine.photos.pop(old)
         self._try(msg.photo_id)
 
-    def on_registration(self, msg: Registration, key: str) -> None:
+    def on_registration(self, msg: m.Registration, key: str) -> None:
         self.engine.add_registration(msg)
         if msg.photo_id in self.engine.records:
             self._mark(msg.photo_id)
         else:
             self._try(msg.photo_id)
 
-    def on_occlusion(self, msg: OcclusionMask, key: str) -> None:
+    def on_occlusion(self, msg: m.OcclusionMask, key: str) -> None:
         self.engine.add_mask(msg)
         if msg.kind != "combined":
             return
@@ -104,10 +94,10 @@ class ProgressNode:
         else:
             self._try(msg.photo_id)
 
-    def on_sparse(self, msg: SparseCloud, key: str) -> None:
+    def on_sparse(self, msg: m.SparseCloud, key: str) -> None:
         self.engine.set_sparse(msg)
 
-    def on_annotation(self, msg: Annotation, key: str) -> None:
+    def on_annotation(self, msg: m.Annotation, key: str) -> None:
         touched = self.engine.add_annotation(msg)
         if touched:
             self._publish_update(touched)
@@ -157,15 +147,15 @@ SPEC = NodeSpec(
     config_type=Config,
     factory=ProgressNode,
     inputs=(
-        Input(keys.BIM_MODEL, BimModel, "on_model", latched=True),
-        Input(keys.BIM_UPDATE, BimUpdate, "on_update"),
-        Input(keys.PHOTO, Photo, "on_photo"),
-        Input(keys.REGISTRATION, Registration, "on_registration"),
-        Input(keys.OCCLUSION, OcclusionMask, "on_occlusion"),
-        Input(keys.SPARSE, SparseCloud, "on_sparse", latched=True),
-        Input(keys.ANNOTATION, Annotation, "on_annotation"),
+        Input(keys.BIM_MODEL, m.BimModel, "on_model", latched=True),
+        Input(keys.BIM_UPDATE, m.BimUpdate, "on_update"),
+        Input(keys.PHOTO, m.Photo, "on_photo"),
+        Input(keys.REGISTRATION, m.Registration, "on_registration"),
+        Input(keys.OCCLUSION, m.OcclusionMask, "on_occlusion"),
+        Input(keys.SPARSE, m.SparseCloud, "on_sparse", latched=True),
+        Input(keys.ANNOTATION, m.Annotation, "on_annotation"),
     ),
-    outputs=(Output(keys.PHOTO_EVIDENCE, PhotoEvidence), Output(keys.PROGRESS, ProgressUpdate)),
+    outputs=(Output(keys.PHOTO_EVIDENCE, m.PhotoEvidence), Output(keys.PROGRESS, m.ProgressUpdate)),
 )
 
 

@@ -16,16 +16,7 @@ from nodes.register.bimsite import BimMeshes
 from nodes.register.inbox import Inbox, click_arrays, dropped_registration, photo_input, sparse_cloud
 from nodes.register.streaming import Outcome, StreamConfig, StreamingRegistrar
 from schemas import keys
-from schemas.messages import (
-    AnchorClicks,
-    BimModel,
-    BimUpdate,
-    NeedsAnchor,
-    Photo,
-    Registration,
-    SparseCloud,
-    ViewpointGroup,
-)
+from schemas import messages as m
 
 
 class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
@@ -60,7 +51,7 @@ class RegisterNode:
 
     # -- handlers -------------------------------------------------------------
 
-    def on_photo(self, msg: Photo, key: str) -> None:
+    def on_photo(self, msg: m.Photo, key: str) -> None:
         photo = photo_input(msg)
         if msg.photo_id in self.inbox.pending_anchors:
             self._register_anchor(msg, self.inbox.pending_anchors.pop(msg.photo_id))
@@ -80,7 +71,7 @@ class RegisterNode:
             if out.map_changed:
                 self._retry_pending()
 
-    def on_anchors(self, msg: AnchorClicks, key: str) -> None:
+    def on_anchors(self, msg: m.AnchorClicks, key: str) -> None:
         if len(msg.points) < 4:
             raise ValueError(f"anchor clicks for {msg.photo_id}: need at least 4 points, got {len(msg.points)}")
         photo = self.inbox.photo_for_clicks(msg.photo_id)
@@ -99,11 +90,11 @@ class RegisterNode:
             raise
         self._retry_pending()
 
-    def on_bim_model(self, msg: BimModel, key: str) -> None:
+    def on_bim_model(self, msg: m.BimModel, key: str) -> None:
         self.bim.set_model(msg)
         self._rebuild_depth()
 
-    def on_bim_update(self, msg: BimUpdate, key: str) -> None:
+    def on_bim_update(self, msg: m.BimUpdate, key: str) -> None:
         self.bim.apply_update(msg)
         self._rebuild_depth()
 
@@ -123,7 +114,7 @@ class RegisterNode:
         except ValueError as e:
             self.ctx.log.warning("no depth lookup: %s", e)
 
-    def _check_late_clicks(self, clicks: AnchorClicks) -> None:
+    def _check_late_clicks(self, clicks: m.AnchorClicks) -> None:
         """Clicks for a photo registered meanwhile whose pixels are no longer kept (a request answered after the
         photo registered on its own): they check that registration. Within ``late_click_max_frac`` of the width
         (median) they confirm it (logged); otherwise they are kept for the photo's next push (which re-anchors it)
@@ -144,7 +135,7 @@ class RegisterNode:
             "push the photo again to re-anchor it with them"
         )
 
-    def _register_anchor(self, photo: Photo, clicks: AnchorClicks) -> None:
+    def _register_anchor(self, photo: m.Photo, clicks: m.AnchorClicks) -> None:
         px, pts = click_arrays(clicks)
         out = self.registrar.register_anchor(photo_input(photo), px, pts, focal_px=clicks.focal_px)
         self._publish(out)
@@ -164,7 +155,7 @@ class RegisterNode:
                 self.inbox.remember(msg)
                 grown = grown or out.map_changed
 
-    def _enqueue(self, msg: Photo) -> None:
+    def _enqueue(self, msg: m.Photo) -> None:
         for old in self.inbox.enqueue(msg):
             reg = dropped_registration(self.ctx.site, old, self.config.max_pending)
             self.ctx.publish(
@@ -174,7 +165,7 @@ class RegisterNode:
     def _publish_needs_anchor(self, photo_id: str, reason: str, num_tracks: int = 0) -> None:
         self.ctx.publish(
             keys.key(keys.NEEDS_ANCHOR, site=self.ctx.site, photo=photo_id),
-            NeedsAnchor(site=self.ctx.site, photo_id=photo_id, reason=reason, num_matched_tracks=num_tracks),
+            m.NeedsAnchor(site=self.ctx.site, photo_id=photo_id, reason=reason, num_matched_tracks=num_tracks),
         )
 
     def _publish(self, out: Outcome, ask: bool = True) -> None:
@@ -187,7 +178,7 @@ class RegisterNode:
             self._publish_needs_anchor(reg.photo_id, out.needs_anchor, out.num_matched_tracks)
         if self.config.publish_viewpoints:
             for pid in out.viewpoint_changed:
-                msg: ViewpointGroup = self.registrar.viewpoints.group_message(self.ctx.site, pid)
+                msg: m.ViewpointGroup = self.registrar.viewpoints.group_message(self.ctx.site, pid)
                 self.ctx.publish(keys.key(keys.VIEWPOINTS, site=self.ctx.site, photo=pid), msg)
         if out.map_changed and self.config.sparse_every > 0:
             self._map_changes += 1
@@ -207,16 +198,16 @@ SPEC = NodeSpec(
     config_type=Config,
     factory=RegisterNode,
     inputs=(
-        Input(keys.PHOTO, Photo, "on_photo"),
-        Input(keys.ANCHORS, AnchorClicks, "on_anchors"),
-        Input(keys.BIM_MODEL, BimModel, "on_bim_model", latched=True),
-        Input(keys.BIM_UPDATE, BimUpdate, "on_bim_update"),
+        Input(keys.PHOTO, m.Photo, "on_photo"),
+        Input(keys.ANCHORS, m.AnchorClicks, "on_anchors"),
+        Input(keys.BIM_MODEL, m.BimModel, "on_bim_model", latched=True),
+        Input(keys.BIM_UPDATE, m.BimUpdate, "on_bim_update"),
     ),
     outputs=(
-        Output(keys.REGISTRATION, Registration),
-        Output(keys.VIEWPOINTS, ViewpointGroup),
-        Output(keys.SPARSE, SparseCloud, latched=True),
-        Output(keys.NEEDS_ANCHOR, NeedsAnchor),
+        Output(keys.REGISTRATION, m.Registration),
+        Output(keys.VIEWPOINTS, m.ViewpointGroup),
+        Output(keys.SPARSE, m.SparseCloud, latched=True),
+        Output(keys.NEEDS_ANCHOR, m.NeedsAnchor),
     ),
 )
 

@@ -17,16 +17,7 @@ import msgspec
 from constructaide.runtime import Input, NodeContext, NodeSpec, Output, run_node_cli
 from nodes.render.engine import ALL_MODES, RenderEngine, presets_path_ok
 from schemas import keys
-from schemas.messages import (
-    Annotation,
-    BimModel,
-    BimUpdate,
-    OcclusionMask,
-    Overlay,
-    Photo,
-    ProgressUpdate,
-    Registration,
-)
+from schemas import messages as m
 
 
 class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
@@ -51,7 +42,7 @@ class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=Tr
 
 class RenderNode:
     def __init__(self, config: Config, ctx: NodeContext) -> None:
-        bad = [m for m in config.modes if m not in ALL_MODES]
+        bad = [mode for mode in config.modes if mode not in ALL_MODES]
         if bad:
             raise ValueError(f"unknown render modes {bad}; choose from {', '.join(ALL_MODES)}")
         self.config = config
@@ -61,25 +52,25 @@ class RenderNode:
             presets_file=presets_path_ok(config.presets_file),
             true_north_deg=config.true_north_deg,
         )
-        self.photos: OrderedDict[str, Photo] = OrderedDict()
-        self.registrations: dict[str, Registration] = {}
-        self.masks: dict[str, OcclusionMask] = {}
+        self.photos: OrderedDict[str, m.Photo] = OrderedDict()
+        self.registrations: dict[str, m.Registration] = {}
+        self.masks: dict[str, m.OcclusionMask] = {}
         self.dirty: OrderedDict[str, tuple[str, ...]] = OrderedDict()  # photo_id -> modes to (re-)render
         self.rendered: set[str] = set()  # photos drawn at least once
         self._photo_bytes = 0
 
     # -- inputs ---------------------------------------------------------------------------------------
 
-    def on_model(self, msg: BimModel, key: str) -> None:
+    def on_model(self, msg: m.BimModel, key: str) -> None:
         self.engine.set_model(msg)
         self.ctx.log.info("model %s: %d elements, %d tasks", msg.revision, len(msg.elements), len(msg.tasks))
         self._render_all()
 
-    def on_update(self, msg: BimUpdate, key: str) -> None:
+    def on_update(self, msg: m.BimUpdate, key: str) -> None:
         self.engine.apply_update(msg)
         self._render_all()
 
-    def on_photo(self, msg: Photo, key: str) -> None:
+    def on_photo(self, msg: m.Photo, key: str) -> None:
         old = self.photos.pop(msg.photo_id, None)
         self._photo_bytes += len(msg.data) - (len(old.data) if old is not None else 0)
         self.photos[msg.photo_id] = msg
@@ -102,13 +93,13 @@ class RenderNode:
                 )
             self._photo_bytes -= len(self.photos.pop(victim).data)
 
-    def on_registration(self, msg: Registration, key: str) -> None:
+    def on_registration(self, msg: m.Registration, key: str) -> None:
         if msg.status == "failed":
             return
         self.registrations[msg.photo_id] = msg
         self._mark(msg.photo_id)
 
-    def on_occlusion(self, msg: OcclusionMask, key: str) -> None:
+    def on_occlusion(self, msg: m.OcclusionMask, key: str) -> None:
         old = self.masks.get(msg.photo_id)
         if msg.status != "ok":
             return
@@ -117,13 +108,13 @@ class RenderNode:
         self.masks[msg.photo_id] = msg
         self._mark(msg.photo_id)
 
-    def on_annotation(self, msg: Annotation, key: str) -> None:
+    def on_annotation(self, msg: m.Annotation, key: str) -> None:
         self.engine.add_annotation(msg)
         if msg.kind == "status" and "progress" in self.config.modes:
             for pid in list(self.registrations):
                 self._mark(pid, ("progress",))
 
-    def on_progress(self, msg: ProgressUpdate, key: str) -> None:
+    def on_progress(self, msg: m.ProgressUpdate, key: str) -> None:
         """Detected progress colours the progress mode; the photo whose evidence it is gets that mode redrawn."""
         self.engine.add_progress(msg)
         if "progress" in self.config.modes and msg.photo_id in self.registrations:
@@ -167,16 +158,16 @@ class RenderNode:
 
 
 INPUTS = (
-    Input(keys.BIM_MODEL, BimModel, "on_model", latched=True),
-    Input(keys.BIM_UPDATE, BimUpdate, "on_update"),
-    Input(keys.PHOTO, Photo, "on_photo"),
-    Input(keys.REGISTRATION, Registration, "on_registration"),
-    Input(keys.OCCLUSION, OcclusionMask, "on_occlusion"),
-    Input(keys.ANNOTATION, Annotation, "on_annotation"),
-    Input(keys.PROGRESS, ProgressUpdate, "on_progress"),
+    Input(keys.BIM_MODEL, m.BimModel, "on_model", latched=True),
+    Input(keys.BIM_UPDATE, m.BimUpdate, "on_update"),
+    Input(keys.PHOTO, m.Photo, "on_photo"),
+    Input(keys.REGISTRATION, m.Registration, "on_registration"),
+    Input(keys.OCCLUSION, m.OcclusionMask, "on_occlusion"),
+    Input(keys.ANNOTATION, m.Annotation, "on_annotation"),
+    Input(keys.PROGRESS, m.ProgressUpdate, "on_progress"),
 )
 DESCRIPTION = "BIM overlays (4D state, progress, x-ray, future, edges, photoreal) for every registered photo"
-SPEC = NodeSpec("render", DESCRIPTION, Config, RenderNode, INPUTS, (Output(keys.OVERLAY, Overlay),))
+SPEC = NodeSpec("render", DESCRIPTION, Config, RenderNode, INPUTS, (Output(keys.OVERLAY, m.Overlay),))
 
 
 def main(argv: list[str] | None = None) -> int:

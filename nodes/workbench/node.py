@@ -18,19 +18,7 @@ from constructaide.runtime import Input, NodeContext, NodeSpec, Output, run_node
 from nodes.workbench.api import HttpServer, is_loopback, make_app
 from nodes.workbench.service import Workbench
 from schemas import keys
-from schemas.messages import (
-    AnchorClicks,
-    Annotation,
-    BimModel,
-    BimUpdate,
-    Message,
-    NeedsAnchor,
-    OcclusionMask,
-    Overlay,
-    Photo,
-    Registration,
-    ViewpointGroup,
-)
+from schemas import messages as m
 
 
 class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
@@ -70,7 +58,7 @@ class WorkbenchNode:
         self.url = self.server.url + (f"?token={self.token}" if self.token else "")
         ctx.log.info("workbench at %s (%s)", self.url, "live" if config.live else "review only")
 
-    def on_message(self, msg: Message, key: str) -> None:
+    def on_message(self, msg: m.Message, key: str) -> None:
         self.workbench.apply(msg)
 
     # One handler name per input (the runtime names a failing input's topic by its handler).
@@ -88,17 +76,17 @@ SPEC = NodeSpec(
     config_type=Config,
     factory=WorkbenchNode,
     inputs=(
-        Input(keys.BIM_MODEL, BimModel, "on_model", latched=True),
-        Input(keys.BIM_UPDATE, BimUpdate, "on_update"),
-        Input(keys.PHOTO, Photo, "on_photo"),
-        Input(keys.REGISTRATION, Registration, "on_registration"),
-        Input(keys.NEEDS_ANCHOR, NeedsAnchor, "on_needs_anchor"),
-        Input(keys.OVERLAY, Overlay, "on_overlay"),
-        Input(keys.OCCLUSION, OcclusionMask, "on_occlusion"),
-        Input(keys.VIEWPOINTS, ViewpointGroup, "on_viewpoints"),
-        Input(keys.ANNOTATION, Annotation, "on_annotation"),
+        Input(keys.BIM_MODEL, m.BimModel, "on_model", latched=True),
+        Input(keys.BIM_UPDATE, m.BimUpdate, "on_update"),
+        Input(keys.PHOTO, m.Photo, "on_photo"),
+        Input(keys.REGISTRATION, m.Registration, "on_registration"),
+        Input(keys.NEEDS_ANCHOR, m.NeedsAnchor, "on_needs_anchor"),
+        Input(keys.OVERLAY, m.Overlay, "on_overlay"),
+        Input(keys.OCCLUSION, m.OcclusionMask, "on_occlusion"),
+        Input(keys.VIEWPOINTS, m.ViewpointGroup, "on_viewpoints"),
+        Input(keys.ANNOTATION, m.Annotation, "on_annotation"),
     ),
-    outputs=(Output(keys.ANCHORS, AnchorClicks), Output(keys.ANNOTATION, Annotation)),
+    outputs=(Output(keys.ANCHORS, m.AnchorClicks), Output(keys.ANNOTATION, m.Annotation)),
 )
 
 
