@@ -80,19 +80,19 @@ class ProgressNode:
 
     def on_registration(self, msg: m.Registration, key: str) -> None:
         self.engine.add_registration(msg)
-        if msg.photo_id in self.engine.records:
-            self._mark(msg.photo_id)
-        else:
-            self._try(msg.photo_id)
+        self._read_again(msg.photo_id)
 
     def on_occlusion(self, msg: m.OcclusionMask, key: str) -> None:
         self.engine.add_mask(msg)
-        if msg.kind != "combined":
-            return
-        if msg.photo_id in self.engine.records:
-            self._mark(msg.photo_id)
+        if msg.kind == "combined":
+            self._read_again(msg.photo_id)
+
+    def _read_again(self, photo_id: str) -> None:
+        """A photo's registration or mask changed: redo it when it was read already, else read it if it can be."""
+        if photo_id in self.engine.records:
+            self._mark(photo_id)
         else:
-            self._try(msg.photo_id)
+            self._try(photo_id)
 
     def on_sparse(self, msg: m.SparseCloud, key: str) -> None:
         self.engine.set_sparse(msg)
