@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import msgspec
 import numpy as np
 import pytest
 
 from constructaide.bimgeom import meshes_to_glb
+from constructaide.sparsecloud import decode_sparse_cloud, encode_sparse_cloud
 from nodes.register.bimsite import BimMeshes
-from nodes.register.inbox import Inbox, click_arrays, dropped_registration, photo_input, sparse_cloud
+from nodes.register.inbox import Inbox, click_arrays, dropped_registration, photo_input
 from schemas.messages import AnchorClicks, AnchorPoint, BimElement, BimModel, BimUpdate, Photo, ScheduleTask
 
 DAY = 86_400 * 10**9
@@ -64,10 +66,23 @@ def test_message_conversions() -> None:
         "obs_pixel": np.ones((2, 2)),
         "point_flags": np.array([1, 0]),
     }
-    cloud = sparse_cloud("s", 4, arr)
+    cloud = encode_sparse_cloud("s", 4, arr)
     assert cloud.revision == 4 and cloud.photo_ids == ("a", "b")
-    assert np.frombuffer(cloud.points_xyz_f32, "<f4").tolist() == [0, 1, 2, 3, 4, 5]
-    assert np.frombuffer(cloud.obs_photo_i32, "<i4").tolist() == [1, 0]
+    back = decode_sparse_cloud(cloud)
+    assert back.points_m.tolist() == [[0, 1, 2], [3, 4, 5]] and back.colors_rgb is not None
+    assert back.obs_photo.tolist() == [1, 0] and back.obs_pixel_px.shape == (2, 2)
+    assert back.point_flags is not None and back.point_flags.tolist() == [1, 0]
+    bad = [
+        ({"obs_photo_i32": np.array([0], "<i4").tobytes()}, "differ in length"),
+        ({"obs_point_i32": np.array([0, 2], "<i4").tobytes()}, "outside the points"),
+        ({"obs_photo_i32": np.array([0, 2], "<i4").tobytes()}, "outside photo_ids"),
+        ({"point_flags_u8": b"\x01"}, "point flags for"),
+        ({"points_xyz_f32": b"\x00" * 16}, "multiple of 3"),
+    ]
+    for change, message in bad:
+        with pytest.raises(ValueError, match=message):
+            decode_sparse_cloud(msgspec.structs.replace(cloud, **change))
+    assert decode_sparse_cloud(msgspec.structs.replace(cloud, colors_rgb_u8=b"", point_flags_u8=b"")).colors_rgb is None
 
 
 def _box(x: float) -> tuple[np.ndarray, np.ndarray]:

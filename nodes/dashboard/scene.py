@@ -36,6 +36,7 @@ import numpy as np
 from constructaide import bimgeom, schedule4d
 from constructaide.camera import K_matrix
 from constructaide.imagecodec import decode_mask
+from constructaide.sparsecloud import decode_sparse_cloud
 from schemas import keys
 from schemas import messages as m
 
@@ -435,12 +436,8 @@ class Scene:
     def on_sparse(self, cloud: m.SparseCloud) -> list[LogOp]:
         """The sparse cloud (replaces the previous revision from the latest capture time on)."""
         ops = self._begin()
-        xyz = np.frombuffer(cloud.points_xyz_f32, dtype="<f4")
-        if xyz.size % 3:
-            raise ValueError(f"points_xyz_f32 has {xyz.size} floats, not a multiple of 3")
-        xyz = xyz.reshape(-1, 3)
-        rgb = np.frombuffer(cloud.colors_rgb_u8, dtype=np.uint8)
-        colors = rgb.reshape(-1, 3) if rgb.size == xyz.size else None
+        arrays = decode_sparse_cloud(cloud)
+        xyz, colors = arrays.points_m, arrays.colors_rgb
         times = [self._info[p].capture_time_ns for p in cloud.photo_ids if p in self._info]
         ops.append(
             self._op(

@@ -34,6 +34,7 @@ from constructaide.bimgeom import glb_to_meshes, load_bim_model_glb
 from constructaide.camera import resized_pixels
 from constructaide.imagecodec import decode_bgr, decode_mask, encode_jpeg, encode_png
 from constructaide.modelview import ModelMaps, ModelView
+from constructaide.sparsecloud import decode_sparse_cloud
 from nodes.occlude.colour import ColourModel
 from nodes.occlude.dynamic import DynamicParams, dynamic_mask, recombine
 from nodes.occlude.stacks import TimelapseStore, scale_matrix, working_size
@@ -119,25 +120,11 @@ def decode_sparse(msg: SparseCloud) -> _Cloud:
     """Arrays of a SparseCloud message (see its docstring) with PCA normals per point. With point flags, only the
     points flagged ``SPARSE_POINT_VERIFIED`` and not ``SPARSE_POINT_FROM_MODEL`` are kept (with their
     observations)."""
-    pts = np.frombuffer(msg.points_xyz_f32, np.float32)
-    if pts.size % 3:
-        raise ValueError(f"sparse cloud: points_xyz_f32 has {pts.size} floats, not a multiple of 3")
-    pts64 = pts.reshape(-1, 3).astype(np.float64)
-    obs_point = np.frombuffer(msg.obs_point_i32, np.int32)
-    obs_photo = np.frombuffer(msg.obs_photo_i32, np.int32)
-    obs_pixel = np.frombuffer(msg.obs_pixel_f32, np.float32).reshape(-1, 2)
-    if not (len(obs_point) == len(obs_photo) == len(obs_pixel)):
-        raise ValueError(
-            f"sparse cloud: observation arrays differ in length ({len(obs_point)}, {len(obs_photo)}, {len(obs_pixel)})"
-        )
-    if len(obs_point) and (obs_point.max() >= len(pts64) or obs_point.min() < 0):
-        raise ValueError("sparse cloud: obs_point_i32 indexes outside the points")
-    if len(obs_photo) and (obs_photo.max() >= len(msg.photo_ids) or obs_photo.min() < 0):
-        raise ValueError("sparse cloud: obs_photo_i32 indexes outside photo_ids")
-    if msg.point_flags_u8:
-        flags = np.frombuffer(msg.point_flags_u8, np.uint8)
-        if len(flags) != len(pts64):
-            raise ValueError(f"sparse cloud: {len(flags)} point flags for {len(pts64)} points")
+    arrays = decode_sparse_cloud(msg)
+    pts64 = arrays.points_m.astype(np.float64)
+    obs_point, obs_photo, obs_pixel = arrays.obs_point, arrays.obs_photo, arrays.obs_pixel_px
+    if arrays.point_flags is not None:
+        flags = arrays.point_flags
         # only triangulated, guided-matching points judge the model: a BIM-depth point lies on the model by
         # construction, and blind matches of repeated texture land at wrong depths
         usable = ((flags & SPARSE_POINT_VERIFIED) > 0) & ((flags & SPARSE_POINT_FROM_MODEL) == 0)

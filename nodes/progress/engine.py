@@ -22,6 +22,7 @@ from constructaide.bimgeom import glb_to_meshes, load_bim_model_glb
 from constructaide.camera import invert_rigid, pose_from_tuple, scaled_intrinsics
 from constructaide.imagecodec import decode_rgb, mask_of_message
 from constructaide.schedule4d import ElementWindow, element_windows
+from constructaide.sparsecloud import SparseArrays, decode_sparse_cloud
 from nodes.progress.evidence import ElementCue, EvidenceParams, MaterialModel, colour_bins, photo_evidence, to_lab
 from nodes.progress.fusion import (
     NS_PER_DAY,
@@ -126,7 +127,7 @@ class ProgressEngine:
         self.photos: dict[str, Photo] = {}
         self.registrations: dict[str, Registration] = {}
         self.masks: dict[str, dict[str, OcclusionMask]] = {}
-        self.sparse: SparseCloud | None = None
+        self.sparse: SparseArrays | None = None
         self.frames: dict[str, list[_Frame]] = {}
         self._plates: dict[str, tuple[tuple[str, ...], ReferencePlate]] = {}
         self.records: dict[str, PhotoRecord] = {}
@@ -213,7 +214,7 @@ class ProgressEngine:
         self.masks.setdefault(mask.photo_id, {})[mask.kind] = mask
 
     def set_sparse(self, cloud: SparseCloud) -> None:
-        self.sparse = cloud
+        self.sparse = decode_sparse_cloud(cloud)
 
     def add_annotation(self, ann: Annotation) -> list[str]:
         """A person's status annotation (built / not built) on elements: strong evidence at the photo's time (or
@@ -287,15 +288,14 @@ class ProgressEngine:
         if cloud is None or photo_id not in cloud.photo_ids:
             return None
         k = cloud.photo_ids.index(photo_id)
-        obs_photo = np.frombuffer(cloud.obs_photo_i32, np.int32)
-        sel = obs_photo == k
+        sel = cloud.obs_photo == k
         if not sel.any():
             return None
-        pts = np.frombuffer(cloud.points_xyz_f32, np.float32).reshape(-1, 3).astype(np.float64)
-        idx = np.frombuffer(cloud.obs_point_i32, np.int32)[sel]
-        px = np.frombuffer(cloud.obs_pixel_f32, np.float32).reshape(-1, 2)[sel].astype(np.float64)
-        if cloud.point_flags_u8:
-            flags = np.frombuffer(cloud.point_flags_u8, np.uint8)[idx]
+        pts = cloud.points_m.astype(np.float64)
+        idx = cloud.obs_point[sel]
+        px = cloud.obs_pixel_px[sel].astype(np.float64)
+        if cloud.point_flags is not None:
+            flags = cloud.point_flags[idx]
             w = np.where(
                 (flags & SPARSE_POINT_FROM_MODEL) > 0,
                 0.0,

@@ -5,12 +5,11 @@ photo, recently registered photos (late clicks can still re-anchor them), and th
 from __future__ import annotations
 
 from collections import OrderedDict
-from collections.abc import Mapping
 
 import numpy as np
 
 from nodes.register.photo import FrameImage, PhotoInput
-from schemas.messages import AnchorClicks, Photo, Registration, SparseCloud
+from schemas.messages import AnchorClicks, Photo, Registration
 
 
 def photo_input(msg: Photo) -> PhotoInput:
@@ -45,21 +44,6 @@ def dropped_registration(site: str, photo: Photo, max_pending: int) -> Registrat
         capture_time_ns=photo.capture_time_ns,
         status="failed",
         message=f"dropped from the waiting queue ({max_pending} photos wait for anchors)",
-    )
-
-
-def sparse_cloud(site: str, revision: int, arr: Mapping[str, np.ndarray | list[str]]) -> SparseCloud:
-    """SparseCloud message of the registrar's ``sparse_arrays()`` (little-endian packed arrays)."""
-    return SparseCloud(
-        site=site,
-        revision=revision,
-        photo_ids=tuple(arr["photo_ids"]),  # type: ignore[arg-type]
-        points_xyz_f32=np.ascontiguousarray(arr["points_xyz"], "<f4").tobytes(),
-        colors_rgb_u8=np.ascontiguousarray(arr["colors_rgb"], np.uint8).tobytes(),
-        obs_point_i32=np.ascontiguousarray(arr["obs_point"], "<i4").tobytes(),
-        obs_photo_i32=np.ascontiguousarray(arr["obs_photo"], "<i4").tobytes(),
-        obs_pixel_f32=np.ascontiguousarray(arr["obs_pixel"], "<f4").tobytes(),
-        point_flags_u8=np.ascontiguousarray(arr["point_flags"], np.uint8).tobytes(),
     )
 
 

@@ -11,9 +11,10 @@ from __future__ import annotations
 import msgspec
 
 from constructaide.runtime import Input, NodeContext, NodeSpec, Output, run_node_cli
+from constructaide.sparsecloud import encode_sparse_cloud
 from nodes.register.bimdepth import MeshDepthLookup
 from nodes.register.bimsite import BimMeshes
-from nodes.register.inbox import Inbox, click_arrays, dropped_registration, photo_input, sparse_cloud
+from nodes.register.inbox import Inbox, click_arrays, dropped_registration, photo_input
 from nodes.register.streaming import Outcome, StreamConfig, StreamingRegistrar
 from schemas import keys
 from schemas import messages as m
@@ -188,7 +189,7 @@ class RegisterNode:
 
     def _publish_sparse(self) -> None:
         self.sparse_revision += 1
-        cloud = sparse_cloud(self.ctx.site, self.sparse_revision, self.registrar.sparse_arrays())
+        cloud = encode_sparse_cloud(self.ctx.site, self.sparse_revision, self.registrar.sparse_arrays())
         self.ctx.publish(keys.key(keys.SPARSE, site=self.ctx.site), cloud)
 
 
