@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from schemas.messages import Intrinsics
+from schemas.messages import Intrinsics, Registration
 
 F64 = NDArray[np.float64]
 
@@ -246,6 +246,13 @@ def pose_from_tuple(values: tuple[float, ...] | list[float]) -> F64:
     if len(values) != 16:
         raise ValueError(f"world_from_camera needs 16 values, got {len(values)}")
     return np.asarray(values, dtype=np.float64).reshape(4, 4)
+
+
+def registered_camera(reg: Registration) -> PinholeCamera | None:
+    """The camera of a usable registration (not failed, with intrinsics and a 16-value pose), else None."""
+    if reg.status == "failed" or reg.intrinsics is None or len(reg.world_from_camera) != 16:
+        return None
+    return PinholeCamera(reg.intrinsics, pose_from_tuple(reg.world_from_camera))
 
 
 def rotation_angle_deg(R_a: ArrayLike, R_b: ArrayLike) -> float:

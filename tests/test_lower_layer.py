@@ -3,15 +3,24 @@ rule and the recording reader."""
 
 from __future__ import annotations
 
+import msgspec
 import numpy as np
 import pytest
 from render_scenes import box
 
 from constructaide import imagecodec, schedule4d
-from constructaide.camera import centered_intrinsics, invert_rigid, look_at, project_points, scaled_intrinsics
+from constructaide.camera import (
+    centered_intrinsics,
+    invert_rigid,
+    look_at,
+    pose_to_tuple,
+    project_points,
+    registered_camera,
+    scaled_intrinsics,
+)
 from constructaide.modelview import ModelView
 from constructaide.sampling import farthest_point_order
-from schemas.messages import OcclusionMask, ScheduleTask
+from schemas.messages import OcclusionMask, Registration, ScheduleTask
 
 DAY_NS = 86_400 * 10**9
 
@@ -155,3 +164,14 @@ def test_farthest_point_order_spreads_and_never_repeats() -> None:
     t = np.array([[-5.0], [-1.0], [1.0], [6.0]])
     assert farthest_point_order(t, [1, 2], also_from=[[0.0]]).tolist() == [1, 2, 3, 0]
     assert farthest_point_order(pts, [2], n=2).tolist() == [2, 4]
+
+
+def test_registered_camera_only_of_usable_registrations() -> None:
+    intr = centered_intrinsics(64, 48, 50.0)
+    pose = look_at([0.0, -5.0, 1.0], [0.0, 0.0, 1.0])
+    reg = Registration(site="s", photo_id="p", status="auto", intrinsics=intr, world_from_camera=pose_to_tuple(pose))
+    camera = registered_camera(reg)
+    assert camera is not None and camera.intrinsics == intr and np.allclose(camera.world_from_camera, pose)
+    assert registered_camera(msgspec.structs.replace(reg, status="failed")) is None
+    assert registered_camera(msgspec.structs.replace(reg, intrinsics=None)) is None
+    assert registered_camera(msgspec.structs.replace(reg, world_from_camera=())) is None

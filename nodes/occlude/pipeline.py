@@ -31,7 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from constructaide.bimgeom import glb_to_meshes, load_bim_model_glb
-from constructaide.camera import resized_pixels
+from constructaide.camera import registered_camera, resized_pixels
 from constructaide.imagecodec import decode_bgr, decode_mask, encode_jpeg, encode_png
 from constructaide.modelview import ModelMaps, ModelView
 from constructaide.sparsecloud import decode_sparse_cloud
@@ -272,7 +272,7 @@ class OcclusionPipeline:
 
     @_flushing
     def add_registration(self, msg: Registration) -> None:
-        if msg.status == "failed" or msg.intrinsics is None or len(msg.world_from_camera) != 16:
+        if registered_camera(msg) is None or msg.intrinsics is None:
             return
         if msg.intrinsics.f_px <= 0:
             raise ValueError(f"registration of {msg.photo_id}: focal length {msg.intrinsics.f_px} px is not positive")

@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from constructaide.bimgeom import glb_to_meshes, load_bim_model_glb
-from constructaide.camera import invert_rigid, pose_from_tuple, scaled_intrinsics
+from constructaide.camera import invert_rigid, pose_from_tuple, registered_camera, scaled_intrinsics
 from constructaide.imagecodec import decode_rgb, mask_of_message
 from constructaide.schedule4d import ElementWindow, element_windows
 from constructaide.sparsecloud import SparseArrays, decode_sparse_cloud
@@ -205,7 +205,7 @@ class ProgressEngine:
         self.photos[photo.photo_id] = photo
 
     def add_registration(self, reg: Registration) -> None:
-        if reg.status == "failed" or reg.intrinsics is None or len(reg.world_from_camera) != 16:
+        if registered_camera(reg) is None:
             self.registrations.pop(reg.photo_id, None)
             return
         self.registrations[reg.photo_id] = reg

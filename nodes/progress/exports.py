@@ -28,7 +28,7 @@ from zoneinfo import ZoneInfo
 import cv2
 import numpy as np
 
-from constructaide.camera import focal_xy, pose_from_tuple
+from constructaide.camera import focal_xy, pose_from_tuple, registered_camera
 from constructaide.errors import UserError
 from constructaide.imagecodec import decode_bgr, decode_unchanged, encode_png
 from nodes.progress.batch import RecordedInputs, iso, iter_recording, read_inputs, run_engine
@@ -282,22 +282,24 @@ def export_gltf(inputs: RecordedInputs, out: Path) -> int:
     children = list(scene["nodes"])
     s = math.sqrt(0.5)
     for reg in sorted(inputs.registrations.values(), key=lambda r: (r.capture_time_ns, r.photo_id)):
-        if reg.status == "failed" or reg.intrinsics is None or len(reg.world_from_camera) != 16:
+        camera = registered_camera(reg)
+        if camera is None:
             continue
-        _, fy = focal_xy(reg.intrinsics)
+        intr = camera.intrinsics
+        _, fy = focal_xy(intr)
         cams.append(
             {
                 "type": "perspective",
                 "name": reg.photo_id,
                 "perspective": {
-                    "yfov": 2.0 * math.atan(reg.intrinsics.height_px / 2.0 / fy),
-                    "aspectRatio": reg.intrinsics.width_px / reg.intrinsics.height_px,
+                    "yfov": 2.0 * math.atan(intr.height_px / 2.0 / fy),
+                    "aspectRatio": intr.width_px / intr.height_px,
                     "znear": 0.05,
                 },
             }
         )
         # glTF cameras look down -z with +y up; OpenCV cameras down +z with y down
-        M = pose_from_tuple(reg.world_from_camera) @ np.diag([1.0, -1.0, -1.0, 1.0])
+        M = camera.world_from_camera @ np.diag([1.0, -1.0, -1.0, 1.0])
         nodes.append(
             {
                 "name": f"camera {reg.camera_id or 'phone'} {reg.photo_id}",

@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from constructaide.bimgeom import Mesh, glb_to_meshes
-from constructaide.camera import pose_from_tuple, scaled_intrinsics
+from constructaide.camera import registered_camera, scaled_intrinsics
 from constructaide.imagecodec import decode_rgb, encode_png_rgb, mask_of_message
 from constructaide.modelscene import BimScene, build_scene
 from constructaide.modelview import GLRasterizer
@@ -123,7 +123,8 @@ class RenderEngine:
             raise ValueError(f"unknown overlay mode {mode!r}; choose one of {', '.join(ALL_MODES)}")
         if self.scene is None or self.schedule is None or self.model is None:
             raise ValueError("no BIM model received yet")
-        if reg.status == "failed" or reg.intrinsics is None or len(reg.world_from_camera) != 16:
+        camera = registered_camera(reg)
+        if camera is None:
             raise ValueError(f"photo {reg.photo_id} has no usable registration (status {reg.status})")
         if reg.photo_id != photo.photo_id:
             raise ValueError(f"registration is for {reg.photo_id}, photo is {photo.photo_id}")
@@ -134,14 +135,14 @@ class RenderEngine:
             h, w = img.shape[:2]
         else:
             h, w = photo.height_px, photo.width_px
-        intr = reg.intrinsics
+        intr = camera.intrinsics
         if (intr.width_px, intr.height_px) != (w, h):
             intr = scaled_intrinsics(intr, w, h)
         if w > self.max_width_px:
             w, h = self.max_width_px, round(h * self.max_width_px / w)
             img = None if img is None else np.asarray(cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA), np.uint8)
             intr = scaled_intrinsics(intr, w, h)
-        wfc = pose_from_tuple(reg.world_from_camera)
+        wfc = camera.world_from_camera
         at = photo.capture_time_ns if at_ns is None else at_ns
         occ = mask_of_message(occlusion, (h, w))
         ground_z = self.model.terrain_height_m if self.model.terrain_height_m is not None else 0.0

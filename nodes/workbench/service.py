@@ -235,11 +235,10 @@ class Workbench:
     def camera(self, photo_id: str) -> cam.PinholeCamera:
         p = self.photo(photo_id)
         reg = self.state.registrations.get(photo_id)
-        if reg is None or reg.status == "failed" or reg.intrinsics is None or len(reg.world_from_camera) != 16:
+        camera = None if reg is None else cam.registered_camera(reg)
+        if camera is None:
             raise ApiError(409, f"photo {photo_id} is not registered (status {self.state.status(photo_id)})")
-        return cam.PinholeCamera(
-            fit_intrinsics(reg.intrinsics, p.width_px, p.height_px), cam.pose_from_tuple(reg.world_from_camera)
-        )
+        return cam.PinholeCamera(fit_intrinsics(camera.intrinsics, p.width_px, p.height_px), camera.world_from_camera)
 
     def thumbnail(self, photo_id: str) -> bytes:
         p = self.photo(photo_id)
