@@ -42,6 +42,7 @@ from _report import code_version, median, table, write_section  # noqa: E402
 from constructaide.camera import pixels_to_normalized, pose_to_tuple, resized_pixels  # noqa: E402
 from constructaide.modelview import ModelView  # noqa: E402
 from constructaide.photos import photo_from_file  # noqa: E402
+from constructaide.sparsecloud import encode_sparse_cloud  # noqa: E402
 from constructaide.synth.truth import load_cameras, load_depth, load_mask, true_camera  # noqa: E402
 from nodes.occlude.pipeline import Config, OcclusionPipeline, decode_sparse  # noqa: E402
 from nodes.occlude.stacks import AlignedStack, working_size  # noqa: E402
@@ -120,17 +121,16 @@ def load_photos(site: Path) -> list[PhotoRec]:
 def _cloud_message(
     photo_ids: list[str], points: np.ndarray, verified: np.ndarray, obs_p: np.ndarray, obs_i: np.ndarray, px: np.ndarray
 ) -> SparseCloud:
-    return SparseCloud(
-        site="bench",
-        revision=1,
-        photo_ids=tuple(photo_ids),
-        points_xyz_f32=np.asarray(points, np.float32).tobytes(),
-        colors_rgb_u8=np.zeros((len(points), 3), np.uint8).tobytes(),
-        obs_point_i32=np.asarray(obs_p, np.int32).tobytes(),
-        obs_photo_i32=np.asarray(obs_i, np.int32).tobytes(),
-        obs_pixel_f32=np.asarray(px, np.float32).tobytes(),
-        point_flags_u8=np.where(verified, SPARSE_POINT_VERIFIED, 0).astype(np.uint8).tobytes(),
-    )
+    arrays = {
+        "photo_ids": photo_ids,
+        "points_xyz": points,
+        "colors_rgb": np.zeros((len(points), 3), np.uint8),
+        "obs_point": obs_p,
+        "obs_photo": obs_i,
+        "obs_pixel": px,
+        "point_flags": np.where(verified, SPARSE_POINT_VERIFIED, 0),
+    }
+    return encode_sparse_cloud("bench", 1, arrays)
 
 
 def write_answered_anchor_file(site: Path, photos: list[PhotoRec], path: Path) -> int:
