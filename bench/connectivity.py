@@ -7,7 +7,9 @@ Photos of one fixed camera share its viewpoint (one group). Groups joined by pai
 true verified matches form components; each component needs at least one anchor, so their number is a lower bound
 on the anchors any image-based registration needs (with requests answered). Also counted: verified pairs with
 no true match at all (repeated texture: the site hoarding's print, neighbour facades), which is what makes the
-geometry checks refuse many automatic poses.
+geometry checks refuse many automatic poses. Last: the photos in components that hold a photo of the site's
+``anchors.json`` (the up-front clicks of the plain demo), an upper bound on what any registration with those
+anchors alone can register.
 
 Run: ``python bench/connectivity.py [--size small] [--seed 0] [--min-true 30]``.
 """
@@ -16,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import json
 import sys
 from pathlib import Path
 
@@ -96,6 +99,8 @@ def main(argv: list[str] | None = None) -> int:
                 parent[find(group(names[i]))] = find(group(names[j]))
         print(f"  {i + 1}/{len(names)} photos paired", file=sys.stderr, flush=True)
     comps = collections.Counter(find(g) for g in map(group, names))
+    anchored = {find(group(a["image"])) for a in json.loads((site / "anchors.json").read_text())["anchors"]}
+    reachable = sum(find(group(n)) in anchored for n in names)
     sizes = collections.Counter(find(group(n)) for n in names)
     rows = [
         [
@@ -107,6 +112,7 @@ def main(argv: list[str] | None = None) -> int:
             joined,
             len(comps),
             ", ".join(str(s) for s in sorted(sizes.values(), reverse=True)),
+            f"{reachable} of {len(names)} ({len(anchored)} components anchored)",
         ]
     ]
     head = [
@@ -118,10 +124,11 @@ def main(argv: list[str] | None = None) -> int:
         f"pairs with >= {args.min_true} true matches",
         "components = lower bound on anchors",
         "photos per component",
+        "photos reachable from anchors.json",
     ]
     out = table(head, rows)
     print(out)
-    print(f"site {args.size} seed {args.seed}: at least {len(comps)} anchors")
+    print(f"site {args.size} seed {args.seed}: at least {len(comps)} anchors; {reachable} photos reach anchors.json")
     if not args.no_write:
         body = (
             f"Command: `python bench/connectivity.py --size {args.size} --seed {args.seed} --min-true "

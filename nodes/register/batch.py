@@ -44,7 +44,7 @@ from schemas.messages import GeoPoint
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp"}
 DEFAULT_DENSIFY = DensifyParams()
 # Longest image side (px) features are detected at, as COLMAP's default max_image_size: a 6 Mpx photo keeps its
-# full resolution (fountain-P11: camera centres 7.4 -> 6.1 mm against 1600 px, twice the feature time).
+# full resolution.
 DEFAULT_MAX_SIDE_PX = 3200
 
 

@@ -84,9 +84,7 @@ class MapperConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     # The final release also tries one focal and one k1, k2 per camera group (images with the same size and focal
     # prior, as for the principal point: one physical camera at one zoom) and keeps them shared unless the per-image
     # intrinsics fit much better (likelihood ratio > 9 per parameter, see release_anchors_if_significant). Off by
-    # default: on fountain-P11 (one calibrated camera) over six click-noise draws (earlier seeding and second anchor)
-    # the mean centre error was 7.98 mm shared vs 7.81 mm per image (draws ranged 5.8-9.6 mm either way), temple
-    # 0.31 vs 0.29 deg: no gain.
+    # default (no gain measured, see BENCHMARKS.md).
     # ``share_intrinsics`` shares them in every adjustment (no test).
     release_shared_intrinsics: bool = False
     share_intrinsics: bool = False
@@ -98,8 +96,7 @@ class MapperConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     # release_anchors_if_significant); False = the paper, fixed to the end.
     release_anchors: bool = True
     # Only anchors observing at least this many triangulated track points are released: the others' poses rest on
-    # their clicks alone (synthetic site: 0-250 per anchor, fixed cameras 40 m from the building; temple 600-800,
-    # fountain 1900-2400).
+    # their clicks alone.
     release_min_observations: int = 300
     # ... and only when at least this many photos carry clicks (one photo's clicks fix its own pose but hardly the
     # reconstruction's scale; 1: release a single anchor too).
@@ -107,13 +104,12 @@ class MapperConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     # With a single anchor the release's principal points and aspects need this many times the usual evidence.
     single_anchor_wald_factor: float = 5.0
     # Points per image in that final adjustment (its longest tracks; 0 = every triangulated point). The incremental
-    # adjustments keep ba_points_per_image for speed; the final one uses all (fountain-P11: centre error over six
-    # click-noise draws, earlier seeding and second anchor, 8.8 -> 7.8 mm mean).
+    # adjustments keep ba_points_per_image for speed; the final one uses all.
     release_points_per_image: int = 0
     loss_scale_px: float = 2.0
     ba_max_nfev: int = 40
-    # Cap on the inner LSMR iterations of each bundle-adjustment step (inexact trust-region steps): ~2x faster
-    # batch BA at equal accuracy on temple/fountain/synthetic (bench/registration.py); None = SciPy's default.
+    # Cap on the inner LSMR iterations of each bundle-adjustment step (inexact trust-region steps); None = SciPy's
+    # default.
     ba_lsmr_maxiter: int | None = 30
     # Bundle-adjustment solver of the incremental adjustments (BundleOptions.solver); the final release always
     # uses "schur" (exact steps).
@@ -128,8 +124,7 @@ class MapperConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     focal_prior_sigma_frac: float | None = 0.001
     exif_focal_sigma_frac: float | None = 0.02
     # Candidate search in matching on the descriptors' top principal components (exact similarities then decide
-    # the ratio test): ~30 % less matching time, 99.6 % of the exact verified matches (templeSparseRing);
-    # 0 = exact search.
+    # the ratio test); 0 = exact search.
     match_pca_dims: int = 64
     max_exhaustive_images: int = 40
     shortlist_size: int = 15
@@ -156,26 +151,20 @@ class MapperConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     gps_sigma_m: float = 3.0
     # When clicks for an image are at hand before it is asked for them (the anchor file's, not answers to requests)
     # and an automatic registration puts them further than click_check_max_frac of the width (median) from where
-    # they were clicked, the image is re-registered from its clicks (an anchor). Synthetic default site: correct
-    # automatic poses put clicks <= 0.6 % of the width off, the wrong ones (mirrored, repeated print) >= 14 %.
+    # they were clicked, the image is re-registered from its clicks (an anchor).
     check_auto_with_clicks: bool = True
     click_check_max_frac: float = 0.02
     # Accuracy target (model units, None = off): after a kept release, while some camera centre's standard deviation
     # (ImageState.centre_sigma_m) exceeds it, clicks are asked for the registered image with the largest one that
     # has none (the anchor file's, else request_anchor) and the final adjustment is redone with them; at most
-    # accuracy_max_anchors such images. More clicks fix the model frame better (fountain-P11: 2 anchors of 12
-    # clicks leave 6-14 mm).
+    # accuracy_max_anchors such images.
     target_centre_sigma: float | None = None
     accuracy_max_anchors: int = 4
     # Anchor requests go to the image with the fewest matched tracks (the paper). At the start, before anything is
     # triangulated, every image ties at zero; the second anchor then fixes the model frame with the first, so the
     # image with the strongest link to a registered one is asked first: most verified matches x sin^2 of the
     # relative rotation (from the pair's fundamental matrix and the focal priors), over pairs with at least this
-    # many verified matches. fountain-P11 over 18 click-noise draws (features at 1600 px), second anchor 47 deg
-    # from the first (this rule) vs 9 deg (collection order): centre 6.8 vs 8.3 mm, checkpoint reprojection
-    # 0.019 vs 0.058 % of the width, angle 0.059 vs 0.062 deg (bench/registration.py --sets fountain --runs 18
-    # --variants 'default,collection order'). Later ties keep collection order (templeSparseRing, 18 draws:
-    # breaking them the same way cost 0.2 mm). 0 = collection order throughout.
+    # many verified matches. Later ties keep collection order. 0 = collection order throughout.
     anchor_request_min_shared_matches: int = 100
     # When fewer photos than this carry clicks once everything is registered, clicks are asked for one more (the
     # widest view from the anchors; frame_anchor_order): one anchor's dozen clicks fix the model frame less well
