@@ -738,6 +738,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--runs", type=int, default=None, help="runs = click-noise draws (default 6; pycolmap runs in at most 3)"
     )
+    ap.add_argument("--synthetic-runs", type=int, default=3, help="runs on the small synthetic sites (default 3)")
+    ap.add_argument(
+        "--resume",
+        default=None,
+        help="stdout of an earlier run of the same command: sets whose rows it printed are taken from it",
+    )
     ap.add_argument("--default-site-runs", type=int, default=1, help="runs on the 110-photo default sites (default 1)")
     ap.add_argument("--first-draw", type=int, default=0, help="click-noise draw of the first run (default 0)")
     ap.add_argument("--sets", default=None, help=f"comma-separated subset of {','.join(SETS)} (default: all)")
@@ -782,6 +788,20 @@ def main(argv: list[str] | None = None) -> int:
     rows: list[dict] = []
     notes = base_notes()
     first = args.first_draw
+    earlier: dict[str, list[dict]] = {}
+    if args.resume:
+        for line in Path(args.resume).read_text().splitlines():
+            if line.startswith('{"set"'):
+                row = json.loads(line)
+                earlier.setdefault(row["set"], []).append(row)
+
+    def resumed(name: str) -> bool:
+        if name not in earlier:
+            return False
+        rows.extend(earlier[name])
+        notes.append(f"{name}: rows from an earlier run of the same command (--resume {args.resume}).")
+        return True
+
     for key, name, root, loader, images, max_side in (
         ("temple", "templeSparseRing", TEMPLE_DIR, load_temple, TEMPLE_DIR, None),
         ("fountain", "fountain-P11", FOUNTAIN_DIR, load_fountain, FOUNTAIN_DIR / "images", DEFAULT_MAX_SIDE_PX),
@@ -791,6 +811,8 @@ def main(argv: list[str] | None = None) -> int:
         if not root.exists():
             notes.append(f"{name} skipped: {root} absent")
             continue
+        if resumed(name):
+            continue
         cams = loader()
         rows += bench_set(name, cams, images, max_side, runs, cfgs, real_protocols(cams, protocols), first_draw=first)
     for set_name in sets:
@@ -799,6 +821,8 @@ def main(argv: list[str] | None = None) -> int:
         parts = set_name.split("-")
         size, seed = parts[1], int(parts[2]) if len(parts) > 2 else 0
         n = args.default_site_runs if size == "default" else min(runs, args.synthetic_runs)
+        if resumed(f"synthetic {size} (seed {seed})"):
+            continue
         srows, note = synth_rows(size, seed, n, cfgs, first, pycolmap_runs=1 if size == "default" else 3)
         rows += srows
         if note:
