@@ -210,17 +210,17 @@ def test_appearance_cue_against_its_material_and_what_is_behind(scene, seed: int
     mats = ["", "brick", "concrete", "concrete"]
     confirmed = np.array([0.0, 0.0, 0.0, 1.0])
     occ = ids == 1  # keep the wall out of it
-    yes = {
-        c.index: c
-        for c in photo_evidence(
-            to_lab(present_img), occ, layers, mats, EvidenceParams(appearance_min_reference_px=30), confirmed=confirmed
-        )
-    }
-    no = {
-        c.index: c
-        for c in photo_evidence(
-            to_lab(img), occ, layers, mats, EvidenceParams(appearance_min_reference_px=30), confirmed=confirmed
-        )
-    }
+    raw = EvidenceParams(appearance_min_reference_px=30, appearance_negative_scale=1.0, appearance_full_pixels=0)
+    yes = {c.index: c for c in photo_evidence(to_lab(present_img), occ, layers, mats, raw, confirmed=confirmed)}
+    no = {c.index: c for c in photo_evidence(to_lab(img), occ, layers, mats, raw, confirmed=confirmed)}
     assert yes[2].llr_appearance > 0.5
     assert no[2].llr_appearance < -0.5
+    # shipped weighting: a negative look counts less than a positive one, and a small region less than a large one
+    shipped = EvidenceParams(appearance_min_reference_px=30)
+    yes_s = {c.index: c for c in photo_evidence(to_lab(present_img), occ, layers, mats, shipped, confirmed=confirmed)}
+    no_s = {c.index: c for c in photo_evidence(to_lab(img), occ, layers, mats, shipped, confirmed=confirmed)}
+    size = min(1.0, no[2].visible_px / shipped.appearance_full_pixels)
+    assert yes_s[2].llr_appearance == pytest.approx(yes[2].llr_appearance * size, rel=1e-6)
+    assert no_s[2].llr_appearance == pytest.approx(
+        no[2].llr_appearance * shipped.appearance_negative_scale * size, rel=1e-6
+    )

@@ -36,8 +36,10 @@ Deviation = Literal["ahead", "on_time", "behind", "not_built", "unknown"]
 
 @dataclass(frozen=True)
 class FusionParams:
-    schedule_weight: float = 0.5
-    """Share of the prior that follows the schedule (the rest is flat over the project)."""
+    schedule_weight: float = 0.8
+    """Share of the prior that follows the schedule (the rest is flat over the project). With 0.5 the flat part
+    (months of project for one week of photos) outweighed the plan wherever the photos were silent (an element built
+    before a camera's first frame, a late one never seen changing)."""
     schedule_width_days: float = 1.5
     """Logistic scale of the schedule prior: this plus half the task's duration."""
     margin_days: float = 30.0
