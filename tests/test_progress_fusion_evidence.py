@@ -239,3 +239,27 @@ def test_plate_pixel_map_on_a_grid_matches_the_exact_map() -> None:
     assert coarse.shape == exact.shape == (360, 640, 2)
     assert np.abs(coarse - exact).max() < 0.05
     assert np.abs(coarse[::8, ::8] - exact[::8, ::8]).max() < 1e-3
+
+
+def test_finish_is_the_posterior_median_not_the_widest_interval() -> None:
+    """Hourly photos that see the element appear (fuzzy, on day 10 between 10:00 and 13:00, over several short
+    intervals): the finish (posterior median) lands inside the window the evidence points at, between the last absent
+    and first present times."""
+    H = D // 24
+    window = ElementWindow(build_start_ns=9 * D, build_finish_ns=10 * D + 12 * H)
+    times = [d * D + h * H for d in range(8, 13) for h in range(8, 17)]
+    obs = []
+    for k, t in enumerate(times):
+        if 10 * D + 10 * H < t <= 10 * D + 13 * H:
+            obs.append(Observation(f"p{k}", t, llr_change=0.8, reference_ns=t - H))
+        elif k:
+            obs.append(Observation(f"p{k}", t, llr_change=-2.0, reference_ns=times[k - 1]))
+        obs.append(Observation(f"s{k}", t, llr_state=0.4 if t > 10 * D + 13 * H else -0.4))
+    tr = track(window, obs)
+    params = FusionParams()
+    post = tr.posterior(params)
+    e = estimate(tr, post, times[-1], params)
+    assert e.state == "built"
+    assert e.finish_ns is not None and 10 * D + 9 * H <= e.finish_ns <= 10 * D + 14 * H
+    assert e.last_absent_ns is not None and e.first_present_ns is not None
+    assert e.last_absent_ns < e.finish_ns <= e.first_present_ns
