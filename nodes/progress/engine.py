@@ -78,6 +78,8 @@ class EngineParams:
     peel_passes: int = 1
     """Extra evidence passes without the elements that, with this photo's evidence, most probably do not stand (reads
     what stands behind them)."""
+    peel_probability: float = 0.5
+    """... those below this P(present) at the photo's time."""
 
     evidence: EvidenceParams = field(default_factory=EvidenceParams)
     fusion: FusionParams = field(default_factory=FusionParams)
@@ -389,7 +391,8 @@ class ProgressEngine:
             gone = [
                 c.index
                 for c in cues
-                if c.status == "seen" and self.posterior(self.global_ids[c.index - 1]).present_at(t) < 0.5
+                if c.status == "seen"
+                and self.posterior(self.global_ids[c.index - 1]).present_at(t) < self.params.peel_probability
             ]
             if not gone:
                 break

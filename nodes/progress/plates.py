@@ -14,26 +14,39 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from constructaide.camera import normalized_to_pixels, rotation_angle_deg
-from constructaide.modelview import undistorted_grid
+from constructaide.camera import normalized_to_pixels, pixels_to_normalized, rotation_angle_deg
 from schemas.messages import Intrinsics
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
 
 
-def pixel_map(src: Intrinsics, src_world_from_camera: F64, dst: Intrinsics, dst_world_from_camera: F64) -> F32:
+def pixel_map(
+    src: Intrinsics, src_world_from_camera: F64, dst: Intrinsics, dst_world_from_camera: F64, step_px: int = 8
+) -> F32:
     """(H_dst, W_dst, 2) float32 pixel of ``src`` seen along each pixel ray of ``dst`` (rotation only), for
-    ``cv2.remap`` of a ``src`` image onto ``dst``."""
-    xy = undistorted_grid(dst).reshape(-1, 2)
+    ``cv2.remap`` of a ``src`` image onto ``dst``. Exact every ``step_px`` pixels, bilinear in between (the map is
+    smooth; ``step_px`` 1: exact everywhere)."""
+    w, h = dst.width_px, dst.height_px
+    gu = np.arange(0, w - 1 + step_px, step_px, dtype=np.float64)
+    gv = np.arange(0, h - 1 + step_px, step_px, dtype=np.float64)
+    uu, vv = np.meshgrid(gu, gv)
+    xy = pixels_to_normalized(dst, np.stack([uu.ravel(), vv.ravel()], axis=1))
     rays_dst = np.column_stack([xy, np.ones(len(xy))])
     R = src_world_from_camera[:3, :3].T @ dst_world_from_camera[:3, :3]  # src_from_dst rotation
     rays = rays_dst @ R.T
     with np.errstate(divide="ignore", invalid="ignore"):
         xy_src = rays[:, :2] / rays[:, 2:3]
-    xy_src[rays[:, 2] <= 1e-6] = 1e6
+    behind = rays[:, 2] <= 1e-6
+    xy_src[behind] = 0.0
     uv = normalized_to_pixels(src, xy_src)
-    return uv.reshape(dst.height_px, dst.width_px, 2).astype(np.float32)
+    uv[behind] = 1e6
+    grid = uv.reshape(len(gv), len(gu), 2).astype(np.float32)
+    if step_px == 1:
+        return np.ascontiguousarray(grid[:h, :w])
+    mu, mv = np.meshgrid(np.arange(w, dtype=np.float32) / step_px, np.arange(h, dtype=np.float32) / step_px)
+    out = [cv2.remap(np.ascontiguousarray(grid[..., c]), mu, mv, cv2.INTER_LINEAR) for c in range(2)]
+    return np.stack(out, axis=-1)
 
 
 def same_segment(a: F64, b: F64, max_move_m: float = 1.0, max_turn_deg: float = 5.0) -> bool:
