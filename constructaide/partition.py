@@ -48,10 +48,10 @@ def assign(items: Iterable[str], workers: Iterable[str]) -> dict[str, tuple[str,
 
 
 def worker_names(count: int) -> tuple[str, ...]:
-    """Names of ``count`` workers of a kind: ``"0"`` .. ``"count-1"``."""
+    """Names of ``count`` workers of a kind: ``"w0"`` .. ``"w<count-1>"``."""
     if count < 1:
         raise ValueError(f"worker count must be >= 1, got {count}")
-    return tuple(str(i) for i in range(count))
+    return tuple(f"w{i}" for i in range(count))
 
 
 @dataclass(frozen=True)
@@ -83,7 +83,8 @@ class Partition:
         if not 0 <= i < n:
             raise ValueError(f"partition {spec!r}: I must be in 0..N-1")
         cams = tuple(c for c in (cameras or ()) if c) or None
-        return cls(str(i), worker_names(n), cams)
+        names = worker_names(n)
+        return cls(names[i], names, cams)
 
     def spec(self) -> str:
         return f"{self.workers.index(self.worker)}/{len(self.workers)}"

@@ -20,7 +20,7 @@ CAMERAS = [f"cam-{i:03d}" for i in range(100)]
 
 def test_assignment_is_deterministic_and_covers_every_camera_once() -> None:
     a = assign(CAMERAS, worker_names(3))
-    b = assign(reversed(CAMERAS), ("2", "0", "1"))
+    b = assign(reversed(CAMERAS), ("w2", "w0", "w1"))
     assert a == b
     flat = [c for cams in a.values() for c in cams]
     assert sorted(flat) == sorted(CAMERAS)
@@ -33,7 +33,7 @@ def test_adding_a_worker_moves_only_the_cameras_it_takes(n: int) -> None:
     before = {c: owner(c, worker_names(n)) for c in CAMERAS}
     after = {c: owner(c, worker_names(n + 1)) for c in CAMERAS}
     moved = [c for c in CAMERAS if before[c] != after[c]]
-    new = str(n)
+    new = f"w{n}"
     assert moved, "the new worker took no camera"
     assert all(after[c] == new for c in moved)
     assert all(before[c] == after[c] for c in CAMERAS if after[c] != new)
@@ -41,7 +41,7 @@ def test_adding_a_worker_moves_only_the_cameras_it_takes(n: int) -> None:
 
 def test_removing_a_worker_moves_only_its_cameras() -> None:
     ws = worker_names(4)
-    gone = "1"
+    gone = "w1"
     rest = tuple(w for w in ws if w != gone)
     before = {c: owner(c, ws) for c in CAMERAS}
     after = {c: owner(c, rest) for c in CAMERAS}
@@ -54,7 +54,7 @@ def test_removing_a_worker_moves_only_its_cameras() -> None:
 
 def test_partition_parse_and_key_expressions() -> None:
     p = Partition.parse("1/2", ["cam-a", "cam-b", "cam-c"])
-    assert p.spec() == "1/2" and p.workers == ("0", "1")
+    assert p.spec() == "1/2" and p.workers == ("w0", "w1")
     other = Partition.parse("0/2", ["cam-a", "cam-b", "cam-c"])
     mine, theirs = p.my_cameras(), other.my_cameras()
     assert mine is not None and theirs is not None
@@ -66,7 +66,7 @@ def test_partition_parse_and_key_expressions() -> None:
         with pytest.raises(ValueError):
             Partition.parse(bad)
     with pytest.raises(ValueError):
-        Partition("0", ("0", "1"), ("phone",))
+        Partition("w0", ("w0", "w1"), ("phone",))
 
 
 def test_router_takes_own_skips_others_parks_unknown_photo_keys() -> None:

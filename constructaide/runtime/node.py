@@ -188,6 +188,7 @@ class RunningNode:
         self.dropped_after_close = 0
         self._closed = threading.Event()
         self.errors = 0
+        self.handled: collections.Counter[str] = collections.Counter()  # messages handled per handler
         self.idle = threading.Event()
         self.idle.set()
         self._worker = threading.Thread(target=self._run, name=f"node-{spec.name}", daemon=True)
@@ -295,6 +296,7 @@ class RunningNode:
             else:
                 handler(msg)
             self.processed += 1
+            self.handled[inp.handler] += 1
         except Exception as e:  # the node survives any handler failure
             self.errors += 1
             self.ctx.log.debug("handler failed", exc_info=True)
@@ -315,6 +317,14 @@ class RunningNode:
             self._queue.put_last(_STOP)  # after everything already queued: nothing accepted is dropped
             self._worker.join(timeout=60)
         self._closed.set()
+        if self.router is not None and self.partition is not None:
+            self.ctx.log.info(
+                "worker %s: handled %s; skipped %d messages of other workers, %d parked ones dropped",
+                self.partition.spec(),
+                " ".join(f"{h}={n}" for h, n in sorted(self.handled.items())) or "nothing",
+                self.router.skipped,
+                self.router.parked_dropped,
+            )
         closer = getattr(self.obj, "close", None)
         if callable(closer):
             closer()
