@@ -128,3 +128,17 @@ def test_render_state_is_bounded_by_its_photo_cache() -> None:
         len(node.registrations),
         len(node.rendered),
     )
+
+
+def test_workbench_state_keeps_a_bounded_number_of_photos() -> None:
+    from nodes.workbench.state import SiteState
+
+    st = SiteState(max_photos=20)
+    for k in range(200):
+        pid = f"p{k:04d}"
+        st.apply(Photo(site=SITE, photo_id=pid, camera_id="cam-a", capture_time_ns=k * MIN_NS, data=b"x"))
+        st.apply(Registration(site=SITE, photo_id=pid, camera_id="cam-a", status="auto"))
+        st.apply(OcclusionMask(site=SITE, photo_id=pid, kind="combined", status="ok"))
+    assert 20 <= len(st.photos) <= 22 and "p0199" in st.photos and "p0000" not in st.photos
+    assert len(st.registrations) <= 44 and len(st.masks) <= 44
+    assert all(p in st.photos for p in st.registrations)
