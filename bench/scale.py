@@ -51,7 +51,7 @@ from constructaide.photos import photo_from_file  # noqa: E402
 from constructaide.runtime import BusConfig, open_bus  # noqa: E402
 from constructaide.synth import ensure_site  # noqa: E402
 from schemas import codec, keys  # noqa: E402
-from schemas.messages import AnchorClicks, AnchorPoint, OcclusionMask, Overlay, Photo  # noqa: E402
+from schemas.messages import AnchorClicks, AnchorPoint, OcclusionMask, Overlay, Photo, Registration  # noqa: E402
 
 SITE = "scale"
 KINDS = ("register", "occlude", "render")
@@ -133,6 +133,7 @@ class Tracker:
 
     mask: dict[str, tuple[float, str]] = field(default_factory=dict)
     overlays: dict[str, list[float]] = field(default_factory=dict)
+    failed: dict[str, float] = field(default_factory=dict)  # photos whose registration failed (no overlay comes)
     cond: threading.Condition = field(default_factory=threading.Condition)
     last_secs: float = field(default_factory=time.monotonic)
 
@@ -145,9 +146,15 @@ class Tracker:
                 self.mask.setdefault(msg.photo_id, (now, msg.status))
             elif isinstance(msg, Overlay):
                 self.overlays.setdefault(msg.photo_id, []).append(now)
+            elif isinstance(msg, Registration):
+                if msg.status == "failed":
+                    self.failed.setdefault(msg.photo_id, now)
+                else:
+                    self.failed.pop(msg.photo_id, None)
             self.cond.notify_all()
 
     def finished(self, photo_id: str) -> float | None:
+        """When the frame's final overlay arrived (None: not yet; failed registrations are in :attr:`failed`)."""
         m = self.mask.get(photo_id)
         ovs = self.overlays.get(photo_id, [])
         if m is None or not ovs:
@@ -157,6 +164,13 @@ class Tracker:
             return after[0]
         return max(m[0], ovs[0]) if m[1] != "ok" else None
 
+    def settled(self, photo_id: str) -> bool:
+        return photo_id in self.failed or self.finished(photo_id) is not None
+
+    def describe(self, photo_id: str) -> str:
+        m = self.mask.get(photo_id)
+        return f"{photo_id}: mask {m}, overlays {self.overlays.get(photo_id)}, failed {photo_id in self.failed}"
+
     def wait(self, photo_ids: list[str], quiet_secs: float, timeout: float) -> dict[str, float]:
         """Finish times of ``photo_ids``; returns when all finished, or nothing arrived for ``quiet_secs``."""
         deadline = time.monotonic() + timeout
@@ -164,7 +178,11 @@ class Tracker:
             while True:
                 done = {p: t for p in photo_ids if (t := self.finished(p)) is not None}
                 now = time.monotonic()
-                if len(done) == len(photo_ids) or now - self.last_secs > quiet_secs or now > deadline:
+                if (
+                    sum(p in self.failed for p in photo_ids if p not in done) + len(done) == len(photo_ids)
+                    or now - self.last_secs > quiet_secs
+                    or now > deadline
+                ):
                     return done
                 self.cond.wait(1.0)
 
@@ -183,7 +201,10 @@ def run(sim: SimSite, workers: int, burst_days: int, paced_days: int, log_dir: P
         open_bus(BusConfig(listen=["tcp/127.0.0.1:0"])) as bus,
         Launcher(site=SITE, bus=BusConfig(hub_port=bus.listen_port()), log_dir=log_dir / f"w{workers}") as launcher,
     ):
-        subs = [bus.subscribe(keys.pattern(t, site=SITE), tracker) for t in (keys.OCCLUSION, keys.OVERLAY)]
+        subs = [
+            bus.subscribe(keys.pattern(t, site=SITE), tracker)
+            for t in (keys.OCCLUSION, keys.OVERLAY, keys.REGISTRATION)
+        ]
         regs = bus.collect(keys.pattern(keys.REGISTRATION, site=SITE))
         bim = bus.collect(keys.key(keys.BIM_MODEL, site=SITE), fetch_latched=True)
         sets = {"register": [], "occlude": [], "render": ["modes=['state4d']"]}
@@ -235,6 +256,97 @@ def run(sim: SimSite, workers: int, burst_days: int, paced_days: int, log_dir: P
     }
 
 
+def soak(n_frames: int, in_flight: int, log_dir: Path, seed: int = 1) -> list[dict]:
+    """One camera pushing ``n_frames`` frames 1 min apart (capture time), as fast as the pipeline finishes them
+    (at most ``in_flight`` unfinished); RSS of every node process at every tenth of the run."""
+    sim = simulate(1, 6, seed)
+    base_frames = [day[0] for day in sim.days]
+    imgs = [cv2.imdecode(np.frombuffer(p.data, np.uint8), cv2.IMREAD_COLOR) for p in base_frames]
+    rng = np.random.default_rng(seed)
+    tracker = Tracker()
+    samples: list[dict] = []
+    with (
+        open_bus(BusConfig(listen=["tcp/127.0.0.1:0"])) as bus,
+        Launcher(site=SITE, bus=BusConfig(hub_port=bus.listen_port()), log_dir=log_dir / "soak") as launcher,
+    ):
+        subs = [
+            bus.subscribe(keys.pattern(t, site=SITE), tracker)
+            for t in (keys.OCCLUSION, keys.OVERLAY, keys.REGISTRATION)
+        ]
+        bim = bus.collect(keys.key(keys.BIM_MODEL, site=SITE), fetch_latched=True)
+        sets = {"register": [], "occlude": [], "render": ["modes=['state4d']"]}
+        for kind in KINDS:
+            launcher.start(kind, sets=sets[kind])
+        launcher.wait_live(bus, list(KINDS))
+        launcher.start("ingest", sets=[f"ifc=['{sim.ifc}']", f"tz='{sim.tz}'", "terrain_height_m=0.0"])
+        bim.wait(1, timeout=300)
+        bus.publish(keys.key(keys.ANCHORS, site=SITE, photo=sim.anchors[0].photo_id), sim.anchors[0])
+        pushed: list[str] = []
+        t0 = time.monotonic()
+        for k in range(n_frames):
+            if k == 0:
+                photo = base_frames[0]
+            else:  # the day's frame again, moved by up to 2 px and re-exposed: a new photo every minute
+                dx, dy = (int(v) for v in rng.integers(-2, 3, 2))
+                data = _shifted(imgs[k % len(imgs)], dx, dy, float(rng.uniform(0.95, 1.05)))
+                photo = msgspec.structs.replace(
+                    base_frames[k % len(imgs)],
+                    photo_id=hashlib.sha256(data).hexdigest()[:16],
+                    data=data,
+                    capture_time_ns=base_frames[0].capture_time_ns + k * 60_000_000_000,
+                )
+            with tracker.cond:  # closed loop: at most in_flight frames unfinished
+                if not tracker.cond.wait_for(
+                    lambda: sum(not tracker.settled(p) for p in pushed[-4 * in_flight :]) < in_flight, 120
+                ):
+                    late = [tracker.describe(p) for p in pushed[-4 * in_flight :] if not tracker.settled(p)]
+                    print("waiting 120 s for: " + "; ".join(late), file=sys.stderr, flush=True)
+            pushed.append(photo.photo_id)
+            bus.publish(keys.key(keys.PHOTO, site=SITE, camera=photo.camera_id), photo)
+            if (k + 1) % max(1, n_frames // 10) == 0 or k + 1 == n_frames:
+                mem = {p.name: _rss_mib(p.proc.pid)[0] for p in launcher.procs if p.proc and p.proc.poll() is None}
+                samples.append({"frames": k + 1, "secs": time.monotonic() - t0, **mem})
+                print(json.dumps(samples[-1]), flush=True)
+        done = tracker.wait(pushed, quiet_secs=120, timeout=1800)
+        samples[-1]["finished"] = len(done)
+        samples[-1]["failed"] = sum(p in tracker.failed for p in pushed)
+        for s in subs:
+            s.close()
+    return samples
+
+
+def soak_main(args: argparse.Namespace) -> int:
+    with tempfile.TemporaryDirectory(prefix="scale-soak-") as tmp:
+        samples = soak(args.soak_frames, 4, args.log_dir or Path(tmp))
+    kinds = [k for k in (*KINDS, "ingest") if k in samples[0]]
+    rows = [
+        [s["frames"], f"{s['frames'] / 60:.1f} h", round(s["secs"])] + [round(s[k]) for k in kinds] for s in samples
+    ]
+    body = table(["frames", "capture time covered", "wall s", *[f"{k} RSS MiB" for k in kinds]], rows)
+    half = next(s for s in samples if s["frames"] >= samples[-1]["frames"] / 2)
+    growth = {k: samples[-1][k] - half[k] for k in kinds}
+    summary = (
+        f"{samples[-1].get('finished', 0)}/{samples[-1]['frames']} frames finished, "
+        f"{samples[-1].get('failed', 0)} failed registration. RSS growth over the second half "
+        + ", ".join(f"{k} {v:+.0f} MiB" for k, v in growth.items())
+        + "."
+    )
+    print(body)
+    print(summary)
+    if not args.no_write:
+        write_section(
+            "scale soak (24-hour equivalent)",
+            f"{code_version()}. One fixed camera (the small site's cam-north, 960x540, each frame moved by up to 2 px "
+            "and re-exposed so it is a new photo) pushing one frame per minute of capture time, accelerated: the next "
+            "frame goes out as soon as fewer than 4 are unfinished; register, occlude and render(state4d) in their "
+            "own processes on the loopback bus; resident memory sampled every tenth of the run. The machine was "
+            "shared with other jobs.\n\n" + body + "\n\n" + summary,
+            command="nice -n 10 python " + " ".join(sys.argv),
+        )
+    print(f"soak: {samples[-1]['frames']} frames, " + ", ".join(f"{k} {v:+.0f} MiB" for k, v in growth.items()))
+    return 0
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--cameras", type=int, default=100)
@@ -242,15 +354,21 @@ def main() -> int:
     ap.add_argument("--paced-days", type=int, default=2)
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--no-write", action="store_true")
+    ap.add_argument("--log-dir", type=Path, default=None, help="keep the node logs here (default: a temporary folder)")
+    ap.add_argument(
+        "--soak-frames", type=int, default=0, help="instead: one camera, this many frames 1 min apart (1440: 24 h)"
+    )
     args = ap.parse_args()
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+    if args.soak_frames:
+        return soak_main(args)
     t0 = time.perf_counter()
     sim = simulate(args.cameras, args.burst_days + args.paced_days)
     print(f"simulated {len(sim.cameras)} cameras x {len(sim.days)} days in {time.perf_counter() - t0:.1f} s")
     results = []
     with tempfile.TemporaryDirectory(prefix="scale-bench-") as tmp:
         for w in args.workers:
-            r = run(sim, w, args.burst_days, args.paced_days, Path(tmp))
+            r = run(sim, w, args.burst_days, args.paced_days, args.log_dir or Path(tmp))
             results.append(r)
             print(json.dumps({k: v for k, v in r.items() if k != "mem"}))
     rows = []
