@@ -335,7 +335,7 @@ def soak_main(args: argparse.Namespace) -> int:
     print(summary)
     if not args.no_write:
         write_section(
-            "scale soak (24-hour equivalent)",
+            f"scale soak ({args.soak_frames} frames, {args.soak_frames / 60:.1f}-hour equivalent)",
             f"{code_version()}. One fixed camera (the small site's cam-north, 960x540, each frame moved by up to 2 px "
             "and re-exposed so it is a new photo) pushing one frame per minute of capture time, accelerated: the next "
             "frame goes out as soon as fewer than 4 are unfinished; register, occlude and render(state4d) in their "
