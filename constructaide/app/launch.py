@@ -10,6 +10,14 @@ A site TOML config::
 
     [nodes.register]           # one table per node to start; its fields are the node's config
     fast_path = true
+
+    [workers]                  # optional: N partitioned instances of a node kind (constructaide.partition)
+    register = 2               # each owns a share of the fixed cameras and of the phone photos
+    occlude = 2
+    render = 2
+
+With ``[workers]`` the site's fixed camera ids (``[site] cameras = ["cam-a", ...]``) let each worker subscribe to
+its own cameras' keys only; without them every worker subscribes to all cameras and skips the others' frames.
 """
 
 from __future__ import annotations
@@ -81,8 +89,16 @@ class Launcher:
         return argv
 
     def start(
-        self, node: str, config: Path | None = None, section: str | None = None, sets: list[str] | None = None
+        self,
+        node: str,
+        config: Path | None = None,
+        section: str | None = None,
+        sets: list[str] | None = None,
+        partition: str | None = None,
+        cameras: list[str] | None = None,
     ) -> NodeProcess:
+        """Start one node process; ``partition`` ``"I/N"`` makes it worker I of N of its kind (``cameras``: the
+        site's fixed camera ids, so it subscribes to its own)."""
         argv = [sys.executable, "-m", "constructaide.app.cli", "node", node, "--site", self.site, *self.bus_argv()]
         if config is not None:
             argv += ["--config", str(config)]
@@ -90,13 +106,59 @@ class Launcher:
                 argv += ["--section", section]
         for s in sets or []:
             argv += ["--set", s]
-        log = self.log_dir / f"{node}.log" if self.log_dir else None
-        p = NodeProcess(node, argv, log)
+        name = node
+        if partition is not None:
+            argv += ["--partition", partition]
+            if cameras:
+                argv += ["--cameras", ",".join(cameras)]
+            name = f"{node}-{partition.replace('/', 'of')}"
+        log = self.log_dir / f"{name}.log" if self.log_dir else None
+        p = NodeProcess(name, argv, log)
         env = dict(os.environ)
         env.setdefault("PYOPENGL_PLATFORM", "egl")
         p.start(env)
         self.procs.append(p)
         return p
+
+    def start_workers(
+        self,
+        node: str,
+        count: int,
+        config: Path | None = None,
+        section: str | None = None,
+        sets: list[str] | None = None,
+        cameras: list[str] | None = None,
+    ) -> list[NodeProcess]:
+        """Start ``count`` partitioned instances of ``node`` (one plain instance when ``count`` is 1)."""
+        if count < 1:
+            raise UserError(f"[workers] {node} = {count}: needs at least 1")
+        if count == 1:
+            return [self.start(node, config, section, sets)]
+        return [self.start(node, config, section, sets, f"{i}/{count}", cameras) for i in range(count)]
+
+    def wait_workers(self, bus: Bus, node: str, count: int, timeout: float = 120.0) -> None:
+        """Block until all ``count`` partitioned workers of ``node`` hold their liveliness tokens."""
+        want = {f"w{i}of{count}" for i in range(count)}
+        cond = threading.Condition()
+        live: set[str] = set()
+
+        def on_token(key: str, alive: bool) -> None:
+            tag = key.rsplit("/", 1)[-1].split("-", 1)[0]
+            with cond:
+                (live.add if alive else live.discard)(tag)
+                cond.notify_all()
+
+        watcher = bus.watch_tokens(keys.pattern(keys.LIVELINESS, site=self.site, node=node), on_token)
+        try:
+            with cond:
+                if not cond.wait_for(lambda: want <= live, timeout):
+                    dead = [p.name for p in self.procs if p.proc is not None and p.proc.poll() is not None]
+                    raise UserError(
+                        f"{node} workers not live within {timeout:.0f} s: {sorted(want - live)}; exited: "
+                        f"{dead or 'none'} (see logs in {self.log_dir})"
+                    )
+        finally:
+            watcher.close()
 
     def wait_live(self, bus: Bus, names: list[str], timeout: float = 120.0) -> None:
         """Block until every named node has declared its liveliness token; fail early if one died."""
@@ -153,10 +215,18 @@ def run_main(argv: list[str]) -> int:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
+    workers = {str(k): int(v) for k, v in doc.get("workers", {}).items()}
+    unknown = sorted(set(workers) - set(nodes))
+    if unknown:
+        raise UserError(f"{args.config}: [workers] names nodes without a [nodes.NAME] table: {', '.join(unknown)}")
+    cameras = [str(c) for c in doc.get("site", {}).get("cameras", [])]
     with site_processes(site, bus, args.log_dir) as launcher, open_bus(bus) as session:
         for name in nodes:
-            launcher.start(name, args.config, f"nodes.{name}")
+            launcher.start_workers(name, workers.get(name, 1), args.config, f"nodes.{name}", cameras=cameras)
         launcher.wait_live(session, list(nodes))
+        for name, count in workers.items():
+            if count > 1:
+                launcher.wait_workers(session, name, count)
         print(
             f"site {site}: {len(nodes)} nodes live ({', '.join(nodes)}); logs in {args.log_dir}; Ctrl-C to stop",
             file=sys.stderr,

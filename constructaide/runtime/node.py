@@ -38,6 +38,7 @@ from typing import Any
 import msgspec
 
 from constructaide.errors import UserError
+from constructaide.partition import PARK, SKIP, Partition, Router
 from constructaide.runtime.bus import Bus, BusConfig, add_bus_args, open_bus
 from schemas import codec, keys
 from schemas.messages import Message, NodeError
@@ -167,7 +168,9 @@ class Inbox:
 class RunningNode:
     """A started node: subscriptions, worker thread, liveliness token. Use :func:`start_node`."""
 
-    def __init__(self, spec: NodeSpec, config: Any, bus: Bus, queue_size: int = 64) -> None:
+    def __init__(
+        self, spec: NodeSpec, config: Any, bus: Bus, queue_size: int = 64, partition: Partition | None = None
+    ) -> None:
         self.spec = spec
         self.config = config
         self.bus = bus
@@ -185,9 +188,13 @@ class RunningNode:
         self.dropped_after_close = 0
         self._closed = threading.Event()
         self.errors = 0
+        self.handled: collections.Counter[str] = collections.Counter()  # messages handled per handler
         self.idle = threading.Event()
         self.idle.set()
         self._worker = threading.Thread(target=self._run, name=f"node-{spec.name}", daemon=True)
+        # Partitioned worker (constructaide.partition): only its cameras' and phone photos' messages are handled.
+        self.partition = partition
+        self.router = Router(partition) if partition is not None else None
 
     def start(self) -> RunningNode:
         self._worker.start()
@@ -197,8 +204,14 @@ class RunningNode:
             if inp.key.endswith("/**"):
                 ke = keys.site_pattern(self.site)
             self._topics[inp.handler] = ke
-            self._subs.append(self.bus.subscribe(ke, self._callback(inp), fetch_latched=inp.latched))
+            kes = [ke]
+            if self.partition is not None and "{camera}" in inp.key and "camera" not in inp.fields:
+                kes = self.partition.camera_keyexprs(inp.key, **fields)  # this worker's cameras and the phone pool
+            for k in kes:
+                self._subs.append(self.bus.subscribe(k, self._callback(inp), fetch_latched=inp.latched))
         instance = uuid.uuid4().hex[:8]
+        if self.partition is not None:
+            instance = f"w{self.partition.spec().replace('/', 'of')}-{instance}"
         self._token = self.bus.declare_token(
             keys.key(keys.LIVELINESS, site=self.site, node=self.spec.name, instance=instance)
         )
@@ -247,6 +260,26 @@ class RunningNode:
             return False
 
     def _handle(self, inp: Input, key: str, payload: bytes) -> None:
+        router = self.router
+        if router is None:
+            self._handle_now(inp, key, payload)
+            return
+        verdict = router.route(inp.key, key, lambda: _ids_of(payload).photo_id)
+        if verdict == SKIP:
+            return
+        if verdict == PARK:
+            router.park(router.photo_of_key(inp.key, key) or "", (inp, key, payload))
+            return
+        if "photo_ids" in getattr(inp.type, "__struct_fields__", ()):
+            ids = _ids_of(payload).photo_ids  # e.g. the SparseCloud of another register worker's cameras
+            if ids and not router.owns_any(ids):
+                router.skipped += 1
+                return
+        self._handle_now(inp, key, payload)
+        for item in router.release():
+            self._handle_now(*item)
+
+    def _handle_now(self, inp: Input, key: str, payload: bytes) -> None:
         try:
             if inp.raw:
                 msg: Any = payload
@@ -263,6 +296,7 @@ class RunningNode:
             else:
                 handler(msg)
             self.processed += 1
+            self.handled[inp.handler] += 1
         except Exception as e:  # the node survives any handler failure
             self.errors += 1
             self.ctx.log.debug("handler failed", exc_info=True)
@@ -283,6 +317,14 @@ class RunningNode:
             self._queue.put_last(_STOP)  # after everything already queued: nothing accepted is dropped
             self._worker.join(timeout=60)
         self._closed.set()
+        if self.router is not None and self.partition is not None:
+            self.ctx.log.info(
+                "worker %s: handled %s; skipped %d messages of other workers, %d parked ones dropped",
+                self.partition.spec(),
+                " ".join(f"{h}={n}" for h, n in sorted(self.handled.items())) or "nothing",
+                self.router.skipped,
+                self.router.parked_dropped,
+            )
         closer = getattr(self.obj, "close", None)
         if callable(closer):
             closer()
@@ -294,10 +336,30 @@ class RunningNode:
         self.close()
 
 
+class _Ids(msgspec.Struct):
+    """The photo id(s) of any message, read without decoding the rest (image bytes are skipped)."""
+
+    photo_id: str | None = None
+    photo_ids: tuple[str, ...] = ()
+
+
+_ids_decoder = msgspec.msgpack.Decoder(_Ids)
+
+
+def _ids_of(payload: bytes) -> _Ids:
+    try:
+        return _ids_decoder.decode(payload)
+    except (msgspec.DecodeError, msgspec.ValidationError):
+        return _Ids()  # the handler reports the bad payload
+
+
 @contextlib.contextmanager
-def start_node(spec: NodeSpec, config: Any, bus: Bus, queue_size: int = 64) -> Iterator[RunningNode]:
-    """Start a node on a bus; stops it (drains its worker, drops its token) on exit."""
-    node = RunningNode(spec, config, bus, queue_size=queue_size)
+def start_node(
+    spec: NodeSpec, config: Any, bus: Bus, queue_size: int = 64, partition: Partition | None = None
+) -> Iterator[RunningNode]:
+    """Start a node on a bus; stops it (drains its worker, drops its token) on exit. With ``partition`` it is one
+    worker of several of its kind (:mod:`constructaide.partition`)."""
+    node = RunningNode(spec, config, bus, queue_size=queue_size, partition=partition)
     try:
         node.start()
         yield node
@@ -360,6 +422,12 @@ def add_node_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="override one config field")
     parser.add_argument("--describe", action="store_true", help="print the node's inputs/outputs and exit")
     parser.add_argument("-v", "--verbose", action="store_true")
+    parser.add_argument(
+        "--partition", metavar="I/N", help="run as worker I of N of this node kind (cameras by rendezvous hashing)"
+    )
+    parser.add_argument(
+        "--cameras", default="", help="the site's fixed camera ids, comma-separated (a worker subscribes to its own)"
+    )
     add_bus_args(parser)
 
 
@@ -381,7 +449,11 @@ def run_node_cli(spec: NodeSpec, argv: list[str] | None = None, *, prog: str | N
         stop = threading.Event()
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: stop.set())
-        with open_bus(BusConfig.from_args(args)) as bus, start_node(spec, config, bus):
+        try:
+            partition = Partition.parse(args.partition, args.cameras.split(",")) if args.partition else None
+        except ValueError as e:
+            raise UserError(str(e)) from None
+        with open_bus(BusConfig.from_args(args)) as bus, start_node(spec, config, bus, partition=partition):
             logging.getLogger("constructaide").info(
                 "node %s live on site %s (pid %d)", spec.name, config.site, os.getpid()
             )

@@ -68,6 +68,9 @@ class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=Tr
     two_pass: bool = True  # stacks leave out the pixels of their neighbours' own dynamic masks (when known)
     refine_previous_frame: bool = True  # recompute a camera's previous newest frame once a later one arrives
     max_stored_photos: int = 2000  # photos kept for stacks and republishing; the oldest arrivals are dropped
+    # ... and at most this many frames of one fixed camera (its earliest captures go first; 0: no per-camera bound),
+    # so a camera's state stays bounded however long it runs
+    max_photos_per_camera: int = 200
     max_time_gap_days: float = 0.0  # 0: no limit on the time between a photo and its neighbours
     dynamic_threshold: float = 0.08  # smoothed squared HSV difference, any channel (paper: 0.05 for the median score)
     dynamic_score: str = "vote"  # "vote": must differ from most neighbours; "median": from the median (paper)
@@ -230,6 +233,12 @@ class OcclusionPipeline:
         while len(self.photos) > max(1, self.config.max_stored_photos):
             self._forget(next(iter(self.photos)))
         self.store.add_photo(msg.photo_id, msg.camera_id, msg.capture_time_ns, img)
+        cap = self.config.max_photos_per_camera
+        if msg.camera_id is not None and cap > 0:
+            while len(frames := self.store.by_camera.get(msg.camera_id, [])) > cap:
+                self._forget(
+                    min((p for p in frames if p != msg.photo_id), key=lambda p: self.photos[p].capture_time_ns)
+                )
         self._dynamic(msg.photo_id, img)
         if msg.camera_id is not None:
             refine: list[str] = []

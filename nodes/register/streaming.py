@@ -78,6 +78,10 @@ class StreamConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     (None: never)."""
     """A bundle adjustment of the whole map after this many new registered images (0: never)."""
     viewpoint_max_neighbours: int = 30
+    max_frames_per_camera: int = 500
+    """Pose records (and viewpoint-graph entries) kept per fixed camera: beyond it the oldest frames that are not
+    in the map (fast-path frames, not key frames or anchors) are forgotten, so a camera's state stays bounded
+    however long it runs (0: keep all)."""
     viewpoint_max_angle_deg: float = 20.0
     densify: bool = True
     densify_pairs: int = 3
@@ -540,9 +544,23 @@ class StreamingRegistrar:
                     changed.append(other)
         if photo.photo_id not in frames:
             frames.append(photo.photo_id)
+            self._bound_camera(frames)
         if photo.photo_id not in changed:
             changed.insert(0, photo.photo_id)
         return changed
+
+    def _bound_camera(self, frames: list[str]) -> None:
+        """Forget a fixed camera's oldest fast-path frames beyond ``max_frames_per_camera`` (map images stay)."""
+        cap = self.config.max_frames_per_camera
+        if cap <= 0 or len(frames) <= cap:
+            return
+        excess = len(frames) - cap
+        drop = [p for p in frames[:-1] if p not in self.recon][:excess]
+        gone = set(drop)
+        for pid in drop:
+            self.poses.pop(pid, None)
+            self.viewpoints.forget(pid)
+        frames[:] = [p for p in frames if p not in gone]
 
     def _registration(
         self,

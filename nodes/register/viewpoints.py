@@ -109,6 +109,16 @@ class ViewpointGraph:
         while len(group) > self.max_neighbours:
             group.popitem(last=False)
 
+    def forget(self, photo_id: str) -> None:
+        """Drop a photo and its edges (both directions)."""
+        for other in self._edges.pop(photo_id, {}):
+            group = self._edges.get(other)
+            if group is not None:
+                group.pop(photo_id, None)
+
+    def __len__(self) -> int:
+        return len(self._edges)
+
     def neighbours(self, photo_id: str) -> dict[str, ViewpointEdge]:
         """Edges of one photo, oldest first (empty for unknown photos)."""
         return dict(self._edges.get(photo_id, {}))

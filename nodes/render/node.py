@@ -92,11 +92,26 @@ class RenderNode:
                     f"(photo_cache={self.config.photo_cache}, photo_cache_mib={self.config.photo_cache_mib})",
                 )
             self._photo_bytes -= len(self.photos.pop(victim).data)
+            self._forget(victim)
+
+    def _forget(self, photo_id: str) -> None:
+        """Drop what is kept for a photo that left the cache (it cannot be drawn again without its pixels)."""
+        self.registrations.pop(photo_id, None)
+        self.masks.pop(photo_id, None)
+        self.dirty.pop(photo_id, None)
+        self.rendered.discard(photo_id)
+
+    def _bound(self, table: dict) -> None:
+        """Registrations and masks of photos not in the cache (arrived after their photo left it) stay bounded."""
+        if len(table) > 2 * self.config.photo_cache:
+            for pid in [p for p in table if p not in self.photos][: len(table) - self.config.photo_cache]:
+                self._forget(pid)
 
     def on_registration(self, msg: m.Registration, key: str) -> None:
         if msg.status == "failed":
             return
         self.registrations[msg.photo_id] = msg
+        self._bound(self.registrations)
         self._mark(msg.photo_id)
 
     def on_occlusion(self, msg: m.OcclusionMask, key: str) -> None:
@@ -106,6 +121,7 @@ class RenderNode:
         if old is not None and old.kind == "combined" and msg.kind != "combined":
             return
         self.masks[msg.photo_id] = msg
+        self._bound(self.masks)
         self._mark(msg.photo_id)
 
     def on_annotation(self, msg: m.Annotation, key: str) -> None:

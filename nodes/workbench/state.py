@@ -52,9 +52,40 @@ class SiteState:
     model: BimModel | None = None
     updates: list[BimUpdate] = field(default_factory=list)
     errors: int = 0
+    max_photos: int = 5000
+    """Photos kept (with their registrations, overlays, masks, viewpoint groups): beyond it the earliest arrivals
+    are forgotten in batches of a tenth, so a site that runs for months keeps a bounded state."""
 
     def apply(self, msg: Message) -> list[dict[str, Any]]:
         """Take a message; returns the events (JSON-able dicts with ``kind``) a page should hear about."""
+        events = self._apply(msg)
+        self._bound()
+        return events
+
+    def _bound(self) -> None:
+        cap = max(1, self.max_photos)
+        slack = max(1, cap // 10)
+        per_photo = (self.registrations, self.needs_anchor, self.viewpoints)
+        per_key = (self.overlays, self.masks)
+        over = (
+            len(self.photos) > cap + slack
+            or any(len(d) > 2 * (cap + slack) for d in per_photo)
+            or any(len(t) > 12 * (cap + slack) for t in per_key)
+        )
+        if not over:
+            return
+        for pid in list(self.photos)[: max(0, len(self.photos) - cap)]:
+            del self.photos[pid]
+        keep = self.photos.keys()
+        for d in per_photo:
+            if len(d) > cap:
+                for pid in [p for p in d if p not in keep]:
+                    del d[pid]  # type: ignore[attr-defined]
+        for t in per_key:
+            for k in [k for k in t if k[0] not in keep]:
+                del t[k]  # type: ignore[attr-defined]
+
+    def _apply(self, msg: Message) -> list[dict[str, Any]]:
         if isinstance(msg, Photo):
             self.photos[msg.photo_id] = msg
             return [{"kind": "photo", "photo_id": msg.photo_id}]
