@@ -45,9 +45,7 @@ def decide(policy: RestartPolicy, crash_times: list[float], now: float) -> Decis
     recent = [t for t in crash_times if now - t <= policy.window_secs]
     n = len(recent)
     if n >= policy.max_crashes:
-        return Decision(
-            False, 0.0, n, f"crashed {n} times within {policy.window_secs:.0f} s: stopped, not restarted"
-        )
+        return Decision(False, 0.0, n, f"crashed {n} times within {policy.window_secs:.0f} s: stopped, not restarted")
     delay = min(policy.backoff_max_secs, policy.backoff_initial_secs * policy.backoff_factor ** max(0, n - 1))
     return Decision(True, delay, n, f"restart {n} within {policy.window_secs:.0f} s in {delay:.1f} s")
 

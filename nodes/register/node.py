@@ -16,6 +16,7 @@ import numpy as np
 from constructaide.bimgeom import glb_to_meshes
 from constructaide.runtime import Input, NodeContext, NodeSpec, Output, run_node_cli
 from constructaide.schedule4d import standing_elements
+from nodes.register import state
 from nodes.register.bimdepth import MeshDepthLookup
 from nodes.register.photo import FrameImage, PhotoInput
 from nodes.register.streaming import Outcome, StreamConfig, StreamingRegistrar
@@ -84,6 +85,23 @@ class RegisterNode:
         self.terrain_height_m: float | None = None
         self.sparse_revision = 0
         self._map_changes = 0
+        self._bim_dirty = False
+
+    # -- durable state (the runtime saves it with each handled message when the node has a state dir) ----------
+
+    def state_snapshot(self) -> dict[str, bytes]:
+        out = {"map": state.dump_map(self)}
+        if self._bim_dirty:
+            out["bim"] = state.dump_bim(self)
+            self._bim_dirty = False
+        return out
+
+    def restore_state(self, blobs: dict[str, bytes]) -> None:
+        if state.load_into(self, blobs):
+            self._rebuild_depth()
+        self.ctx.log.info(
+            "resumed: %d photos registered, %d waiting for anchors", self.registrar.num_registered, len(self.pending)
+        )
 
     # -- handlers -------------------------------------------------------------
 
@@ -134,6 +152,7 @@ class RegisterNode:
         self.ref_of = {e.global_id: (e.geometry_ref or e.global_id) for e in msg.elements}
         self.tasks = msg.tasks
         self.terrain_height_m = msg.terrain_height_m
+        self._bim_dirty = True
         self._rebuild_depth()
 
     def on_bim_update(self, msg: BimUpdate, key: str) -> None:
@@ -144,6 +163,7 @@ class RegisterNode:
         self.meshes.update(glb_to_meshes(msg.geometry_glb))
         if msg.tasks is not None:
             self.tasks = msg.tasks
+        self._bim_dirty = True
         self._rebuild_depth()
 
     # -- internals ------------------------------------------------------------

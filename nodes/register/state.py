@@ -1,0 +1,51 @@
+"""The register node's durable state: what a restart needs to resume without re-anchoring.
+
+``map``: the :class:`~nodes.register.streaming.StreamingRegistrar` (reconstruction: images, features, tracks,
+points, poses; per-camera fast-path state; viewpoint graph; vocabulary) with the photos waiting for anchors or kept
+for late clicks; ``bim``: the meshes and schedule the depth lookup is built from (written only when they change).
+Blobs are pickles (protocol 5) of the node's own objects, read back only from the node's own state file; the
+depth lookup (an EGL view) is not kept, it is rebuilt from ``bim``. Pure: no bus, no SQLite (the runtime's
+:class:`~constructaide.runtime.history.Ledger` stores the blobs).
+"""
+
+from __future__ import annotations
+
+import pickle
+from typing import Any
+
+STATE_VERSION = 1
+MAP_FIELDS = ("pending", "pending_anchors", "recent", "asked_anchor", "sparse_revision", "_map_changes")
+BIM_FIELDS = ("meshes", "ref_of", "tasks", "terrain_height_m")
+
+
+def dump_map(node: Any) -> bytes:
+    """Pickle the registrar (without its depth lookup) and the node's queues."""
+    reg = node.registrar
+    lookup, reg.depth_lookup = reg.depth_lookup, None
+    try:
+        doc = {"version": STATE_VERSION, "registrar": reg, **{f: getattr(node, f) for f in MAP_FIELDS}}
+        return pickle.dumps(doc, protocol=5)
+    finally:
+        reg.depth_lookup = lookup
+
+
+def dump_bim(node: Any) -> bytes:
+    return pickle.dumps({"version": STATE_VERSION, **{f: getattr(node, f) for f in BIM_FIELDS}}, protocol=5)
+
+
+def load_into(node: Any, blobs: dict[str, bytes]) -> bool:
+    """Set the node's fields from saved blobs; True when the BIM part was restored (rebuild the depth lookup)."""
+    if "map" in blobs:
+        doc = pickle.loads(blobs["map"])  # noqa: S301 - the node's own state file
+        if doc.get("version") != STATE_VERSION:
+            raise ValueError(f"register state version {doc.get('version')} (this build reads {STATE_VERSION})")
+        node.registrar = doc["registrar"]
+        for f in MAP_FIELDS:
+            setattr(node, f, doc[f])
+    if "bim" in blobs:
+        doc = pickle.loads(blobs["bim"])  # noqa: S301
+        if doc.get("version") == STATE_VERSION:
+            for f in BIM_FIELDS:
+                setattr(node, f, doc[f])
+            return True
+    return False
