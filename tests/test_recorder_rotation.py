@@ -139,7 +139,7 @@ def test_full_disk_reports_keeps_the_newest_and_never_raises(tmp_path: Path) -> 
     )
     for i in range(30):
         rec.write(*photo_payload(i))
-    assert rec.write(*photo_payload(99, SmallDisk.BUDGET + 1)) is False  # can never fit: dropped, counted
+    assert rec.write(*photo_payload(99, SmallDisk.BUDGET + 1)) is None  # can never fit: dropped, counted
     rec.close()
     assert reports and all("disk full" in r for r in reports)
     assert rec.dropped >= 1 and rec.deleted

@@ -112,10 +112,10 @@ class RecorderNode:
         if "/@" in key:
             return  # liveliness/admin keys are not data
         with self._lock:
-            self.writer.write(key, payload, time.time_ns())
+            info = self.writer.write(key, payload, time.time_ns())
             flushed = self.writer.unflushed_count == 0
-        if flushed:
-            self.ctx.log.debug("flushed %d messages, last on %s", self.writer.message_count, key)
+        if flushed and info is not None:
+            self.ctx.log.debug("flushed %d messages, last %s on %s", self.writer.message_count, info.type_name, key)
 
     def _flush_loop(self) -> None:
         interval = self.config.max_unflushed_secs

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Literal
 
 from constructaide.recording import INDEX_VERSION, IndexEntry, RecordingError, index_path, read_index
-from nodes.recorder.mcapio import FlushPolicy, RecordingWriter, new_recording_path, repair
+from nodes.recorder.mcapio import Classified, FlushPolicy, RecordingWriter, new_recording_path, repair
 
 log = logging.getLogger("constructaide.recorder")
 DISK_FULL = (errno.ENOSPC, errno.EDQUOT)
@@ -169,8 +169,8 @@ class RotatingRecorder:
 
     # -- writing --------------------------------------------------------------
 
-    def write(self, key: str, payload: bytes, receive_time_ns: int | None = None) -> bool:
-        """Record one payload; False when it had to be dropped (disk full and nothing left to free)."""
+    def write(self, key: str, payload: bytes, receive_time_ns: int | None = None) -> Classified | None:
+        """Record one payload; its classification, None when it had to be dropped (disk full, nothing to free)."""
         for attempt in range(3):
             try:
                 if self.writer is None:
@@ -178,9 +178,9 @@ class RotatingRecorder:
                 elif self._due():
                     self.rotate()
                 assert self.writer is not None
-                self.writer.write(key, payload, receive_time_ns)
+                info = self.writer.write(key, payload, receive_time_ns)
                 self.message_count += 1
-                return True
+                return info
             except OSError as e:
                 if e.errno not in DISK_FULL:
                     raise
@@ -188,7 +188,7 @@ class RotatingRecorder:
                 if not freed:
                     break
         self.dropped += 1
-        return False
+        return None
 
     def _disk_full(self, e: OSError, attempt: int) -> bool:
         """Abandon the current file, free the oldest files; True when a retry is worth it."""
