@@ -113,11 +113,17 @@ class Ledger:
 
     def done(self, dig: str, key: str, state: dict[str, bytes] | None = None) -> None:
         """Mark a message handled and (optionally) save state blobs, in one transaction."""
+        self.done_many([(dig, key)], state)
+
+    def done_many(self, handled: list[tuple[str, str]], state: dict[str, bytes] | None = None) -> None:
+        """Mark messages ``(digest, key)`` handled and save state blobs, in one transaction."""
         now = time.time_ns()
         with self._lock:
             self._db.execute("BEGIN IMMEDIATE")
             try:
-                self._db.execute("INSERT OR IGNORE INTO handled VALUES (?, ?, ?)", (dig, key, now))
+                self._db.executemany(
+                    "INSERT OR IGNORE INTO handled VALUES (?, ?, ?)", [(d, k, now) for d, k in handled]
+                )
                 for name, data in (state or {}).items():
                     self._db.execute("INSERT OR REPLACE INTO state VALUES (?, ?, ?)", (name, data, now))
                 self._db.execute("COMMIT")

@@ -175,6 +175,8 @@ class RunningNode:
     when the node object has ``state_snapshot() -> dict[str, bytes] | None`` and ``restore_state(dict)``, its state
     (saved with each handled message, in one transaction); at start it restores that state and replays the
     durable inputs' history, skipping what it handled. Values fetched as latched at start are always handled.
+    A node object with ``state_every_secs > 0`` (a large state) is snapshotted at most that often: the messages
+    handled in between are marked handled with the next snapshot, so a crash re-handles them (at least once).
     """
 
     def __init__(
@@ -193,6 +195,8 @@ class RunningNode:
         self.replayed = 0
         self.duplicates = 0
         self._inflight: set[str] = set()
+        self._uncommitted: list[tuple[str, str]] = []
+        self._last_snapshot = time.monotonic()
         self._held: list[tuple[Input, str, bytes]] | None = None
         self._guard = threading.Lock()
         self._fetching = threading.local()
@@ -309,8 +313,14 @@ class RunningNode:
                 if self._queue.empty():
                     self.idle.set()
 
-    def _mark_done(self, dig: str, key: str) -> None:
+    def _mark_done(self, dig: str, key: str, final: bool = False) -> None:
         assert self.ledger is not None
+        if dig:
+            self._uncommitted.append((dig, key))
+        every = float(getattr(self.obj, "state_every_secs", 0.0) or 0.0)
+        if not final and every > 0 and time.monotonic() - self._last_snapshot < every:
+            return  # stays in _inflight (handled in this run) until the next snapshot commits it
+        self._last_snapshot = time.monotonic()
         snap = getattr(self.obj, "state_snapshot", None)
         try:
             state = snap() if callable(snap) else None
@@ -319,9 +329,10 @@ class RunningNode:
             self.ctx.log.debug("state_snapshot failed", exc_info=True)
             self.ctx.error("state", f"cannot snapshot the node state: {type(e).__name__}: {e}", key)
             state = None
-        self.ledger.done(dig, key, state)
+        handled, self._uncommitted = self._uncommitted, []
+        self.ledger.done_many(handled, state)
         with self._guard:
-            self._inflight.discard(dig)
+            self._inflight.difference_update(d for d, _ in handled)
 
     def _call_idle(self, on_idle: Callable[[], object]) -> bool:
         """Run the hook; True when it says more work is pending (False after a failure: no retry loop)."""
@@ -370,6 +381,8 @@ class RunningNode:
             self._queue.put_last(_STOP)  # after everything already queued: nothing accepted is dropped
             self._worker.join(timeout=60)
         self._closed.set()
+        if self.ledger is not None and self._uncommitted:
+            self._mark_done("", "", final=True)  # the last snapshot: a clean stop re-handles nothing
         closer = getattr(self.obj, "close", None)
         if callable(closer):
             closer()
