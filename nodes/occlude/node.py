@@ -14,8 +14,8 @@ import sys
 import numpy as np
 from numpy.typing import NDArray
 
-from constructaide.runtime import Input, NodeContext, NodeSpec, Output, run_node_cli
 from constructaide.modelview import ModelView
+from constructaide.runtime import Input, NodeContext, NodeSpec, Output, run_node_cli
 from nodes.occlude import state
 from nodes.occlude.pipeline import Config, OcclusionPipeline
 from schemas import keys
