@@ -45,7 +45,8 @@ def test_restart_resumes_the_map_and_registers_the_next_frame_without_an_anchor(
         sparse_revision = node.obj.sparse_revision
     led = Ledger(tmp_path / f"{SITE}-register.sqlite")
     blobs = led.load_state()
-    assert led.handled_count() == 4 and set(blobs) == {"map"}
+    assert led.handled_count() == 4
+    assert set(blobs) == {"map", f"feat/{photos[0].photo_id}"}  # the anchor's features (fast-path frames: none)
     led.close()
     # A new process (a fresh bus: nothing to replay) resumes from the file.
     with LocalBus() as bus, start_node(SPEC, Config(site=SITE), bus, state_dir=tmp_path) as node:
@@ -79,7 +80,7 @@ def test_state_blobs_round_trip() -> None:
         state.BIM_FIELDS, ({"m": (np.zeros((3, 3)), np.zeros((1, 3), np.int32))}, {"g": "m"}, (), 1.5), strict=True
     ):
         setattr(a, f, v)
-    blobs = {"map": state.dump_map(a), "bim": state.dump_bim(a)}
+    blobs = {**state.dump_map(a), "bim": state.dump_bim(a)}
     assert a.registrar.depth_lookup is not None  # type: ignore[attr-defined]  # put back after the dump
     b = Holder()
     assert state.load_into(b, blobs)

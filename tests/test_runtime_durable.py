@@ -11,7 +11,7 @@ import pytest
 from constructaide.runtime import BusConfig, open_bus, start_node
 from constructaide.runtime.history import Ledger, PublicationCache, digest
 from constructaide.runtime.local import LocalBus
-from schemas import keys
+from schemas import codec, keys
 from schemas.messages import Photo, Registration
 
 ECHO = Path(__file__).with_name("echo_node.py")
@@ -72,6 +72,46 @@ def test_restart_in_process_replays_what_was_missed_once(tmp_path: Path) -> None
     ids = [r.photo_id for _, r in regs.items]
     assert sorted(ids) == ["p1", "p2", "p3", "p4"]
     assert ids.index("p2") < ids.index("p3") < ids.index("p4")  # publication order kept
+
+
+class HoldingEcho(echo_node.EchoNode):
+    """The echo node holding its outputs until its (tiny) state is committed."""
+
+    state_every_secs = 60.0
+    hold_outputs = True
+
+    def state_snapshot(self) -> dict[str, bytes]:
+        return {"n": b"1"}
+
+    def restore_state(self, blobs: dict[str, bytes]) -> None:
+        pass
+
+
+HOLDING = echo_node.NodeSpec(
+    "echo", "holds outputs", echo_node.Config, HoldingEcho, echo_node.SPEC.inputs, echo_node.SPEC.outputs
+)
+
+
+def test_held_outputs_go_out_with_the_commit_and_a_left_outbox_at_the_next_start(tmp_path: Path) -> None:
+    bus = LocalBus()
+    site = "hold"
+    regs = bus.collect(keys.pattern(keys.REGISTRATION, site=site))
+    cfg = echo_node.Config(site=site)
+    with start_node(HOLDING, cfg, bus, state_dir=tmp_path) as node:
+        for i in range(3):
+            bus.publish(*photo(site, f"p{i}"))
+        regs.wait(3, timeout=10)  # committed when the inbox ran dry, then sent
+        assert node.wait_idle(10)
+    led = Ledger(tmp_path / f"{site}-echo.sqlite")
+    assert led.handled_count() == 3 and led.outbox() == []
+    # A crash between the commit and the send leaves the outbox: the next start sends it first.
+    reg_key = keys.key(keys.REGISTRATION, site=site, camera="cam-a", photo="late")
+    led.done_many([], None, [(reg_key, codec.encode(Registration(site=site, photo_id="late", status="failed")), False)])
+    led.close()
+    with start_node(HOLDING, cfg, bus, state_dir=tmp_path):
+        ((key, reg),) = regs.wait(4, timeout=10)[3:]
+        assert key == reg_key and reg.photo_id == "late"
+    assert Ledger(tmp_path / f"{site}-echo.sqlite").outbox() == []
 
 
 @pytest.mark.zenoh

@@ -80,7 +80,11 @@ _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (name TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS handled (digest TEXT PRIMARY KEY, key TEXT NOT NULL, handled_ns INTEGER NOT NULL);
 CREATE TABLE IF NOT EXISTS state (name TEXT PRIMARY KEY, data BLOB NOT NULL, saved_ns INTEGER NOT NULL);
+CREATE TABLE IF NOT EXISTS outbox (seq INTEGER PRIMARY KEY AUTOINCREMENT, key TEXT NOT NULL, payload BLOB NOT NULL,
+    preview INTEGER NOT NULL);
 """
+Outgoing = tuple[str, bytes, bool]
+"""A held publication: key, payload, preview."""
 
 
 class Ledger:
@@ -115,8 +119,14 @@ class Ledger:
         """Mark a message handled and (optionally) save state blobs, in one transaction."""
         self.done_many([(dig, key)], state)
 
-    def done_many(self, handled: list[tuple[str, str]], state: dict[str, bytes] | None = None) -> None:
-        """Mark messages ``(digest, key)`` handled and save state blobs, in one transaction."""
+    def done_many(
+        self,
+        handled: list[tuple[str, str]],
+        state: dict[str, bytes] | None = None,
+        outbox: list[Outgoing] | None = None,
+    ) -> None:
+        """Mark messages ``(digest, key)`` handled, save state blobs and the publications they made (to be sent,
+        then :meth:`clear_outbox`), in one transaction."""
         now = time.time_ns()
         with self._lock:
             self._db.execute("BEGIN IMMEDIATE")
@@ -124,12 +134,26 @@ class Ledger:
                 self._db.executemany(
                     "INSERT OR IGNORE INTO handled VALUES (?, ?, ?)", [(d, k, now) for d, k in handled]
                 )
+                self._db.executemany(
+                    "INSERT INTO outbox (key, payload, preview) VALUES (?, ?, ?)",
+                    [(k, p, int(pv)) for k, p, pv in outbox or []],
+                )
                 for name, data in (state or {}).items():
                     self._db.execute("INSERT OR REPLACE INTO state VALUES (?, ?, ?)", (name, data, now))
                 self._db.execute("COMMIT")
             except BaseException:
                 self._db.execute("ROLLBACK")
                 raise
+
+    def outbox(self) -> list[Outgoing]:
+        """Publications committed but not confirmed sent (the node was killed in between), oldest first."""
+        with self._lock:
+            rows = self._db.execute("SELECT key, payload, preview FROM outbox ORDER BY seq").fetchall()
+        return [(k, bytes(p), bool(pv)) for k, p, pv in rows]
+
+    def clear_outbox(self) -> None:
+        with self._lock:
+            self._db.execute("DELETE FROM outbox")
 
     def save_state(self, state: dict[str, bytes]) -> None:
         with self._lock:

@@ -38,7 +38,7 @@ from typing import Any
 import msgspec
 
 from constructaide.errors import UserError
-from constructaide.runtime.bus import Bus, BusConfig, add_bus_args, open_bus
+from constructaide.runtime.bus import Bus, BusConfig, add_bus_args, open_bus, payload_of
 from constructaide.runtime.history import Ledger, digest
 from schemas import codec, keys
 from schemas.messages import Message, NodeError
@@ -99,8 +99,13 @@ class NodeContext:
         self.node = node
         self.log = logging.getLogger(f"constructaide.{node}")
         self._latched_templates = latched_keys
+        self.outbox: list[tuple[str, bytes, bool]] | None = None
+        """Set by the runtime while a handler of a node that holds its outputs runs: publications wait here."""
 
     def publish(self, key: str, msg: Message | bytes, *, preview: bool = False) -> None:
+        if self.outbox is not None:
+            self.outbox.append((key, bytes(payload_of(msg)), preview))
+            return
         latched = any(keys.parse(t, key) is not None for t in self._latched_templates)
         self.bus.publish(key, msg, preview=preview, latched=latched)
 
@@ -177,6 +182,9 @@ class RunningNode:
     durable inputs' history, skipping what it handled. Values fetched as latched at start are always handled.
     A node object with ``state_every_secs > 0`` (a large state) is snapshotted at most that often: the messages
     handled in between are marked handled with the next snapshot, so a crash re-handles them (at least once).
+    With ``hold_outputs = True`` too, what its handlers publish is held and committed with that snapshot (an
+    outbox), then sent; a snapshot is also taken whenever the inbox runs dry. A crash then neither loses nor
+    repeats an output (the outbox left by a crash between commit and send is sent at the next start).
     """
 
     def __init__(
@@ -196,6 +204,8 @@ class RunningNode:
         self.duplicates = 0
         self._inflight: set[str] = set()
         self._uncommitted: list[tuple[str, str]] = []
+        self._hold = self.ledger is not None and bool(getattr(self.obj, "hold_outputs", False))
+        self._held_out: list[tuple[str, bytes, bool]] = []
         self._last_snapshot = time.monotonic()
         self._held: list[tuple[Input, str, bytes]] | None = None
         self._guard = threading.Lock()
@@ -234,6 +244,7 @@ class RunningNode:
             finally:
                 self._fetching.latched = False
         if self.ledger is not None:
+            self._send_outbox(self.ledger.outbox())
             self._replay()
         instance = uuid.uuid4().hex[:8]
         self._token = self.bus.declare_token(
@@ -298,7 +309,12 @@ class RunningNode:
                 return
             inp, key, payload, dig = item
             try:
-                self._handle(inp, key, payload)
+                if self._hold:
+                    self.ctx.outbox = self._held_out
+                try:
+                    self._handle(inp, key, payload)
+                finally:
+                    self.ctx.outbox = None
                 if dig is not None:
                     self._mark_done(dig, key)
                 since_idle += 1
@@ -318,7 +334,8 @@ class RunningNode:
         if dig:
             self._uncommitted.append((dig, key))
         every = float(getattr(self.obj, "state_every_secs", 0.0) or 0.0)
-        if not final and every > 0 and time.monotonic() - self._last_snapshot < every:
+        due = time.monotonic() - self._last_snapshot >= every or (self._hold and self._queue.empty())
+        if not final and every > 0 and not due:
             return  # stays in _inflight (handled in this run) until the next snapshot commits it
         self._last_snapshot = time.monotonic()
         snap = getattr(self.obj, "state_snapshot", None)
@@ -330,9 +347,20 @@ class RunningNode:
             self.ctx.error("state", f"cannot snapshot the node state: {type(e).__name__}: {e}", key)
             state = None
         handled, self._uncommitted = self._uncommitted, []
-        self.ledger.done_many(handled, state)
+        out, self._held_out = self._held_out, []
+        self.ledger.done_many(handled, state, out)
         with self._guard:
             self._inflight.difference_update(d for d, _ in handled)
+        self._send_outbox(out)
+
+    def _send_outbox(self, out: list[tuple[str, bytes, bool]]) -> None:
+        assert self.ledger is not None
+        if not out:
+            return
+        for key, payload, preview in out:
+            latched = any(keys.parse(t, key) is not None for t in self.ctx._latched_templates)
+            self.bus.publish(key, payload, preview=preview, latched=latched)
+        self.ledger.clear_outbox()
 
     def _call_idle(self, on_idle: Callable[[], object]) -> bool:
         """Run the hook; True when it says more work is pending (False after a failure: no retry loop)."""

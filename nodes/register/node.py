@@ -86,11 +86,18 @@ class RegisterNode:
         self.sparse_revision = 0
         self._map_changes = 0
         self._bim_dirty = False
+        self._saved_features: dict[str, tuple[int, bool]] = {}
 
     # -- durable state (the runtime saves it with each handled message when the node has a state dir) ----------
 
+    # the map grows to many MB: snapshots at most every few seconds (and when the inbox runs dry); the runtime
+    # holds the registrations of messages handled since (hold_outputs) and publishes them with the snapshot, so a
+    # crash neither loses nor repeats one
+    state_every_secs = 5.0
+    hold_outputs = True
+
     def state_snapshot(self) -> dict[str, bytes]:
-        out = {"map": state.dump_map(self)}
+        out = state.dump_map(self, self._saved_features)
         if self._bim_dirty:
             out["bim"] = state.dump_bim(self)
             self._bim_dirty = False
@@ -99,6 +106,10 @@ class RegisterNode:
     def restore_state(self, blobs: dict[str, bytes]) -> None:
         if state.load_into(self, blobs):
             self._rebuild_depth()
+        self._saved_features = {
+            im.name: (id(im.features), getattr(im.features, "descriptors_pca", None) is not None)
+            for im in self.registrar.recon.images
+        }
         self.ctx.log.info(
             "resumed: %d photos registered, %d waiting for anchors", self.registrar.num_registered, len(self.pending)
         )

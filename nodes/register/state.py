@@ -1,8 +1,9 @@
 """The register node's durable state: what a restart needs to resume without re-anchoring.
 
-``map``: the :class:`~nodes.register.streaming.StreamingRegistrar` (reconstruction: images, features, tracks,
-points, poses; per-camera fast-path state; viewpoint graph; vocabulary) with the photos waiting for anchors or kept
-for late clicks; ``bim``: the meshes and schedule the depth lookup is built from (written only when they change).
+``map``: the :class:`~nodes.register.streaming.StreamingRegistrar` (reconstruction: images, tracks, points,
+poses; per-camera fast-path state; viewpoint graph; vocabulary) with the photos waiting for anchors or kept
+for late clicks; ``feat/<image>``: each map image's features (written once); ``bim``: the meshes and schedule
+the depth lookup is built from (written only when they change).
 Blobs are pickles (protocol 5) of the node's own objects, read back only from the node's own state file; the
 depth lookup (an EGL view) is not kept, it is rebuilt from ``bim``. Pure: no bus, no SQLite (the runtime's
 :class:`~constructaide.runtime.history.Ledger` stores the blobs).
@@ -18,15 +19,30 @@ MAP_FIELDS = ("pending", "pending_anchors", "recent", "asked_anchor", "sparse_re
 BIM_FIELDS = ("meshes", "ref_of", "tasks", "terrain_height_m")
 
 
-def dump_map(node: Any) -> bytes:
-    """Pickle the registrar (without its depth lookup) and the node's queues."""
+def dump_map(node: Any, saved: dict[str, tuple[int, bool]] | None = None) -> dict[str, bytes]:
+    """Blobs of the registrar (without its depth lookup) and the node's queues: ``map``, plus ``feat/<image>`` for
+    each map image whose features are not in ``saved`` yet (``{image: (id(features), has PCA)}``, updated): the
+    features (MBs per image, unchanged once extracted) are written once, not with every snapshot."""
     reg = node.registrar
+    saved = {} if saved is None else saved
+    out: dict[str, bytes] = {}
+    images = reg.recon.images
+    feats = [im.features for im in images]
     lookup, reg.depth_lookup = reg.depth_lookup, None
     try:
+        for im, f in zip(images, feats, strict=True):
+            tag = (id(f), getattr(f, "descriptors_pca", None) is not None)
+            if saved.get(im.name) != tag:
+                out[f"feat/{im.name}"] = pickle.dumps(f, protocol=5)
+                saved[im.name] = tag
+            im.features = None
         doc = {"version": STATE_VERSION, "registrar": reg, **{f: getattr(node, f) for f in MAP_FIELDS}}
-        return pickle.dumps(doc, protocol=5)
+        out["map"] = pickle.dumps(doc, protocol=5)
+        return out
     finally:
         reg.depth_lookup = lookup
+        for im, f in zip(images, feats, strict=True):
+            im.features = f
 
 
 def dump_bim(node: Any) -> bytes:
@@ -40,6 +56,11 @@ def load_into(node: Any, blobs: dict[str, bytes]) -> bool:
         if doc.get("version") != STATE_VERSION:
             raise ValueError(f"register state version {doc.get('version')} (this build reads {STATE_VERSION})")
         node.registrar = doc["registrar"]
+        for im in node.registrar.recon.images:
+            blob = blobs.get(f"feat/{im.name}")
+            if blob is None:
+                raise ValueError(f"register state: features of {im.name} missing")
+            im.features = pickle.loads(blob)  # noqa: S301
         for f in MAP_FIELDS:
             setattr(node, f, doc[f])
     if "bim" in blobs:
