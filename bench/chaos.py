@@ -123,8 +123,10 @@ class Watch:
             s.close()
 
 
-def kill_plan(rng: np.random.Generator, n: int, per_node: int) -> list[tuple[int, str]]:
-    plan = [(int(rng.integers(int(n * 0.05), int(n * 0.85))), node) for node in VICTIMS for _ in range(per_node)]
+def kill_plan(
+    rng: np.random.Generator, n: int, per_node: int, victims: tuple[str, ...] = VICTIMS
+) -> list[tuple[int, str]]:
+    plan = [(int(rng.integers(int(n * 0.05), int(n * 0.85))), node) for node in victims for _ in range(per_node)]
     return sorted(plan)
 
 
@@ -133,7 +135,7 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     doc = tomllib.loads((site_dir / "site.toml").read_text())
     stream, by_rel = frames(site_dir, args.frames)
     anchors = _anchor_messages(SITE, site_dir, by_rel)
-    plan = kill_plan(np.random.default_rng(args.seed), args.frames, args.kills_per_node)
+    plan = kill_plan(np.random.default_rng(args.seed), args.frames, args.kills_per_node, tuple(args.victims))
     rec_dir = out / "recordings"
     os.environ["CONSTRUCTAIDE_HISTORY_MB"] = str(args.history_mb)
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
@@ -262,6 +264,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=1000)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--kills-per-node", type=int, default=2)
+    ap.add_argument("--victims", nargs="+", default=list(VICTIMS), choices=VICTIMS, help="nodes to kill")
     ap.add_argument("--window", type=int, default=32, help="photos pushed ahead of the registrations")
     ap.add_argument("--modes", nargs="+", default=["state4d"], help="render modes")
     ap.add_argument("--max-file-mb", type=float, default=20.0, help="recorder rotation size")

@@ -106,7 +106,10 @@ def test_held_outputs_go_out_with_the_commit_and_a_left_outbox_at_the_next_start
     assert led.handled_count() == 3 and led.outbox() == []
     # A crash between the commit and the send leaves the outbox: the next start sends it first.
     reg_key = keys.key(keys.REGISTRATION, site=site, camera="cam-a", photo="late")
-    led.done_many([], None, [(reg_key, codec.encode(Registration(site=site, photo_id="late", status="failed")), False)])
+    seqs = led.done_many(
+        [], None, [(reg_key, codec.encode(Registration(site=site, photo_id="late", status="failed")), False)]
+    )
+    assert len(seqs) == 1 and [q for q, _ in led.outbox()] == seqs
     led.close()
     with start_node(HOLDING, cfg, bus, state_dir=tmp_path):
         ((key, reg),) = regs.wait(4, timeout=10)[3:]

@@ -124,9 +124,9 @@ class Ledger:
         handled: list[tuple[str, str]],
         state: dict[str, bytes] | None = None,
         outbox: list[Outgoing] | None = None,
-    ) -> None:
+    ) -> list[int]:
         """Mark messages ``(digest, key)`` handled, save state blobs and the publications they made (to be sent,
-        then :meth:`clear_outbox`), in one transaction."""
+        each then :meth:`sent`), in one transaction; returns the outbox sequence numbers."""
         now = time.time_ns()
         with self._lock:
             self._db.execute("BEGIN IMMEDIATE")
@@ -134,26 +134,30 @@ class Ledger:
                 self._db.executemany(
                     "INSERT OR IGNORE INTO handled VALUES (?, ?, ?)", [(d, k, now) for d, k in handled]
                 )
-                self._db.executemany(
-                    "INSERT INTO outbox (key, payload, preview) VALUES (?, ?, ?)",
-                    [(k, p, int(pv)) for k, p, pv in outbox or []],
-                )
+                seqs = []
+                for k, p, pv in outbox or []:
+                    cur = self._db.execute(
+                        "INSERT INTO outbox (key, payload, preview) VALUES (?, ?, ?)", (k, p, int(pv))
+                    )
+                    seqs.append(int(cur.lastrowid or 0))
                 for name, data in (state or {}).items():
                     self._db.execute("INSERT OR REPLACE INTO state VALUES (?, ?, ?)", (name, data, now))
                 self._db.execute("COMMIT")
             except BaseException:
                 self._db.execute("ROLLBACK")
                 raise
+        return seqs
 
-    def outbox(self) -> list[Outgoing]:
+    def outbox(self) -> list[tuple[int, Outgoing]]:
         """Publications committed but not confirmed sent (the node was killed in between), oldest first."""
         with self._lock:
-            rows = self._db.execute("SELECT key, payload, preview FROM outbox ORDER BY seq").fetchall()
-        return [(k, bytes(p), bool(pv)) for k, p, pv in rows]
+            rows = self._db.execute("SELECT seq, key, payload, preview FROM outbox ORDER BY seq").fetchall()
+        return [(int(q), (k, bytes(p), bool(pv))) for q, k, p, pv in rows]
 
-    def clear_outbox(self) -> None:
+    def sent(self, seq: int) -> None:
+        """One outbox publication went out (a crash repeats at most the one being sent)."""
         with self._lock:
-            self._db.execute("DELETE FROM outbox")
+            self._db.execute("DELETE FROM outbox WHERE seq=?", (seq,))
 
     def save_state(self, state: dict[str, bytes]) -> None:
         with self._lock:

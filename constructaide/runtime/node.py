@@ -348,19 +348,17 @@ class RunningNode:
             state = None
         handled, self._uncommitted = self._uncommitted, []
         out, self._held_out = self._held_out, []
-        self.ledger.done_many(handled, state, out)
+        seqs = self.ledger.done_many(handled, state, out)
         with self._guard:
             self._inflight.difference_update(d for d, _ in handled)
-        self._send_outbox(out)
+        self._send_outbox(list(zip(seqs, out, strict=True)))
 
-    def _send_outbox(self, out: list[tuple[str, bytes, bool]]) -> None:
+    def _send_outbox(self, out: list[tuple[int, tuple[str, bytes, bool]]]) -> None:
         assert self.ledger is not None
-        if not out:
-            return
-        for key, payload, preview in out:
+        for seq, (key, payload, preview) in out:
             latched = any(keys.parse(t, key) is not None for t in self.ctx._latched_templates)
             self.bus.publish(key, payload, preview=preview, latched=latched)
-        self.ledger.clear_outbox()
+            self.ledger.sent(seq)
 
     def _call_idle(self, on_idle: Callable[[], object]) -> bool:
         """Run the hook; True when it says more work is pending (False after a failure: no retry loop)."""
