@@ -182,8 +182,9 @@ def run_main(argv: list[str]) -> int:
     p.add_argument(
         "--state-dir",
         type=Path,
-        default=Path("recordings/state"),
-        help="nodes' ledgers and state (a restarted node resumes there); 'none' to start every node empty",
+        default=None,
+        help="nodes' ledgers and state (a restarted node resumes there; default: 'state' beside the log folder); "
+        "'none' to start every node empty",
     )
     p.add_argument("--no-supervise", action="store_true", help="do not restart crashed nodes")
     add_bus_args(p)
@@ -207,7 +208,8 @@ def run_main(argv: list[str]) -> int:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    state_dir = None if str(args.state_dir).lower() == "none" else args.state_dir
+    state_dir = args.state_dir or args.log_dir.parent / "state"
+    state_dir = None if str(state_dir).lower() == "none" else state_dir
     with site_processes(site, bus, args.log_dir, state_dir) as launcher, open_bus(bus) as session:
         for name in nodes:
             launcher.start(name, args.config, f"nodes.{name}")
