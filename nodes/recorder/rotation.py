@@ -211,6 +211,16 @@ class RotatingRecorder:
         )
         return bool(victims) or attempt == 0
 
+    def flush(self) -> None:
+        """Finish the open chunk and push it to the OS."""
+        if self.writer is not None:
+            try:
+                self.writer.flush()
+            except OSError as e:
+                if e.errno not in DISK_FULL:
+                    raise
+                self._disk_full(e, 1)
+
     def flush_if_older_than(self, max_age_secs: float) -> None:
         if self.writer is not None:
             try:
