@@ -2,6 +2,10 @@
 writes them): a tolerant sequential scan that stops at the first truncated or corrupt record, messages with
 their keys, schema names and times, and decoded messages of chosen types.
 
+A rotating recorder writes a set of files and an index, ``<site>.index.json`` (:func:`read_index`); every reader
+here takes the index (or the folder holding exactly one) for a path and reads the set in order, the file still
+open when the recorder stopped (killed: truncated) up to its last complete chunk.
+
 Shared by the recorder (repair, replay), the render CLI, the app and the benches; uses the ``mcap`` package
 but no bus.
 """
@@ -9,6 +13,7 @@ but no bus.
 from __future__ import annotations
 
 import io
+import json
 import os
 import struct
 from collections.abc import Callable, Iterable, Iterator
@@ -152,13 +157,63 @@ class RecordingError(ValueError):
     """A recording is truncated or corrupt (run ``constructaide recording repair``)."""
 
 
+INDEX_SUFFIX = ".index.json"
+INDEX_VERSION = 1
+
+
+@dataclass(frozen=True)
+class IndexEntry:
+    """One file of a rotated recording. ``state``: ``open`` (being written, or the recorder was killed),
+    ``closed`` (summary written), ``repaired`` (truncated, then repaired). Times ns UTC (receive times)."""
+
+    name: str
+    started_ns: int
+    ended_ns: int = 0
+    messages: int = 0
+    size_bytes: int = 0
+    state: str = "open"
+
+
+def index_path(directory: str | Path, site: str) -> Path:
+    return Path(directory) / f"{site}{INDEX_SUFFIX}"
+
+
+def read_index(path: str | Path) -> list[IndexEntry]:
+    """The files of a rotated recording, oldest first (paths relative to the index's folder)."""
+    try:
+        doc = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise RecordingError(f"cannot read the recording index {path}: {e}") from None
+    if doc.get("version") != INDEX_VERSION:
+        raise RecordingError(f"{path}: unknown index version {doc.get('version')!r}")
+    return [IndexEntry(**f) for f in doc.get("files", [])]
+
+
+def recording_files(path: str | Path) -> list[tuple[Path, bool]]:
+    """``(file, may_be_truncated)`` of a recording: one ``.mcap``, an index, or a folder with one index."""
+    path = Path(path)
+    if path.is_dir():
+        found = sorted(path.glob(f"*{INDEX_SUFFIX}"))
+        if len(found) != 1:
+            raise RecordingError(f"{path}: expected one *{INDEX_SUFFIX} in the folder, found {len(found)}")
+        path = found[0]
+    if path.name.endswith(INDEX_SUFFIX):
+        return [(path.parent / e.name, e.state == "open") for e in read_index(path) if (path.parent / e.name).exists()]
+    return [(path, False)]
+
+
 def iter_messages(path: str | Path, *, allow_truncated: bool = False) -> Iterator[RecordedMessage]:
-    """Every message of a recording in file (= receive) order.
+    """Every message of a recording in file (= receive) order (of a rotated set: file after file).
 
     A file whose data section is truncated or corrupt yields its complete part, then raises
-    :class:`RecordingError` unless ``allow_truncated`` (a damaged summary section alone is fine).
+    :class:`RecordingError` unless ``allow_truncated`` (a damaged summary section alone is fine); in a rotated
+    set the files the index says were open (the recorder was killed) are read up to their last complete chunk.
     """
-    path = Path(path)
+    for file, open_ in recording_files(path):
+        yield from _iter_file(file, allow_truncated=allow_truncated or open_)
+
+
+def _iter_file(path: Path, *, allow_truncated: bool) -> Iterator[RecordedMessage]:
     state = ScanState()
     with open(path, "rb") as f:
         for rec in scan_records(f, state):

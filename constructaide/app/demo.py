@@ -253,7 +253,12 @@ def main(argv: list[str]) -> int:
     # the demo's own session is the hub, on a loopback port the system picks; the nodes join it
     with (
         open_bus(BusConfig(listen=["tcp/127.0.0.1:0"])) as bus,
-        Launcher(site=args.site, bus=BusConfig(hub_port=bus.listen_port()), log_dir=log_dir) as launcher,
+        Launcher(
+            site=args.site,
+            bus=BusConfig(hub_port=bus.listen_port()),
+            log_dir=log_dir,
+            state_dir=out / "state" / f"{args.site}-{stamp}",
+        ) as launcher,
         contextlib.ExitStack() as stack,
     ):
         print("[2/5] starting nodes", file=sys.stderr)
@@ -283,6 +288,7 @@ def main(argv: list[str]) -> int:
             ingest_sets.append(f"terrain_height_m={float(site_doc['site']['terrain_height_m'])}")
         launcher.start("ingest", sets=ingest_sets)
         launcher.wait_live(bus, ["ingest"])
+        launcher.supervise(bus)  # a crashed node is restarted (and resumes from its state), reported on errors
         bim.wait(1, timeout=300)
 
         user = None

@@ -18,6 +18,13 @@ A site TOML config::
 
 With ``[workers]`` the site's fixed camera ids (``[site] cameras = ["cam-a", ...]``) let each worker subscribe to
 its own cameras' keys only; without them every worker subscribes to all cameras and skips the others' frames.
+
+    [supervise]                # optional: restart policy (constructaide.app.supervise.RestartPolicy)
+    max_crashes = 5
+    window_secs = 120
+
+A crashed node is restarted with back-off and reported on the error topic; its ledger and state in
+``--state-dir`` let it resume and get what was published while it was down.
 """
 
 from __future__ import annotations
@@ -29,14 +36,17 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 import tomllib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from constructaide.app.supervise import RestartPolicy, Supervisor
 from constructaide.errors import UserError
 from constructaide.runtime import Bus, BusConfig, add_bus_args, open_bus
 from schemas import keys
+from schemas.messages import NodeError
 
 
 @dataclass
@@ -46,8 +56,21 @@ class NodeProcess:
     log_path: Path | None = None
     proc: subprocess.Popen[bytes] | None = None
     _log: object = None
+    stopping: bool = False
+    env: dict[str, str] = field(default_factory=dict)
+
+    def returncode(self) -> int | None:
+        return None if self.proc is None else self.proc.poll()
+
+    def restart(self) -> None:
+        """Start the process again (after it exited), with the same argv and environment."""
+        if self._log is not None:
+            self._log.close()  # type: ignore[attr-defined]
+            self._log = None
+        self.start(self.env)
 
     def start(self, env: dict[str, str]) -> None:
+        self.env = env
         stdout = subprocess.DEVNULL
         if self.log_path is not None:
             self.log_path.parent.mkdir(parents=True, exist_ok=True)
@@ -57,6 +80,7 @@ class NodeProcess:
 
     def stop(self, timeout: float = 90.0) -> int | None:
         """SIGINT, then up to ``timeout`` s for the node to drain its queue (its worker gets 60 s), then SIGKILL."""
+        self.stopping = True
         if self.proc is None:
             return None
         if self.proc.poll() is None:
@@ -68,6 +92,7 @@ class NodeProcess:
                 self.proc.wait()
         if self._log is not None:
             self._log.close()  # type: ignore[attr-defined]
+            self._log = None
         return self.proc.returncode
 
 
@@ -79,6 +104,9 @@ class Launcher:
     bus: BusConfig = field(default_factory=BusConfig)
     log_dir: Path | None = None
     procs: list[NodeProcess] = field(default_factory=list)
+    state_dir: Path | None = None
+    """Passed to the nodes as ``--state-dir`` (ledger and state: a restarted node resumes and gets what it missed)."""
+    supervisor: Supervisor | None = None
 
     def bus_argv(self) -> list[str]:
         argv = ["--hub-port", str(self.bus.hub_port), "--mode", self.bus.mode]
@@ -104,6 +132,8 @@ class Launcher:
             argv += ["--config", str(config)]
             if section:
                 argv += ["--section", section]
+        if self.state_dir is not None:
+            argv += ["--state-dir", str(self.state_dir)]
         for s in sets or []:
             argv += ["--set", s]
         name = node
@@ -171,7 +201,22 @@ class Launcher:
             dead = [p.name for p in self.procs if p.proc is not None and p.proc.poll() is not None]
             raise UserError(f"{e}; exited: {dead or 'none'} (see logs in {self.log_dir})") from None
 
+    def supervise(self, bus: Bus, policy: RestartPolicy | None = None) -> Supervisor:
+        """Restart crashed nodes with back-off (:mod:`constructaide.app.supervise`), NodeErrors on ``bus``."""
+
+        def report(node: str, reason: str) -> None:
+            err = NodeError(
+                site=self.site, node=node, topic="supervisor", reason=reason, key="", time_ns=time.time_ns()
+            )
+            bus.publish(keys.key(keys.ERRORS, site=self.site), err)
+
+        self.supervisor = Supervisor(lambda: list(self.procs), report, policy or RestartPolicy()).start()
+        return self.supervisor
+
     def stop_all(self) -> dict[str, int | None]:
+        if self.supervisor is not None:
+            self.supervisor.close()
+            self.supervisor = None
         return {p.name: p.stop() for p in reversed(self.procs)}
 
     def __enter__(self) -> Launcher:
@@ -182,8 +227,10 @@ class Launcher:
 
 
 @contextlib.contextmanager
-def site_processes(site: str, bus: BusConfig, log_dir: Path | None) -> Iterator[Launcher]:
-    launcher = Launcher(site=site, bus=bus, log_dir=log_dir)
+def site_processes(
+    site: str, bus: BusConfig, log_dir: Path | None, state_dir: Path | None = None
+) -> Iterator[Launcher]:
+    launcher = Launcher(site=site, bus=bus, log_dir=log_dir, state_dir=state_dir)
     try:
         yield launcher
     finally:
@@ -194,6 +241,14 @@ def run_main(argv: list[str]) -> int:
     p = argparse.ArgumentParser(prog="constructaide run", description="Start all nodes of a site from a TOML config.")
     p.add_argument("config", type=Path)
     p.add_argument("--log-dir", type=Path, default=Path("recordings/logs"))
+    p.add_argument(
+        "--state-dir",
+        type=Path,
+        default=None,
+        help="nodes' ledgers and state (a restarted node resumes there; default: 'state' beside the log folder); "
+        "'none' to start every node empty",
+    )
+    p.add_argument("--no-supervise", action="store_true", help="do not restart crashed nodes")
     add_bus_args(p)
     args = p.parse_args(argv)
     try:
@@ -220,16 +275,28 @@ def run_main(argv: list[str]) -> int:
     if unknown:
         raise UserError(f"{args.config}: [workers] names nodes without a [nodes.NAME] table: {', '.join(unknown)}")
     cameras = [str(c) for c in doc.get("site", {}).get("cameras", [])]
-    with site_processes(site, bus, args.log_dir) as launcher, open_bus(bus) as session:
+    state_dir = args.state_dir or args.log_dir.parent / "state"
+    state_dir = None if str(state_dir).lower() == "none" else state_dir
+    with site_processes(site, bus, args.log_dir, state_dir) as launcher, open_bus(bus) as session:
         for name in nodes:
             launcher.start_workers(name, workers.get(name, 1), args.config, f"nodes.{name}", cameras=cameras)
         launcher.wait_live(session, list(nodes))
         for name, count in workers.items():
             if count > 1:
                 launcher.wait_workers(session, name, count)
+        if not args.no_supervise:
+            launcher.supervise(session, _policy(doc.get("supervise", {}), args.config))
         print(
             f"site {site}: {len(nodes)} nodes live ({', '.join(nodes)}); logs in {args.log_dir}; Ctrl-C to stop",
             file=sys.stderr,
         )
         stop.wait()
     return 0
+
+
+def _policy(doc: dict, path: Path) -> RestartPolicy:
+    """``[supervise]`` table of the site TOML: the fields of :class:`RestartPolicy`."""
+    try:
+        return RestartPolicy(**doc)
+    except TypeError as e:
+        raise UserError(f"{path}: bad [supervise] table: {e}") from None

@@ -5,6 +5,8 @@ use reliable delivery with congestion control BLOCK (a slow subscriber slows the
 instead of losing data); ``preview=True`` publishes with DROP for ring-buffer style previews.
 ``latched=True`` keeps the last payload of a key and serves it to late joiners through a
 queryable (e.g. the BIM model): a subscriber that asks with ``fetch_latched=True`` gets it.
+Every session also keeps its recent data publications (:class:`~constructaide.runtime.history.PublicationCache`)
+and answers :meth:`Bus.history` queries over them, so a restarted node gets what was published while it was down.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+from constructaide.runtime.history import HISTORY_ROOT, Publication, PublicationCache
 from schemas import codec
 from schemas.messages import Message
 
@@ -26,6 +29,7 @@ log = logging.getLogger("constructaide.bus")
 
 DEFAULT_HUB_PORT = 7447
 BLOCK_WAIT_BEFORE_CLOSE_US = 120_000_000  # 2 min: see BusConfig.zenoh_config
+DEFAULT_HISTORY_MB = 128.0  # publication cache of a session ($CONSTRUCTAIDE_HISTORY_MB)
 Callback = Callable[[str, bytes], None]
 
 
@@ -98,6 +102,10 @@ class Bus:
 
     def close(self) -> None:
         raise NotImplementedError
+
+    def history(self, keyexpr: str, since_ns: int = 0, timeout: float = 10.0) -> list[Publication]:
+        """Publications under ``keyexpr`` since ``since_ns`` still cached by any session, oldest first."""
+        return []
 
     # ------------------------------------------------------------------ helpers
     def collect(self, keyexpr: str, *, decode: bool = True, fetch_latched: bool = False) -> Collector:
@@ -177,6 +185,10 @@ class BusConfig:
     hub_port: int = DEFAULT_HUB_PORT
     extra_json5: dict[str, Any] = field(default_factory=dict)
     client_connect_timeout_ms: int = 15000
+    history_bytes: int = field(
+        default_factory=lambda: int(float(os.environ.get("CONSTRUCTAIDE_HISTORY_MB", DEFAULT_HISTORY_MB)) * 1e6)
+    )
+    """Payload bytes of recent data publications kept to answer history queries (0: none)."""
 
     @classmethod
     def from_args(cls, args: argparse.Namespace) -> BusConfig:
@@ -281,6 +293,9 @@ class ZenohBus(Bus):
         self._latched: dict[str, bytes] = {}
         self._latched_lock = threading.Lock()
         self._queryables: dict[str, Any] = {}
+        self.cache = PublicationCache(self.config.history_bytes)
+        if self.cache.max_bytes > 0:
+            self._queryables[HISTORY_ROOT] = self.session.declare_queryable(f"{HISTORY_ROOT}/**", self._serve_history)
 
     def publish(self, key: str, msg: Message | bytes, *, preview: bool = False, latched: bool = False) -> None:
         z = self._z
@@ -290,12 +305,37 @@ class ZenohBus(Bus):
                 self._latched[key] = payload
                 if key not in self._queryables:
                     self._queryables[key] = self.session.declare_queryable(key, self._serve_latched)
+        if not preview:
+            self.cache.add(key, payload)
         self.session.put(
             key,
             payload,
             congestion_control=z.CongestionControl.DROP if preview else z.CongestionControl.BLOCK,
             priority=z.Priority.DATA_LOW if preview else z.Priority.DATA,
         )
+
+    def _serve_history(self, query: Any) -> None:
+        ke = str(query.key_expr)[len(HISTORY_ROOT) + 1 :]
+        since = int(query.parameters.get("since_ns") or 0)
+        for pub in self.cache.since(lambda k: _ke_match(ke, k), since):
+            query.reply(f"{HISTORY_ROOT}/{pub.key}", pub.payload, attachment=str(pub.time_ns).encode())
+
+    def history(self, keyexpr: str, since_ns: int = 0, timeout: float = 10.0) -> list[Publication]:
+        z = self._z
+        out = []
+        replies = self.session.get(
+            f"{HISTORY_ROOT}/{keyexpr}?since_ns={since_ns}",
+            timeout=timeout,
+            consolidation=z.ConsolidationMode.NONE,
+        )
+        for reply in replies:
+            s = reply.ok
+            if s is None:
+                continue
+            t = int(s.attachment.to_bytes()) if s.attachment is not None else 0
+            out.append(Publication(str(s.key_expr)[len(HISTORY_ROOT) + 1 :], s.payload.to_bytes(), t))
+        out.sort(key=lambda p: p.time_ns)
+        return out
 
     def _serve_latched(self, query: Any) -> None:
         ke = str(query.key_expr)

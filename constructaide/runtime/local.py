@@ -11,6 +11,7 @@ from collections.abc import Callable
 from typing import Any
 
 from constructaide.runtime.bus import Bus, Callback, Closeable, _Closer, ke_match, payload_of
+from constructaide.runtime.history import Publication, PublicationCache
 from schemas.messages import Message
 
 
@@ -23,6 +24,7 @@ class LocalBus(Bus):
         self._latched: dict[str, bytes] = {}
         self._next = 0
         self.published: list[str] = []
+        self.cache = PublicationCache(64_000_000)
 
     def _drop(self, table: dict[int, Any], entry_id: int) -> None:
         with self._lock:
@@ -38,6 +40,8 @@ class LocalBus(Bus):
             if latched:
                 self._latched[key] = payload
             self.published.append(key)
+            if not preview:
+                self.cache.add(key, payload)
             targets = [cb for ke, cb in self._subs.values() if ke_match(ke, key)]
         for cb in targets:
             cb(key, payload)
@@ -80,6 +84,9 @@ class LocalBus(Bus):
         for k in current:
             callback(k, True)
         return _Closer(lambda: self._drop(self._token_watchers, wid))
+
+    def history(self, keyexpr: str, since_ns: int = 0, timeout: float = 10.0) -> list[Publication]:
+        return self.cache.since(lambda k: ke_match(keyexpr, k), since_ns)
 
     def close(self) -> None:
         with self._lock:

@@ -39,7 +39,8 @@ import msgspec
 
 from constructaide.errors import UserError
 from constructaide.partition import PARK, SKIP, Partition, Router
-from constructaide.runtime.bus import Bus, BusConfig, add_bus_args, open_bus
+from constructaide.runtime.bus import Bus, BusConfig, add_bus_args, open_bus, payload_of
+from constructaide.runtime.history import Ledger, digest
 from schemas import codec, keys
 from schemas.messages import Message, NodeError
 
@@ -51,6 +52,8 @@ class Input:
     ``handler`` names a method ``(msg, key) -> None`` of the node object (``(msg) -> None`` with
     ``with_key=False``); with ``raw=True`` it receives the payload bytes instead of a decoded Struct.
     ``latched=True`` also fetches the last value published as latched (e.g. the BIM model) when the node starts.
+    ``durable=True`` (default): a node started with a state directory also gets, at start, what was published on
+    the input while it was down (:mod:`constructaide.runtime.history`), each message handled once.
     """
 
     key: str
@@ -60,6 +63,7 @@ class Input:
     latched: bool = False
     fields: dict[str, str] = field(default_factory=dict)
     with_key: bool = True
+    durable: bool = True
 
 
 @dataclass(frozen=True)
@@ -96,8 +100,13 @@ class NodeContext:
         self.node = node
         self.log = logging.getLogger(f"constructaide.{node}")
         self._latched_templates = latched_keys
+        self.outbox: list[tuple[str, bytes, bool]] | None = None
+        """Set by the runtime while a handler of a node that holds its outputs runs: publications wait here."""
 
     def publish(self, key: str, msg: Message | bytes, *, preview: bool = False) -> None:
+        if self.outbox is not None:
+            self.outbox.append((key, bytes(payload_of(msg)), preview))
+            return
         latched = any(keys.parse(t, key) is not None for t in self._latched_templates)
         self.bus.publish(key, msg, preview=preview, latched=latched)
 
@@ -166,10 +175,27 @@ class Inbox:
 
 
 class RunningNode:
-    """A started node: subscriptions, worker thread, liveliness token. Use :func:`start_node`."""
+    """A started node: subscriptions, worker thread, liveliness token. Use :func:`start_node`.
+
+    With ``state_dir`` the node keeps ``<state_dir>/<site>-<node>.sqlite`` (:class:`Ledger`): what it handled and,
+    when the node object has ``state_snapshot() -> dict[str, bytes] | None`` and ``restore_state(dict)``, its state
+    (saved with each handled message, in one transaction); at start it restores that state and replays the
+    durable inputs' history, skipping what it handled. Values fetched as latched at start are always handled.
+    A node object with ``state_every_secs > 0`` (a large state) is snapshotted at most that often: the messages
+    handled in between are marked handled with the next snapshot, so a crash re-handles them (at least once).
+    With ``hold_outputs = True`` too, what its handlers publish is held and committed with that snapshot (an
+    outbox), then sent; a snapshot is also taken whenever the inbox runs dry. A crash then neither loses nor
+    repeats an output (the outbox left by a crash between commit and send is sent at the next start).
+    """
 
     def __init__(
-        self, spec: NodeSpec, config: Any, bus: Bus, queue_size: int = 64, partition: Partition | None = None
+        self,
+        spec: NodeSpec,
+        config: Any,
+        bus: Bus,
+        queue_size: int = 64,
+        state_dir: str | Path | None = None,
+        partition: Partition | None = None,
     ) -> None:
         self.spec = spec
         self.config = config
@@ -180,6 +206,24 @@ class RunningNode:
         self.site: str = site
         self.ctx = NodeContext(bus, self.site, spec.name, tuple(o.key for o in spec.outputs if o.latched))
         self.obj = spec.factory(config, self.ctx)
+        worker = f"-w{partition.spec().replace('/', 'of')}" if partition is not None else ""
+        self.ledger = Ledger(Path(state_dir) / f"{self.site}-{spec.name}{worker}.sqlite") if state_dir else None
+        self.replayed = 0
+        self.duplicates = 0
+        self._inflight: set[str] = set()
+        self._uncommitted: list[tuple[str, str]] = []
+        self._hold = self.ledger is not None and bool(getattr(self.obj, "hold_outputs", False))
+        self._held_out: list[tuple[str, bytes, bool]] = []
+        self._last_snapshot = time.monotonic()
+        self._held: list[tuple[Input, str, bytes]] | None = None
+        self._guard = threading.Lock()
+        self._fetching = threading.local()
+        restore = getattr(self.obj, "restore_state", None)
+        if self.ledger is not None and callable(restore):
+            saved = self.ledger.load_state()
+            if saved:
+                restore(saved)
+                self.ctx.log.info("state restored from %s", self.ledger.path)
         self._queue = Inbox(queue_size, MAX_BLOCK_SECS)
         self._subs: list[Any] = []
         self._topics: dict[str, str] = {}
@@ -198,6 +242,8 @@ class RunningNode:
 
     def start(self) -> RunningNode:
         self._worker.start()
+        if self.ledger is not None:
+            self._held = []  # live messages wait until the history is queued (publication order)
         for inp in self.spec.inputs:
             fields = {"site": self.site, **inp.fields}
             ke = keys.pattern(inp.key, **fields) if "{" in inp.key else inp.key
@@ -208,7 +254,14 @@ class RunningNode:
             if self.partition is not None and "{camera}" in inp.key and "camera" not in inp.fields:
                 kes = self.partition.camera_keyexprs(inp.key, **fields)  # this worker's cameras and the phone pool
             for k in kes:
-                self._subs.append(self.bus.subscribe(k, self._callback(inp), fetch_latched=inp.latched))
+                self._fetching.latched = True  # latched values arrive on this thread inside subscribe()
+                try:
+                    self._subs.append(self.bus.subscribe(k, self._callback(inp), fetch_latched=inp.latched))
+                finally:
+                    self._fetching.latched = False
+        if self.ledger is not None:
+            self._send_outbox(self.ledger.outbox())
+            self._replay()
         instance = uuid.uuid4().hex[:8]
         if self.partition is not None:
             instance = f"w{self.partition.spec().replace('/', 'of')}-{instance}"
@@ -218,14 +271,52 @@ class RunningNode:
         return self
 
     def _callback(self, inp: Input) -> Callable[[str, bytes], None]:
-        return lambda key, payload: self._enqueue(inp, key, payload)
+        def on_message(key: str, payload: bytes) -> None:
+            self._enqueue(inp, key, payload)
 
-    def _enqueue(self, inp: Input, key: str, payload: bytes) -> None:
+        return on_message
+
+    def _replay(self) -> None:
+        """Queue what the durable inputs missed since the ledger began (oldest first), then the held live ones."""
+        assert self.ledger is not None
+        found = []
+        for inp in self.spec.inputs:
+            if inp.durable:
+                ke = self._topics[inp.handler]
+                found += [(p.time_ns, i, inp, p) for i, p in enumerate(self.bus.history(ke, self.ledger.since_ns))]
+        found.sort(key=lambda t: (t[0], t[1]))
+        for _, _, inp, pub in found:
+            if self._enqueue(inp, pub.key, pub.payload, held_ok=False):
+                self.replayed += 1
+        with self._guard:
+            held, self._held = self._held or [], None
+        for inp, key, payload in held:
+            self._enqueue(inp, key, payload, held_ok=False)
+        if self.replayed:
+            self.ctx.log.info("replayed %d messages published while the node was down", self.replayed)
+
+    def _enqueue(self, inp: Input, key: str, payload: bytes, held_ok: bool = True) -> bool:
+        """Queue one message; False when it is skipped (handled already, or queued already)."""
+        item: tuple[Input, str, bytes, str | None] = (inp, key, payload, None)
+        if self.ledger is not None:
+            dig = digest(key, payload)
+            latched_fetch = getattr(self._fetching, "latched", False)
+            with self._guard:
+                if held_ok and self._held is not None and not latched_fetch:
+                    self._held.append((inp, key, payload))
+                    return True
+                if dig in self._inflight or (not latched_fetch and self.ledger.is_done(dig)):
+                    self.duplicates += 1
+                    return False
+                self._inflight.add(dig)
+            item = (inp, key, payload, dig)
         self.idle.clear()
         # Waits while the inbox is full (back-pressure), at most MAX_BLOCK_SECS, and never past close(): a zenoh
         # callback thread stuck here would keep the process from exiting.
-        if not self._queue.put((inp, key, payload), self._closed):
+        if not self._queue.put(item, self._closed):
             self.dropped_after_close += 1
+            return False
+        return True
 
     def _run(self) -> None:
         on_idle = getattr(self.obj, "on_idle", None)
@@ -234,9 +325,16 @@ class RunningNode:
             item = self._queue.get()
             if item is _STOP:
                 return
-            inp, key, payload = item
+            inp, key, payload, dig = item
             try:
-                self._handle(inp, key, payload)
+                if self._hold:
+                    self.ctx.outbox = self._held_out
+                try:
+                    self._handle(inp, key, payload)
+                finally:
+                    self.ctx.outbox = None
+                if dig is not None:
+                    self._mark_done(dig, key)
                 since_idle += 1
                 # Coalescing hook: work deferred by handlers runs when the queue is drained (or every
                 # IDLE_EVERY messages under a continuous stream, so it never starves).
@@ -248,6 +346,37 @@ class RunningNode:
             finally:
                 if self._queue.empty():
                     self.idle.set()
+
+    def _mark_done(self, dig: str, key: str, final: bool = False) -> None:
+        assert self.ledger is not None
+        if dig:
+            self._uncommitted.append((dig, key))
+        every = float(getattr(self.obj, "state_every_secs", 0.0) or 0.0)
+        due = time.monotonic() - self._last_snapshot >= every or (self._hold and self._queue.empty())
+        if not final and every > 0 and not due:
+            return  # stays in _inflight (handled in this run) until the next snapshot commits it
+        self._last_snapshot = time.monotonic()
+        snap = getattr(self.obj, "state_snapshot", None)
+        try:
+            state = snap() if callable(snap) else None
+        except Exception as e:
+            self.errors += 1
+            self.ctx.log.debug("state_snapshot failed", exc_info=True)
+            self.ctx.error("state", f"cannot snapshot the node state: {type(e).__name__}: {e}", key)
+            state = None
+        handled, self._uncommitted = self._uncommitted, []
+        out, self._held_out = self._held_out, []
+        seqs = self.ledger.done_many(handled, state, out)
+        with self._guard:
+            self._inflight.difference_update(d for d, _ in handled)
+        self._send_outbox(list(zip(seqs, out, strict=True)))
+
+    def _send_outbox(self, out: list[tuple[int, tuple[str, bytes, bool]]]) -> None:
+        assert self.ledger is not None
+        for seq, (key, payload, preview) in out:
+            latched = any(keys.parse(t, key) is not None for t in self.ctx._latched_templates)
+            self.bus.publish(key, payload, preview=preview, latched=latched)
+            self.ledger.sent(seq)
 
     def _call_idle(self, on_idle: Callable[[], object]) -> bool:
         """Run the hook; True when it says more work is pending (False after a failure: no retry loop)."""
@@ -325,9 +454,13 @@ class RunningNode:
                 self.router.skipped,
                 self.router.parked_dropped,
             )
+        if self.ledger is not None and self._uncommitted:
+            self._mark_done("", "", final=True)  # the last snapshot: a clean stop re-handles nothing
         closer = getattr(self.obj, "close", None)
         if callable(closer):
             closer()
+        if self.ledger is not None:
+            self.ledger.close()
 
     def __enter__(self) -> RunningNode:
         return self
@@ -355,11 +488,16 @@ def _ids_of(payload: bytes) -> _Ids:
 
 @contextlib.contextmanager
 def start_node(
-    spec: NodeSpec, config: Any, bus: Bus, queue_size: int = 64, partition: Partition | None = None
+    spec: NodeSpec,
+    config: Any,
+    bus: Bus,
+    queue_size: int = 64,
+    state_dir: str | Path | None = None,
+    partition: Partition | None = None,
 ) -> Iterator[RunningNode]:
     """Start a node on a bus; stops it (drains its worker, drops its token) on exit. With ``partition`` it is one
     worker of several of its kind (:mod:`constructaide.partition`)."""
-    node = RunningNode(spec, config, bus, queue_size=queue_size, partition=partition)
+    node = RunningNode(spec, config, bus, queue_size=queue_size, state_dir=state_dir, partition=partition)
     try:
         node.start()
         yield node
@@ -421,6 +559,12 @@ def add_node_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--section", help="table of the TOML file holding this node's config (e.g. nodes.register)")
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="override one config field")
     parser.add_argument("--describe", action="store_true", help="print the node's inputs/outputs and exit")
+    parser.add_argument(
+        "--state-dir",
+        default=os.environ.get("CONSTRUCTAIDE_STATE_DIR") or None,
+        help="folder of the node's SQLite ledger/state: resume after a crash, get what was missed "
+        "(default $CONSTRUCTAIDE_STATE_DIR; none: start empty)",
+    )
     parser.add_argument("-v", "--verbose", action="store_true")
     parser.add_argument(
         "--partition", metavar="I/N", help="run as worker I of N of this node kind (cameras by rendezvous hashing)"
@@ -453,7 +597,10 @@ def run_node_cli(spec: NodeSpec, argv: list[str] | None = None, *, prog: str | N
             partition = Partition.parse(args.partition, args.cameras.split(",")) if args.partition else None
         except ValueError as e:
             raise UserError(str(e)) from None
-        with open_bus(BusConfig.from_args(args)) as bus, start_node(spec, config, bus, partition=partition):
+        with (
+            open_bus(BusConfig.from_args(args)) as bus,
+            start_node(spec, config, bus, state_dir=args.state_dir, partition=partition),
+        ):
             logging.getLogger("constructaide").info(
                 "node %s live on site %s (pid %d)", spec.name, config.site, os.getpid()
             )

@@ -14,7 +14,9 @@ import sys
 import numpy as np
 from numpy.typing import NDArray
 
+from constructaide.modelview import ModelView
 from constructaide.runtime import Input, NodeContext, NodeSpec, Output, run_node_cli
+from nodes.occlude import state
 from nodes.occlude.pipeline import Config, OcclusionPipeline
 from schemas import keys
 from schemas import messages as m
@@ -34,6 +36,21 @@ class OccludeNode(OcclusionPipeline):
 
     def on_idle(self) -> bool:
         return self.idle()
+
+    # durable state (with a state dir): stacks and masks are large, so snapshots are taken at most every
+    # state_every_secs; a crash re-handles the messages since the last one (their masks are published again)
+    state_every_secs = 10.0
+
+    def state_snapshot(self) -> dict[str, bytes]:
+        return {"pipeline": state.dump(self)}
+
+    def restore_state(self, blobs: dict[str, bytes]) -> None:
+        if "pipeline" not in blobs:
+            return
+        state.load_into(self, blobs["pipeline"])
+        if self.meshes:
+            self.renderer = ModelView(self.meshes)
+        self.ctx.log.info("resumed: %d photos, %d registrations", len(self.photos), len(self.registrations))
 
 
 INPUTS = (

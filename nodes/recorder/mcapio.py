@@ -215,6 +215,19 @@ class RecordingWriter:
         self.unflushed_count = 0
         self.oldest_unflushed_monotonic = None
 
+    @property
+    def size_bytes(self) -> int:
+        """Bytes handed to the file so far (the open chunk not included)."""
+        return self._file.tell()
+
+    def abandon(self) -> None:
+        """Close the file without a summary (e.g. the disk is full); it reads as truncated, ``repair`` fixes it."""
+        self._closed = True
+        try:
+            self._file.close()
+        except OSError:
+            pass
+
     def flush_if_older_than(self, max_age_secs: float) -> bool:
         """Flush when the oldest unflushed message is older than ``max_age_secs``; True if flushed."""
         t = self.oldest_unflushed_monotonic

@@ -12,6 +12,7 @@ import msgspec
 
 from constructaide.runtime import Input, NodeContext, NodeSpec, Output, run_node_cli
 from constructaide.sparsecloud import encode_sparse_cloud
+from nodes.register import state
 from nodes.register.bimdepth import MeshDepthLookup
 from nodes.register.bimsite import BimMeshes
 from nodes.register.inbox import Inbox, click_arrays, dropped_registration, photo_input
@@ -49,6 +50,35 @@ class RegisterNode:
         self.bim = BimMeshes()
         self.sparse_revision = 0
         self._map_changes = 0
+        self._bim_dirty = False
+        self._saved_features: dict[str, tuple[int, bool]] = {}
+
+    # -- durable state (saved by the runtime when the node has a state dir) -----------------------------------
+
+    # the map grows to many MB: snapshots at most every few seconds (and when the inbox runs dry); the runtime
+    # holds the registrations published since and sends them with the snapshot (an outbox)
+    state_every_secs = 5.0
+    hold_outputs = True
+
+    def state_snapshot(self) -> dict[str, bytes]:
+        out = state.dump_map(self, self._saved_features)
+        if self._bim_dirty:
+            out["bim"] = state.dump_bim(self)
+            self._bim_dirty = False
+        return out
+
+    def restore_state(self, blobs: dict[str, bytes]) -> None:
+        if state.load_into(self, blobs):
+            self._rebuild_depth()
+        self._saved_features = {
+            im.name: (id(im.features), getattr(im.features, "descriptors_pca", None) is not None)
+            for im in self.registrar.recon.images
+        }
+        self.ctx.log.info(
+            "resumed: %d photos registered, %d waiting for anchors",
+            self.registrar.num_registered,
+            len(self.inbox.pending),
+        )
 
     # -- handlers -------------------------------------------------------------
 
@@ -93,10 +123,12 @@ class RegisterNode:
 
     def on_bim_model(self, msg: m.BimModel, key: str) -> None:
         self.bim.set_model(msg)
+        self._bim_dirty = True
         self._rebuild_depth()
 
     def on_bim_update(self, msg: m.BimUpdate, key: str) -> None:
         self.bim.apply_update(msg)
+        self._bim_dirty = True
         self._rebuild_depth()
 
     # -- internals ------------------------------------------------------------

@@ -15,6 +15,7 @@ from collections import OrderedDict
 import msgspec
 
 from constructaide.runtime import Input, NodeContext, NodeSpec, Output, run_node_cli
+from nodes.render import state
 from nodes.render.engine import ALL_MODES, RenderEngine, presets_path_ok
 from schemas import keys
 from schemas import messages as m
@@ -58,16 +59,32 @@ class RenderNode:
         self.dirty: OrderedDict[str, tuple[str, ...]] = OrderedDict()  # photo_id -> modes to (re-)render
         self.rendered: set[str] = set()  # photos drawn at least once
         self._photo_bytes = 0
+        self.drawn_revision: str | None = None  # model revision the rendered photos were drawn with
+
+    # durable state (with a state dir), snapshotted at most every state_every_secs (a crash redraws the photos
+    # marked since: at least once)
+    state_every_secs = 10.0
+
+    def state_snapshot(self) -> dict[str, bytes]:
+        return {"render": state.dump(self)}
+
+    def restore_state(self, blobs: dict[str, bytes]) -> None:
+        if "render" in blobs:
+            state.load_into(self, blobs["render"])
+            self.ctx.log.info("resumed: %d photos drawn, %d to draw", len(self.rendered), len(self.dirty))
 
     # -- inputs ---------------------------------------------------------------------------------------
 
     def on_model(self, msg: m.BimModel, key: str) -> None:
         self.engine.set_model(msg)
         self.ctx.log.info("model %s: %d elements, %d tasks", msg.revision, len(msg.elements), len(msg.tasks))
-        self._render_all()
+        if msg.revision != self.drawn_revision:  # the same model again (a restart): nothing to redraw
+            self._render_all()
+        self.drawn_revision = msg.revision
 
     def on_update(self, msg: m.BimUpdate, key: str) -> None:
         self.engine.apply_update(msg)
+        self.drawn_revision = msg.revision
         self._render_all()
 
     def on_photo(self, msg: m.Photo, key: str) -> None:

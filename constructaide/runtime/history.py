@@ -1,0 +1,183 @@
+"""Delivery across crashes: a publisher's cache of recent data publications and a node's ledger of handled input.
+
+Every bus session keeps what it published (data topics, not previews) in a :class:`PublicationCache` bounded by
+bytes, and answers history queries over it (:mod:`constructaide.runtime.bus`). A node started with a state
+directory keeps a :class:`Ledger` (SQLite): on start it asks every publisher for what was published since the
+ledger was created, skips what it already handled (by key and payload digest: a photo id and revision republished
+byte for byte is handled once) and handles the rest in publication order. A handled message is marked done in the
+same SQLite transaction as the node's state snapshot (when it has one), so a restart resumes exactly there.
+
+Pure: no zenoh. Times are ``time.time_ns()`` of the publisher (one clock on loopback).
+"""
+
+from __future__ import annotations
+
+import collections
+import hashlib
+import sqlite3
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+HISTORY_ROOT = "history"
+"""Prefix of history queries: ``history/<key expression>`` asks for the cached publications under it."""
+
+
+def digest(key: str, payload: bytes) -> str:
+    """Identity of one publication: blake2b-128 of key and payload (hex)."""
+    h = hashlib.blake2b(digest_size=16)
+    h.update(key.encode())
+    h.update(b"\0")
+    h.update(payload)
+    return h.hexdigest()
+
+
+@dataclass(frozen=True)
+class Publication:
+    key: str
+    payload: bytes
+    time_ns: int
+
+
+class PublicationCache:
+    """The newest publications of a session, at most ``max_bytes`` of payload (oldest dropped first)."""
+
+    def __init__(self, max_bytes: int) -> None:
+        self.max_bytes = max_bytes
+        self._items: collections.deque[Publication] = collections.deque()
+        self._bytes = 0
+        self._lock = threading.Lock()
+        self.evicted = 0
+
+    def add(self, key: str, payload: bytes, time_ns: int | None = None) -> None:
+        if self.max_bytes <= 0 or len(payload) > self.max_bytes:
+            return
+        pub = Publication(key, bytes(payload), time.time_ns() if time_ns is None else time_ns)
+        with self._lock:
+            self._items.append(pub)
+            self._bytes += len(pub.payload)
+            while self._bytes > self.max_bytes:
+                old = self._items.popleft()
+                self._bytes -= len(old.payload)
+                self.evicted += 1
+
+    def since(self, match: Callable[[str], bool], since_ns: int = 0) -> list[Publication]:
+        """Cached publications at or after ``since_ns`` whose key ``match`` accepts, oldest first."""
+        with self._lock:
+            return [p for p in self._items if p.time_ns >= since_ns and match(p.key)]
+
+    @property
+    def nbytes(self) -> int:
+        return self._bytes
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (name TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS handled (digest TEXT PRIMARY KEY, key TEXT NOT NULL, handled_ns INTEGER NOT NULL);
+CREATE TABLE IF NOT EXISTS state (name TEXT PRIMARY KEY, data BLOB NOT NULL, saved_ns INTEGER NOT NULL);
+CREATE TABLE IF NOT EXISTS outbox (seq INTEGER PRIMARY KEY AUTOINCREMENT, key TEXT NOT NULL, payload BLOB NOT NULL,
+    preview INTEGER NOT NULL);
+"""
+Outgoing = tuple[str, bytes, bool]
+"""A held publication: key, payload, preview."""
+
+
+class Ledger:
+    """SQLite file of a node: what it handled (digests), since when it exists, and its state snapshots.
+
+    Writes are transactions (WAL journal): a SIGKILL leaves the last committed state. Thread-safe.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._db = sqlite3.connect(str(self.path), check_same_thread=False, isolation_level=None)
+        self._lock = threading.Lock()
+        with self._lock:
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute("PRAGMA synchronous=NORMAL")
+            self._db.executescript(_SCHEMA)
+            row = self._db.execute("SELECT value FROM meta WHERE name='since_ns'").fetchone()
+            if row is None:
+                self.since_ns = time.time_ns()
+                self._db.execute("INSERT INTO meta VALUES ('since_ns', ?)", (str(self.since_ns),))
+                self.resumed = False
+            else:
+                self.since_ns = int(row[0])
+                self.resumed = True
+
+    def is_done(self, dig: str) -> bool:
+        with self._lock:
+            return self._db.execute("SELECT 1 FROM handled WHERE digest=?", (dig,)).fetchone() is not None
+
+    def done(self, dig: str, key: str, state: dict[str, bytes] | None = None) -> None:
+        """Mark a message handled and (optionally) save state blobs, in one transaction."""
+        self.done_many([(dig, key)], state)
+
+    def done_many(
+        self,
+        handled: list[tuple[str, str]],
+        state: dict[str, bytes] | None = None,
+        outbox: list[Outgoing] | None = None,
+    ) -> list[int]:
+        """Mark messages ``(digest, key)`` handled, save state blobs and the publications they made (to be sent,
+        each then :meth:`sent`), in one transaction; returns the outbox sequence numbers."""
+        now = time.time_ns()
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                self._db.executemany(
+                    "INSERT OR IGNORE INTO handled VALUES (?, ?, ?)", [(d, k, now) for d, k in handled]
+                )
+                seqs = []
+                for k, p, pv in outbox or []:
+                    cur = self._db.execute(
+                        "INSERT INTO outbox (key, payload, preview) VALUES (?, ?, ?)", (k, p, int(pv))
+                    )
+                    seqs.append(int(cur.lastrowid or 0))
+                for name, data in (state or {}).items():
+                    self._db.execute("INSERT OR REPLACE INTO state VALUES (?, ?, ?)", (name, data, now))
+                self._db.execute("COMMIT")
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+        return seqs
+
+    def outbox(self) -> list[tuple[int, Outgoing]]:
+        """Publications committed but not confirmed sent (the node was killed in between), oldest first."""
+        with self._lock:
+            rows = self._db.execute("SELECT seq, key, payload, preview FROM outbox ORDER BY seq").fetchall()
+        return [(int(q), (k, bytes(p), bool(pv))) for q, k, p, pv in rows]
+
+    def sent(self, seq: int) -> None:
+        """One outbox publication went out (a crash repeats at most the one being sent)."""
+        with self._lock:
+            self._db.execute("DELETE FROM outbox WHERE seq=?", (seq,))
+
+    def save_state(self, state: dict[str, bytes]) -> None:
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                for name, data in state.items():
+                    self._db.execute("INSERT OR REPLACE INTO state VALUES (?, ?, ?)", (name, data, time.time_ns()))
+                self._db.execute("COMMIT")
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+
+    def load_state(self) -> dict[str, bytes]:
+        with self._lock:
+            return {n: bytes(d) for n, d in self._db.execute("SELECT name, data FROM state")}
+
+    def handled_count(self) -> int:
+        with self._lock:
+            return int(self._db.execute("SELECT COUNT(*) FROM handled").fetchone()[0])
+
+    def close(self) -> None:
+        with self._lock:
+            self._db.close()

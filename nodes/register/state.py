@@ -1,0 +1,72 @@
+"""The register node's durable state: what a restart needs to resume without re-anchoring.
+
+``map``: the :class:`~nodes.register.streaming.StreamingRegistrar` (reconstruction: images, tracks, points,
+poses; per-camera fast-path state; viewpoint graph; vocabulary) with the photos waiting for anchors or kept
+for late clicks; ``feat/<image>``: each map image's features (written once); ``bim``: the meshes and schedule
+the depth lookup is built from (written only when they change).
+Blobs are pickles (protocol 5) of the node's own objects, read back only from the node's own state file; the
+depth lookup (an EGL view) is not kept, it is rebuilt from ``bim``. Pure: no bus, no SQLite (the runtime's
+:class:`~constructaide.runtime.history.Ledger` stores the blobs).
+"""
+
+from __future__ import annotations
+
+import pickle
+from typing import Any
+
+STATE_VERSION = 1
+MAP_FIELDS = ("inbox", "sparse_revision", "_map_changes")
+BIM_FIELDS = ("bim",)
+
+
+def dump_map(node: Any, saved: dict[str, tuple[int, bool]] | None = None) -> dict[str, bytes]:
+    """Blobs of the registrar (without its depth lookup) and the node's queues: ``map``, plus ``feat/<image>`` for
+    each map image whose features are not in ``saved`` yet (``{image: (id(features), has PCA)}``, updated): the
+    features (MBs per image, unchanged once extracted) are written once, not with every snapshot."""
+    reg = node.registrar
+    saved = {} if saved is None else saved
+    out: dict[str, bytes] = {}
+    images = reg.recon.images
+    feats = [im.features for im in images]
+    lookup, reg.depth_lookup = reg.depth_lookup, None
+    try:
+        for im, f in zip(images, feats, strict=True):
+            tag = (id(f), getattr(f, "descriptors_pca", None) is not None)
+            if saved.get(im.name) != tag:
+                out[f"feat/{im.name}"] = pickle.dumps(f, protocol=5)
+                saved[im.name] = tag
+            im.features = None
+        doc = {"version": STATE_VERSION, "registrar": reg, **{f: getattr(node, f) for f in MAP_FIELDS}}
+        out["map"] = pickle.dumps(doc, protocol=5)
+        return out
+    finally:
+        reg.depth_lookup = lookup
+        for im, f in zip(images, feats, strict=True):
+            im.features = f
+
+
+def dump_bim(node: Any) -> bytes:
+    return pickle.dumps({"version": STATE_VERSION, **{f: getattr(node, f) for f in BIM_FIELDS}}, protocol=5)
+
+
+def load_into(node: Any, blobs: dict[str, bytes]) -> bool:
+    """Set the node's fields from saved blobs; True when the BIM part was restored (rebuild the depth lookup)."""
+    if "map" in blobs:
+        doc = pickle.loads(blobs["map"])  # noqa: S301 - the node's own state file
+        if doc.get("version") != STATE_VERSION:
+            raise ValueError(f"register state version {doc.get('version')} (this build reads {STATE_VERSION})")
+        node.registrar = doc["registrar"]
+        for im in node.registrar.recon.images:
+            blob = blobs.get(f"feat/{im.name}")
+            if blob is None:
+                raise ValueError(f"register state: features of {im.name} missing")
+            im.features = pickle.loads(blob)  # noqa: S301
+        for f in MAP_FIELDS:
+            setattr(node, f, doc[f])
+    if "bim" in blobs:
+        doc = pickle.loads(blobs["bim"])  # noqa: S301
+        if doc.get("version") == STATE_VERSION:
+            for f in BIM_FIELDS:
+                setattr(node, f, doc[f])
+            return True
+    return False
