@@ -8,6 +8,13 @@ A site TOML config::
     [bus]                      # optional; default: peer on loopback
     connect = ["tcp/10.0.0.5:7447"]
 
+    [bus.tls]                  # optional: TLS / mutual TLS and ACL, see constructaide.runtime.security
+    ca = "certs/ca.pem"
+    certs = "certs"
+
+    [bus.acl]
+    enabled = true
+
     [nodes.register]           # one table per node to start; its fields are the node's config
     fast_path = true
 """
@@ -28,6 +35,7 @@ from pathlib import Path
 
 from constructaide.errors import UserError
 from constructaide.runtime import Bus, BusConfig, add_bus_args, open_bus
+from constructaide.runtime.security import load_security
 from schemas import keys
 
 
@@ -71,9 +79,12 @@ class Launcher:
     bus: BusConfig = field(default_factory=BusConfig)
     log_dir: Path | None = None
     procs: list[NodeProcess] = field(default_factory=list)
+    security_toml: Path | None = None  # site TOML with [bus.tls]: each node loads its own certificate from it
 
     def bus_argv(self) -> list[str]:
         argv = ["--hub-port", str(self.bus.hub_port), "--mode", self.bus.mode]
+        if self.security_toml is not None:
+            argv += ["--bus-security", str(self.security_toml)]
         for e in self.bus.connect:
             argv += ["--connect", e]
         for e in self.bus.listen:
@@ -120,8 +131,10 @@ class Launcher:
 
 
 @contextlib.contextmanager
-def site_processes(site: str, bus: BusConfig, log_dir: Path | None) -> Iterator[Launcher]:
-    launcher = Launcher(site=site, bus=bus, log_dir=log_dir)
+def site_processes(
+    site: str, bus: BusConfig, log_dir: Path | None, security_toml: Path | None = None
+) -> Iterator[Launcher]:
+    launcher = Launcher(site=site, bus=bus, log_dir=log_dir, security_toml=security_toml)
     try:
         yield launcher
     finally:
@@ -147,13 +160,19 @@ def run_main(argv: list[str]) -> int:
     if not nodes:
         raise UserError(f"{args.config}: no [nodes.NAME] tables, nothing to run")
     bus_doc = doc.get("bus", {})
-    bus = BusConfig.from_args(args)
+    bus = BusConfig.from_args(args, role="router")
     bus.connect = bus.connect or list(bus_doc.get("connect", []))
     bus.listen = bus.listen or list(bus_doc.get("listen", []))
+    if args.mode is None and bus_doc.get("mode"):
+        bus.mode = str(bus_doc["mode"])
+    security_toml = None
+    if "tls" in bus_doc or "acl" in bus_doc:
+        security_toml = args.config.resolve()
+        bus.security = load_security(security_toml, "router")  # this session relays for the nodes
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    with site_processes(site, bus, args.log_dir) as launcher, open_bus(bus) as session:
+    with site_processes(site, bus, args.log_dir, security_toml) as launcher, open_bus(bus) as session:
         for name in nodes:
             launcher.start(name, args.config, f"nodes.{name}")
         launcher.wait_live(session, list(nodes))

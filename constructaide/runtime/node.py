@@ -381,7 +381,7 @@ def run_node_cli(spec: NodeSpec, argv: list[str] | None = None, *, prog: str | N
         stop = threading.Event()
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: stop.set())
-        with open_bus(BusConfig.from_args(args)) as bus, start_node(spec, config, bus):
+        with open_bus(BusConfig.from_args(args, role=spec.name)) as bus, start_node(spec, config, bus):
             logging.getLogger("constructaide").info(
                 "node %s live on site %s (pid %d)", spec.name, config.site, os.getpid()
             )
