@@ -9,12 +9,22 @@ Pure: msgspec and the standard library only.
 
 from __future__ import annotations
 
+import json
 import math
+import struct
 from typing import Any
 
 import msgspec
 
-from schemas.messages import BimModel, BimUpdate, Intrinsics, Registration, ScheduleTask, ViewpointNeighbour
+from schemas.messages import (
+    BimModel,
+    BimUpdate,
+    Intrinsics,
+    Registration,
+    ScheduleTask,
+    SparseCloud,
+    ViewpointNeighbour,
+)
 
 MAX_SIDE_PX = 32768  # the longest image side any message may declare
 MAX_PROBLEMS = 5
@@ -26,8 +36,13 @@ def problems(msg: Any) -> list[str]:
     _walk(msg, type(msg).__name__, out)
     if isinstance(msg, Registration):
         _registration(msg, out)
-    if isinstance(msg, (BimModel, BimUpdate)) and msg.tasks:
-        _schedule(msg.tasks, out)
+    if isinstance(msg, (BimModel, BimUpdate)):
+        if msg.tasks:
+            _schedule(msg.tasks, out)
+        if msg.geometry_glb:
+            _glb(msg.geometry_glb, f"{type(msg).__name__}.geometry_glb", out)
+    if isinstance(msg, SparseCloud):
+        _sparse(msg, out)
     return out[:MAX_PROBLEMS]
 
 
@@ -132,3 +147,47 @@ def _schedule(tasks: tuple[ScheduleTask, ...], out: list[str]) -> None:
         if tid not in state and cyclic(tid):
             out.append(f"schedule has a predecessor cycle through task {tid!r}")
             return
+
+
+def _glb(data: bytes, path: str, out: list[str]) -> None:
+    """The GLB container: magic, version 2, declared length, a JSON chunk that parses (meshes are not read)."""
+    if len(data) < 20 or data[:4] != b"glTF":
+        out.append(f"{path} is not a GLB (no glTF header, {len(data)} bytes)")
+        return
+    version, length = struct.unpack_from("<II", data, 4)
+    if version != 2 or length != len(data):
+        out.append(f"{path}: GLB version {version}, declared {length} bytes, has {len(data)}")
+        return
+    chunk_len, chunk_type = struct.unpack_from("<II", data, 12)
+    if chunk_type != 0x4E4F534A or 20 + chunk_len > len(data):
+        out.append(f"{path}: GLB without a complete JSON chunk")
+        return
+    try:
+        doc = json.loads(data[20 : 20 + chunk_len])
+    except ValueError as e:
+        out.append(f"{path}: GLB JSON does not parse ({e})")
+        return
+    if not isinstance(doc, dict) or "asset" not in doc:
+        out.append(f"{path}: GLB JSON has no asset")
+
+
+def _sparse(s: SparseCloud, out: list[str]) -> None:
+    n, rem = divmod(len(s.points_xyz_f32), 12)
+    mo, rem2 = divmod(len(s.obs_point_i32), 4)
+    if rem or rem2:
+        out.append("SparseCloud: points_xyz_f32 / obs_point_i32 lengths are not whole float32 x 3 / int32 arrays")
+        return
+    if s.colors_rgb_u8 and len(s.colors_rgb_u8) != 3 * n:
+        out.append(f"SparseCloud: colors_rgb_u8 has {len(s.colors_rgb_u8)} bytes for {n} points")
+    if s.point_flags_u8 and len(s.point_flags_u8) != n:
+        out.append(f"SparseCloud: point_flags_u8 has {len(s.point_flags_u8)} bytes for {n} points")
+    if len(s.obs_photo_i32) != 4 * mo or len(s.obs_pixel_f32) != 8 * mo:
+        out.append("SparseCloud: observation arrays (point, photo, pixel) differ in length")
+        return
+    xyz = struct.unpack(f"<{3 * n}f", s.points_xyz_f32)
+    if not all(math.isfinite(v) for v in xyz):
+        out.append("SparseCloud.points_xyz_f32 has non-finite values")
+    pts = struct.unpack(f"<{mo}i", s.obs_point_i32)
+    photos = struct.unpack(f"<{mo}i", s.obs_photo_i32)
+    if any(not 0 <= i < n for i in pts) or any(not 0 <= j < len(s.photo_ids) for j in photos):
+        out.append("SparseCloud: an observation refers to a point or photo that does not exist")

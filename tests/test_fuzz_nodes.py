@@ -7,6 +7,7 @@ good Photo is processed without an error. Bounded examples keep the whole file u
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -129,6 +130,8 @@ def case_strategy(spec: Any) -> st.SearchStrategy:
     return st.one_of(*choices)
 
 
+EXAMPLES = int(os.environ.get("CONSTRUCTAIDE_FUZZ_EXAMPLES", "25"))  # bounded: the whole file < 60 s
+DERANDOMIZE = "CONSTRUCTAIDE_FUZZ_EXAMPLES" not in os.environ  # the suite is reproducible; longer runs explore
 NODES = ["ingest", "register", "occlude", "render", "progress", "recorder", "workbench"]
 
 
@@ -142,7 +145,13 @@ def test_node_survives_bad_input(name: str, tmp_path: Path) -> None:
         if name != "ingest":  # the photo clicks and masks refer to
             h.send(keys.key(keys.PHOTO, site=SITE, camera="cam-a"), codec.encode(templates()[type(good_photo("p0"))]))
 
-        @settings(max_examples=25, deadline=None, database=None, suppress_health_check=list(HealthCheck))
+        @settings(
+            max_examples=EXAMPLES,
+            derandomize=DERANDOMIZE,
+            deadline=None,
+            database=None,
+            suppress_health_check=list(HealthCheck),
+        )
         @given(case_strategy(spec))
         def feed(pair: tuple[Any, tuple[str, bytes, bool]]) -> None:
             inp, case = pair
@@ -150,5 +159,5 @@ def test_node_survives_bad_input(name: str, tmp_path: Path) -> None:
             h.good()
 
         feed()
-    assert sum(h.tried.values()) >= 25
-    assert time.monotonic() - t0 < 60
+    assert sum(h.tried.values()) >= EXAMPLES
+    print(f"{name}: {sum(h.tried.values())} tried, {sum(h.refused.values())} NodeErrors, {time.monotonic() - t0:.1f} s")
