@@ -28,6 +28,8 @@ from schemas.messages import (
 
 MAX_SIDE_PX = 32768  # the longest image side any message may declare
 MAX_PROBLEMS = 5
+MAX_IMAGE_PIXELS = 100_000_000  # an image header declaring more is refused before any decoder allocates it
+IMAGE_FIELDS = ("data", "mask_png", "background_jpeg", "image_png")
 
 
 def problems(msg: Any) -> list[str]:
@@ -43,6 +45,12 @@ def problems(msg: Any) -> list[str]:
             _glb(msg.geometry_glb, f"{type(msg).__name__}.geometry_glb", out)
     if isinstance(msg, SparseCloud):
         _sparse(msg, out)
+    for f in IMAGE_FIELDS:
+        data = getattr(msg, f, b"")
+        if data:
+            size = image_size(data)
+            if size is not None and size[0] * size[1] > MAX_IMAGE_PIXELS:
+                out.append(f"{type(msg).__name__}.{f} declares {size[0]}x{size[1]} pixels (limit {MAX_IMAGE_PIXELS})")
     return out[:MAX_PROBLEMS]
 
 
@@ -191,3 +199,26 @@ def _sparse(s: SparseCloud, out: list[str]) -> None:
     photos = struct.unpack(f"<{mo}i", s.obs_photo_i32)
     if any(not 0 <= i < n for i in pts) or any(not 0 <= j < len(s.photo_ids) for j in photos):
         out.append("SparseCloud: an observation refers to a point or photo that does not exist")
+
+
+def image_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from a PNG IHDR or a JPEG frame header without decoding; None when neither is found."""
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) >= 24 and data[12:16] == b"IHDR":
+        w, h = struct.unpack_from(">II", data, 16)
+        return int(w), int(h)
+    if data[:2] != b"\xff\xd8":
+        return None
+    i = 2
+    while i + 9 <= len(data):
+        if data[i] != 0xFF:
+            return None
+        marker = data[i + 1]
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+            i += 2
+            continue
+        seg = struct.unpack_from(">H", data, i + 2)[0]
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+            h, w = struct.unpack_from(">HH", data, i + 5)
+            return int(w), int(h)
+        i += 2 + seg
+    return None
