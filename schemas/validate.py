@@ -88,7 +88,7 @@ def _struct(v: msgspec.Struct, path: str, out: list[str]) -> None:
             out.append(f"{path}: focal length {v.f_px} px (fy/fx {v.fy_over_fx}) is not positive")
     elif isinstance(v, ViewpointNeighbour):
         if len(v.this_from_neighbour) != 9:
-            out.append(f"{path}.this_from_neighbour has {len(v.this_from_neighbour)} values, not 9 (3x3)")
+            out.append(f"{path}.this_from_neighbour has {len(v.this_from_neighbour)} values, expected 9 (3x3)")
     lo, hi = getattr(v, "bbox_min_m", None), getattr(v, "bbox_max_m", None)
     if lo is not None and hi is not None and any(a > b for a, b in zip(lo, hi, strict=False)):
         out.append(f"{path}: bbox_min_m {lo} exceeds bbox_max_m {hi}")
