@@ -161,3 +161,24 @@ def test_node_survives_bad_input(name: str, tmp_path: Path) -> None:
         feed()
     assert sum(h.tried.values()) >= EXAMPLES
     print(f"{name}: {sum(h.tried.values())} tried, {sum(h.refused.values())} NodeErrors, {time.monotonic() - t0:.1f} s")
+
+
+def test_register_refuses_clicks_off_the_photo(tmp_path: Path) -> None:
+    """Found by the fuzz run: clicks beyond the photo's width were taken; now a NodeError, the photo kept."""
+    import msgspec
+
+    from schemas.messages import AnchorClicks
+
+    spec, bus, errors, ctx = start("register", tmp_path)
+    with bus, ctx as node:
+        h = Harness("register", node, bus, errors)
+        h.send(keys.key(keys.PHOTO, site=SITE, camera="cam-a"), codec.encode(good_photo("p0")))
+        clicks = templates()[AnchorClicks]
+        pts = list(clicks.points)
+        pts[2] = msgspec.structs.replace(pts[2], pixel_px=(64.0 + 500.0, pts[2].pixel_px[1]))
+        off = msgspec.structs.replace(clicks, points=tuple(pts))
+        key = keys.key(keys.ANCHORS, site=SITE, photo="p0")
+        (err,) = h.send(key, codec.encode(off))
+        assert "point(s) [2] off the 64x48 image" in err.reason and err.key == key
+        assert "p0" in node.obj.pending
+        h.good()

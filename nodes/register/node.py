@@ -113,6 +113,13 @@ class RegisterNode:
     def on_anchors(self, msg: AnchorClicks, key: str) -> None:
         if len(msg.points) < 4:
             raise ValueError(f"anchor clicks for {msg.photo_id}: need at least 4 points, got {len(msg.points)}")
+        known = self.pending.get(msg.photo_id) or self.recent.get(msg.photo_id)
+        if known is not None and known.width_px > 0 and known.height_px > 0:
+            off = [i for i, p in enumerate(msg.points)
+                   if not (0 <= p.pixel_px[0] <= known.width_px and 0 <= p.pixel_px[1] <= known.height_px)]  # fmt: skip
+            if off:
+                raise ValueError(f"anchor clicks for {msg.photo_id}: point(s) {off} off the "
+                                 f"{known.width_px}x{known.height_px} image")  # fmt: skip
         photo = self.pending.pop(msg.photo_id, None) or self.recent.get(msg.photo_id)
         if photo is None:
             if msg.photo_id in self.registrar.poses:
