@@ -18,8 +18,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT / "bench"), str(ROOT / "tests")]
 
 from _report import code_version, table, write_section  # noqa: E402
+from fuzz_payloads import SITE, good_photo  # noqa: E402
 from hypothesis import HealthCheck, given, seed, settings  # noqa: E402
 from test_fuzz_nodes import NODES, Harness, case_strategy, start  # noqa: E402
+
+from schemas import codec, keys  # noqa: E402
 
 
 def make_feed(h: Harness, spec, examples: int, seed_: int, missed: list[str], counts: dict[str, int]):
@@ -56,6 +59,8 @@ def main() -> int:
             with bus, ctx as node:
                 h = Harness(name, node, bus, errors)
                 h.good()
+                if name != "ingest":  # the photo the clicks and masks refer to (as in the test)
+                    h.send(keys.key(keys.PHOTO, site=SITE, camera="cam-a"), codec.encode(good_photo("p0")))
 
                 make_feed(h, spec, args.examples, args.seed, missed, counts)()
                 for kind, n in h.tried.items():
