@@ -48,7 +48,7 @@ def four_box_model() -> BimModel:
             name=tid,
             planned_start_ns=pf - 2 * DAY,
             planned_finish_ns=pf,
-            actual_start_ns=(pf - 2 * DAY) if a_start else None,
+            actual_start_ns=min(pf - 2 * DAY, af if af is not None else pf) if a_start else None,  # never after af
             actual_finish_ns=af,
             element_ids=(gid,),
         )

@@ -36,6 +36,7 @@ nodes and bus
   node NAME [...]      run one node (ingest, register, occlude, render, recorder, dashboard, workbench,
                        progress)
   router               run a zenoh router so nodes on several machines can meet
+  certs --out DIR      make a test CA and a certificate per node role (TLS, mutual TLS, ACL)
   status               list live nodes
   push FILES --camera ID
                        publish photo files as a camera would
@@ -125,8 +126,17 @@ def _router(argv: list[str]) -> int:
     p = argparse.ArgumentParser(prog="constructaide router", description="Run a zenoh router (no zenohd needed).")
     p.add_argument("--listen", action="append", default=None, help="endpoint (default tcp/0.0.0.0:7447)")
     p.add_argument("--connect", action="append", default=None, help="other routers to connect to")
+    p.add_argument("--bus-security", metavar="SITE.toml", help="site TOML with [bus.tls] / [bus.acl]")
     args = p.parse_args(argv)
-    cfg = BusConfig(mode="router", listen=args.listen or ["tcp/0.0.0.0:7447"], connect=args.connect or [])
+    security = None
+    if args.bus_security:
+        from constructaide.runtime.security import load_security
+
+        security = load_security(args.bus_security, "router")
+    default_listen = f"{'tls' if security else 'tcp'}/0.0.0.0:7447"
+    cfg = BusConfig(
+        mode="router", listen=args.listen or [default_listen], connect=args.connect or [], security=security
+    )
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
@@ -136,11 +146,31 @@ def _router(argv: list[str]) -> int:
     return 0
 
 
+def _certs(argv: list[str]) -> int:
+    from constructaide.runtime.security import NODE_ROLES, TRUSTED_ROLES, camera_role, make_certs
+
+    p = argparse.ArgumentParser(
+        prog="constructaide certs",
+        description="Make a test CA and one certificate per role (common name = role) for [bus.tls] / [bus.acl].",
+    )
+    p.add_argument("--out", type=Path, required=True, help="folder for ca.pem, ca.key, <role>.pem, <role>.key")
+    p.add_argument("--camera", action="append", default=[], help="camera id (a camera-<id> certificate); repeat")
+    p.add_argument("--host", action="append", default=None, help="name/IP in the certificates (default localhost, "
+                   "127.0.0.1); repeat")  # fmt: skip
+    p.add_argument("--days", type=int, default=365)
+    args = p.parse_args(argv)
+    roles = [*TRUSTED_ROLES, *NODE_ROLES, *(camera_role(c) for c in args.camera)]
+    written = make_certs(args.out, roles, args.host, args.days)
+    print(f"wrote {len(written)} files to {args.out} (CA + {len(roles)} roles: {', '.join(roles)}); test use only")
+    return 0
+
+
 COMMANDS: dict[str, Callable[[list[str]], int]] = {
     "demo": _delegate("constructaide.app.demo", "main"),
     "run": _delegate("constructaide.app.launch", "run_main"),
     "node": _node,
     "router": _router,
+    "certs": _certs,
     "status": _status,
     "push": _delegate("constructaide.app.push", "main"),
     "replay": _delegate("nodes.recorder.cli", "replay_main"),

@@ -8,6 +8,13 @@ A site TOML config::
     [bus]                      # optional; default: peer on loopback
     connect = ["tcp/10.0.0.5:7447"]
 
+    [bus.tls]                  # optional: TLS / mutual TLS and ACL, see constructaide.runtime.security
+    ca = "certs/ca.pem"
+    certs = "certs"
+
+    [bus.acl]
+    enabled = true
+
     [nodes.register]           # one table per node to start; its fields are the node's config
     fast_path = true
 
@@ -45,6 +52,7 @@ from pathlib import Path
 from constructaide.app.supervise import RestartPolicy, Supervisor
 from constructaide.errors import UserError
 from constructaide.runtime import Bus, BusConfig, add_bus_args, open_bus
+from constructaide.runtime.security import load_security
 from schemas import keys
 from schemas.messages import NodeError
 
@@ -107,9 +115,12 @@ class Launcher:
     state_dir: Path | None = None
     """Passed to the nodes as ``--state-dir`` (ledger and state: a restarted node resumes and gets what it missed)."""
     supervisor: Supervisor | None = None
+    security_toml: Path | None = None  # site TOML with [bus.tls]: each node loads its own certificate from it
 
     def bus_argv(self) -> list[str]:
         argv = ["--hub-port", str(self.bus.hub_port), "--mode", self.bus.mode]
+        if self.security_toml is not None:
+            argv += ["--bus-security", str(self.security_toml)]
         for e in self.bus.connect:
             argv += ["--connect", e]
         for e in self.bus.listen:
@@ -228,9 +239,13 @@ class Launcher:
 
 @contextlib.contextmanager
 def site_processes(
-    site: str, bus: BusConfig, log_dir: Path | None, state_dir: Path | None = None
+    site: str,
+    bus: BusConfig,
+    log_dir: Path | None,
+    state_dir: Path | None = None,
+    security_toml: Path | None = None,
 ) -> Iterator[Launcher]:
-    launcher = Launcher(site=site, bus=bus, log_dir=log_dir, state_dir=state_dir)
+    launcher = Launcher(site=site, bus=bus, log_dir=log_dir, state_dir=state_dir, security_toml=security_toml)
     try:
         yield launcher
     finally:
@@ -264,9 +279,15 @@ def run_main(argv: list[str]) -> int:
     if not nodes:
         raise UserError(f"{args.config}: no [nodes.NAME] tables, nothing to run")
     bus_doc = doc.get("bus", {})
-    bus = BusConfig.from_args(args)
+    bus = BusConfig.from_args(args, role="router")
     bus.connect = bus.connect or list(bus_doc.get("connect", []))
     bus.listen = bus.listen or list(bus_doc.get("listen", []))
+    if args.mode is None and bus_doc.get("mode"):
+        bus.mode = str(bus_doc["mode"])
+    security_toml = None
+    if "tls" in bus_doc or "acl" in bus_doc:
+        security_toml = args.config.resolve()
+        bus.security = load_security(security_toml, "router")  # this session relays for the nodes
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
@@ -277,7 +298,7 @@ def run_main(argv: list[str]) -> int:
     cameras = [str(c) for c in doc.get("site", {}).get("cameras", [])]
     state_dir = args.state_dir or args.log_dir.parent / "state"
     state_dir = None if str(state_dir).lower() == "none" else state_dir
-    with site_processes(site, bus, args.log_dir, state_dir) as launcher, open_bus(bus) as session:
+    with site_processes(site, bus, args.log_dir, state_dir, security_toml) as launcher, open_bus(bus) as session:
         for name in nodes:
             launcher.start_workers(name, workers.get(name, 1), args.config, f"nodes.{name}", cameras=cameras)
         launcher.wait_live(session, list(nodes))

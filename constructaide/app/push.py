@@ -31,7 +31,9 @@ def main(argv: list[str]) -> int:
     missing = [str(f) for f in args.files if not f.is_file()]
     if missing:
         raise UserError(f"no such file: {', '.join(missing[:3])}")
-    with open_bus(BusConfig.from_args(args)) as bus:
+    from constructaide.runtime.security import camera_role
+
+    with open_bus(BusConfig.from_args(args, role=camera_role(args.camera) if args.camera else "admin")) as bus:
         try:
             bus.wait_for_tokens(
                 [

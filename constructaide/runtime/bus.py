@@ -19,11 +19,14 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from constructaide.runtime.history import HISTORY_ROOT, Publication, PublicationCache
 from schemas import codec
 from schemas.messages import Message
+
+if TYPE_CHECKING:
+    from constructaide.runtime.security import BusSecurity
 
 log = logging.getLogger("constructaide.bus")
 
@@ -189,9 +192,16 @@ class BusConfig:
         default_factory=lambda: int(float(os.environ.get("CONSTRUCTAIDE_HISTORY_MB", DEFAULT_HISTORY_MB)) * 1e6)
     )
     """Payload bytes of recent data publications kept to answer history queries (0: none)."""
+    security: BusSecurity | None = None  # TLS / mTLS / ACL from the site TOML (constructaide.runtime.security)
 
     @classmethod
-    def from_args(cls, args: argparse.Namespace) -> BusConfig:
+    def from_args(cls, args: argparse.Namespace, role: str = "admin") -> BusConfig:
+        """``role``: the certificate name when the site TOML given with ``--bus-security`` turns TLS on (a node
+        passes its name; ``--role`` overrides)."""
+        from constructaide.runtime.security import load_security
+
+        sec_toml = getattr(args, "bus_security", None)
+        security = load_security(sec_toml, getattr(args, "role", None) or role) if sec_toml else None
         return cls(
             mode=getattr(args, "mode", None) or "peer",
             listen=list(getattr(args, "listen", None) or []),
@@ -199,6 +209,7 @@ class BusConfig:
             hub_port=int(
                 getattr(args, "hub_port", None) or os.environ.get("CONSTRUCTAIDE_HUB_PORT") or DEFAULT_HUB_PORT
             ),
+            security=security,
         )
 
     @property
@@ -211,10 +222,14 @@ class BusConfig:
         port 0, connecting to the hub)."""
         import zenoh
 
+        from constructaide.runtime.security import check_endpoints
+
         listen, connect = list(self.listen), list(self.connect)
+        proto = "tls" if self.security is not None else "tcp"
         if self.embedded:
-            hub = f"tcp/127.0.0.1:{self.hub_port}"
-            listen, connect = ([hub], []) if as_hub else (["tcp/127.0.0.1:0"], [hub])
+            hub = f"{proto}/127.0.0.1:{self.hub_port}"
+            listen, connect = ([hub], []) if as_hub else ([f"{proto}/127.0.0.1:0"], [hub])
+        check_endpoints(listen + connect, self.security)
         c = zenoh.Config()
         c.insert_json5("mode", json.dumps(self.mode))
         c.insert_json5("scouting/multicast/enabled", "false")
@@ -224,7 +239,11 @@ class BusConfig:
         c.insert_json5(
             "transport/link/tx/queue/congestion_control/block/wait_before_close", json.dumps(BLOCK_WAIT_BEFORE_CLOSE_US)
         )
-        if listen:
+        if self.security is not None and not listen and self.mode == "peer":
+            # zenoh's default listener is plain tcp/[::]:0 (never with TLS on); and under the ACL a peer without a
+            # listener is not heard through a router (zenoh 1.10): listen on loopback. Across machines: mode client.
+            listen = ["tls/127.0.0.1:0"]
+        if listen or self.security is not None:
             c.insert_json5("listen/endpoints", json.dumps(listen))
         if connect:
             c.insert_json5("connect/endpoints", json.dumps(connect))
@@ -233,6 +252,8 @@ class BusConfig:
             c.insert_json5("connect/timeout_ms", json.dumps(self.client_connect_timeout_ms))
         if any(_port_of(e) == 0 for e in listen):
             c.insert_json5("adminspace/enabled", "true")  # the port the system picked is read back from it
+        for k, v in (self.security.json5() if self.security else {}).items():
+            c.insert_json5(k, json.dumps(v))
         for k, v in self.extra_json5.items():
             c.insert_json5(k, json.dumps(v))
         return c
@@ -253,6 +274,10 @@ def add_bus_args(parser: argparse.ArgumentParser) -> None:
         default=None,
         help=f"loopback hub port (default {DEFAULT_HUB_PORT} or $CONSTRUCTAIDE_HUB_PORT)",
     )
+    g.add_argument(
+        "--bus-security", metavar="SITE.toml", help="site TOML whose [bus.tls] / [bus.acl] secure this session"
+    )
+    g.add_argument("--role", help="certificate / ACL role of this session (default: the node's name)")
 
 
 def _port_of(endpoint: str) -> int | None:
@@ -305,6 +330,8 @@ class ZenohBus(Bus):
                 self._latched[key] = payload
                 if key not in self._queryables:
                     self._queryables[key] = self.session.declare_queryable(key, self._serve_latched)
+        if self.config.security is not None and self.config.security.acl:
+            self.config.security.check_publish(key)  # zenoh would drop it silently: say so
         if not preview:
             self.cache.add(key, payload)
         self.session.put(
@@ -381,7 +408,7 @@ class ZenohBus(Bus):
     def locators(self) -> list[str]:
         """The endpoints this session listens on, as bound (a port 0 endpoint shows the port the system picked)."""
         if self.is_hub:
-            return [f"tcp/127.0.0.1:{self.config.hub_port}"]
+            return [f"{'tls' if self.config.security else 'tcp'}/127.0.0.1:{self.config.hub_port}"]
         listen = list(self.config.listen)
         if listen and all(_port_of(e) != 0 for e in listen):
             return listen
@@ -395,7 +422,7 @@ class ZenohBus(Bus):
         """The TCP port of this session's first TCP listening endpoint (e.g. the hub port for other processes)."""
         for loc in self.locators():
             port = _port_of(loc)
-            if loc.startswith("tcp/") and port:
+            if loc.startswith(("tcp/", "tls/")) and port:
                 return port
         raise RuntimeError(f"the zenoh session listens on no TCP port ({self.locators()})")
 

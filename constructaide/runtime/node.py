@@ -12,7 +12,8 @@ define ``on_idle()``: it runs after a message when the queue is empty (and at le
 messages), so handlers can mark work dirty and coalesce it. An ``on_idle`` that does a bounded share of its work
 returns True while more is pending: it is called again as long as no message waits. A payload that fails to
 decode, or a handler that raises, becomes a :class:`~schemas.messages.NodeError` on
-``constructaide/{site}/errors``; the node keeps running.
+``constructaide/{site}/errors``; the node keeps running. So does a message :func:`schemas.validate.problems` refuses
+(NaN / infinite numbers, negative sizes, a rotation that is not one, a schedule with a cycle, ...).
 Readiness: after subscribing, the node declares the liveliness token
 ``constructaide/{site}/@live/{node}/{instance}``.
 """
@@ -41,7 +42,7 @@ from constructaide.errors import UserError
 from constructaide.partition import PARK, SKIP, Partition, Router
 from constructaide.runtime.bus import Bus, BusConfig, add_bus_args, open_bus, payload_of
 from constructaide.runtime.history import Ledger, digest
-from schemas import codec, keys
+from schemas import codec, keys, validate
 from schemas.messages import Message, NodeError
 
 
@@ -418,6 +419,13 @@ class RunningNode:
             self.errors += 1
             self.ctx.error(self._topics.get(inp.handler, inp.key), f"cannot decode {inp.type.__name__}: {e}", key)
             return
+        bad = [] if inp.raw else validate.problems(msg)  # NaN poses, negative sizes, schedule cycles, ...
+        if bad:
+            self.errors += 1
+            self.ctx.error(
+                self._topics.get(inp.handler, inp.key), f"invalid {type(msg).__name__}: {'; '.join(bad)}", key
+            )
+            return
         try:
             handler = getattr(self.obj, inp.handler)
             if inp.with_key:
@@ -598,7 +606,7 @@ def run_node_cli(spec: NodeSpec, argv: list[str] | None = None, *, prog: str | N
         except ValueError as e:
             raise UserError(str(e)) from None
         with (
-            open_bus(BusConfig.from_args(args)) as bus,
+            open_bus(BusConfig.from_args(args, role=spec.name)) as bus,
             start_node(spec, config, bus, state_dir=args.state_dir, partition=partition),
         ):
             logging.getLogger("constructaide").info(

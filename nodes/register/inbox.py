@@ -85,6 +85,16 @@ class Inbox:
         while len(self.recent) > self.max_recent:
             self.recent.popitem(last=False)
 
+    def check_clicks_on_image(self, clicks: AnchorClicks) -> None:
+        """Raise ValueError naming the clicks that lie off their photo (when the photo is held here)."""
+        known = self.pending.get(clicks.photo_id) or self.recent.get(clicks.photo_id)
+        if known is None or known.width_px <= 0 or known.height_px <= 0:
+            return
+        w, h = known.width_px, known.height_px
+        off = [i for i, p in enumerate(clicks.points) if not (0 <= p.pixel_px[0] <= w and 0 <= p.pixel_px[1] <= h)]
+        if off:
+            raise ValueError(f"anchor clicks for {clicks.photo_id}: point(s) {off} off the {w}x{h} image")
+
     def photo_for_clicks(self, photo_id: str) -> Photo | None:
         """The photo clicks arrived for: taken out of the waiting queue, else a recent one, else None."""
         return self.pending.pop(photo_id, None) or self.recent.get(photo_id)

@@ -105,6 +105,7 @@ class RegisterNode:
     def on_anchors(self, msg: m.AnchorClicks, key: str) -> None:
         if len(msg.points) < 4:
             raise ValueError(f"anchor clicks for {msg.photo_id}: need at least 4 points, got {len(msg.points)}")
+        self.inbox.check_clicks_on_image(msg)
         photo = self.inbox.photo_for_clicks(msg.photo_id)
         if photo is None:
             if msg.photo_id in self.registrar.poses:
