@@ -35,8 +35,8 @@ def register_sizes(node: RegisterNode) -> dict[str, int]:
         "viewpoint_photos": len(r.viewpoints),
         "map_images": len(r.recon.images),
         "fast_tracks": len(r.fast.tracks),
-        "recent_photos": len(node.recent),
-        "pending": len(node.pending),
+        "recent_photos": len(node.inbox.recent),
+        "pending": len(node.inbox.pending),
     }
 
 

@@ -180,5 +180,5 @@ def test_register_refuses_clicks_off_the_photo(tmp_path: Path) -> None:
         key = keys.key(keys.ANCHORS, site=SITE, photo="p0")
         (err,) = h.send(key, codec.encode(off))
         assert "point(s) [2] off the 64x48 image" in err.reason and err.key == key
-        assert "p0" in node.obj.pending
+        assert "p0" in node.obj.inbox.pending
         h.good()

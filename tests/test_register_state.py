@@ -74,16 +74,22 @@ def test_state_blobs_round_trip() -> None:
     a = Holder()
     a.registrar = StreamingRegistrar(site=SITE)  # type: ignore[attr-defined]
     a.registrar.depth_lookup = lambda *x: None  # type: ignore[attr-defined]  # not kept (not picklable anyway)
-    for f, v in zip(state.MAP_FIELDS, ({"p": 1}, {}, {}, {"cam-a"}, 3, 1), strict=True):
+    from nodes.register.bimsite import BimMeshes
+    from nodes.register.inbox import Inbox
+
+    inbox = Inbox(4, 4, 4)
+    inbox.asked_groups.add("cam-a")
+    bim = BimMeshes()
+    bim.meshes = {"m": (np.zeros((3, 3)), np.zeros((1, 3), np.int32))}
+    bim.ref_of = {"g": "m"}
+    bim.terrain_height_m = 1.5
+    for f, v in zip(state.MAP_FIELDS, (inbox, 3, 1), strict=True):
         setattr(a, f, v)
-    for f, v in zip(
-        state.BIM_FIELDS, ({"m": (np.zeros((3, 3)), np.zeros((1, 3), np.int32))}, {"g": "m"}, (), 1.5), strict=True
-    ):
-        setattr(a, f, v)
+    a.bim = bim  # type: ignore[attr-defined]
     blobs = {**state.dump_map(a), "bim": state.dump_bim(a)}
     assert a.registrar.depth_lookup is not None  # type: ignore[attr-defined]  # put back after the dump
     b = Holder()
     assert state.load_into(b, blobs)
     assert b.registrar.depth_lookup is None and b.registrar.site == SITE  # type: ignore[attr-defined]
-    assert b.pending == {"p": 1} and b.asked_anchor == {"cam-a"} and b.sparse_revision == 3  # type: ignore[attr-defined]
-    assert b.terrain_height_m == 1.5 and b.ref_of == {"g": "m"}  # type: ignore[attr-defined]
+    assert b.inbox.asked_groups == {"cam-a"} and b.sparse_revision == 3  # type: ignore[attr-defined]
+    assert b.bim.terrain_height_m == 1.5 and b.bim.ref_of == {"g": "m"}  # type: ignore[attr-defined]
