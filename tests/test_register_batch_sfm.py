@@ -495,3 +495,22 @@ def test_second_anchor_asked_for_a_wide_view():
         else:
             assert asked[0] == "view1" and angle < 15.0
     assert sorted(order[100]) == sorted(order[0])  # the same images are asked, in another order
+
+
+@pytest.mark.parametrize("turn_deg", [15.0, 40.0, 90.0])
+def test_pair_rotation_agreement_refuses_a_turned_pose(synthetic_run, turn_deg):
+    """The rotation test (pose.pair_rotation_agreement): the registered pose agrees with its strong pairs' own
+    rotations; the same camera turned about its centre by more than the tolerance does not, and
+    mapper.rotation_refusal says why."""
+    recon, _, _, _ = synthetic_run
+    cfg = config.MapperConfig()
+    k = recon.index("view4")
+    im = recon.images[k]
+    good, n = pose.pair_rotation_agreement(recon, k, im.intrinsics, im.world_from_camera, cfg)
+    assert n >= 2 and good > 0.9
+    assert mapper.rotation_refusal(recon, k, im.intrinsics, im.world_from_camera, cfg) == ""
+    turned = im.world_from_camera.copy()
+    turned[:3, :3] = turned[:3, :3] @ cam.rodrigues_to_matrix([0.0, np.radians(turn_deg), 0.0])
+    bad, n_bad = pose.pair_rotation_agreement(recon, k, im.intrinsics, turned, cfg)
+    assert n_bad == n and bad < cfg.min_pair_rotation_agreement
+    assert "strong pairs" in mapper.rotation_refusal(recon, k, im.intrinsics, turned, cfg)

@@ -16,6 +16,7 @@ from nodes.register.pose import (
     fit_rotation_about_centre,
     focal_from_fundamental,
     horizontal_apart_m,
+    pair_rotation_agreement,
     pose_pair_agreement,
     project_pose,
     rays_from_pixels,
@@ -396,6 +397,10 @@ def try_relative_pose(recon: Reconstruction, ref: int, idx: int, cfg: MapperConf
     if agree < cfg.min_pose_pair_agreement:
         im.message = f"relative pose from {r.name} explains only {agree:.0%} of the verified matches"
         return False
+    why = rotation_refusal(recon, idx, intr_u, world_from_camera, cfg)
+    if why:
+        im.message = f"relative pose from {r.name} refused: {why}"
+        return False
     # One registered photo with GPS already checks the baseline's length (the distance between the two centres).
     why = gps_check(recon, idx, world_from_camera, cfg, min_references=1)
     if why:
@@ -530,7 +535,7 @@ def register_image_pnp(recon: Reconstruction, idx: int, cfg: MapperConfig) -> bo
         )
         return False
     world_from_camera = cam.invert_rigid(cam.rigid(R, tv))
-    why = gps_check(recon, idx, world_from_camera, cfg)
+    why = rotation_refusal(recon, idx, intr, world_from_camera, cfg) or gps_check(recon, idx, world_from_camera, cfg)
     if why:
         im.message = f"PnP pose ({int(inliers.sum())}/{len(obj)} inliers) refused: {why}"
         return False
@@ -545,6 +550,22 @@ def register_image_pnp(recon: Reconstruction, idx: int, cfg: MapperConfig) -> bo
         recon.track_obs[t].pop(idx, None)
         recon.feature_track[idx][fi] = -1
     return True
+
+
+def rotation_refusal(
+    recon: Reconstruction, idx: int, intr: Intrinsics, world_from_camera: np.ndarray, cfg: MapperConfig
+) -> str:
+    """Why a candidate automatic pose of image ``idx`` contradicts the rotations of its strong pairs
+    (:func:`pair_rotation_agreement`; "" when it does not or the test is off)."""
+    if cfg.min_pair_rotation_agreement is None:
+        return ""
+    frac, n = pair_rotation_agreement(recon, idx, intr, world_from_camera, cfg)
+    if n and frac < cfg.min_pair_rotation_agreement:
+        return (
+            f"its rotation agrees with only {frac:.0%} (match-weighted) of its {n} strong pairs' own rotations "
+            f"(within {cfg.rotation_check_max_deg:g} deg; < {cfg.min_pair_rotation_agreement:.0%}; repeated texture?)"
+        )
+    return ""
 
 
 def click_disagreement_px(im: ImageState, clicks: Clicks) -> float:

@@ -209,6 +209,25 @@ def epipolar_agreement(
     return int(np.sum(d * f_px < thr_px)), len(x_this)
 
 
+def agreement_partners(recon: Reconstruction, idx: int, max_gps_apart_m: float | None = None) -> list[int]:
+    """Registered images whose verified matches with image ``idx`` test a candidate pose of it: every registered
+    image paired with it, except that a fixed camera with registered frames of its own is checked against those
+    only, and a photo with GPS against the photos within ``max_gps_apart_m`` of it when there are any."""
+    partners = [j for j in recon.registered_indices() if j != idx and recon.pair(j, idx) is not None]
+    im = recon.images[idx]
+    own = im.camera_id
+    if own is not None and any(recon.images[j].camera_id == own for j in partners):
+        # A fixed camera's own earlier frames overlap its view for sure; other cameras' pairs may be matches of
+        # repeated texture only, which no pose explains.
+        return [j for j in partners if recon.images[j].camera_id == own]
+    if max_gps_apart_m is not None and im.gps is not None:
+        # Photos whose GPS positions lie further apart than a view of the site spans share repeated texture (the
+        # same print on two sides of a site), not the same surfaces: their pairs do not count.
+        near = [j for j in partners if not horizontal_apart_m(im.gps, recon.images[j].gps) > max_gps_apart_m]
+        return near or partners
+    return partners
+
+
 def pose_pair_agreement(
     recon: Reconstruction,
     idx: int,
@@ -217,25 +236,13 @@ def pose_pair_agreement(
     thr_px: float,
     max_gps_apart_m: float | None = None,
 ) -> float:
-    """Fraction of the verified matches between image ``idx`` and registered images whose epipolar distance (px,
-    in image ``idx``) under the candidate pose is below ``thr_px`` (1.0 without such pairs; pairs sharing the
-    camera centre are not counted; a fixed camera with registered frames of its own is checked against those, a
-    photo with GPS against the photos within ``max_gps_apart_m`` of it when there are any). A pose fitted to
-    matches on repeated texture (the same lettering on two sides of a site) disagrees with the other matches."""
+    """Fraction of the verified matches between image ``idx`` and registered images (:func:`agreement_partners`)
+    whose epipolar distance (px, in image ``idx``) under the candidate pose is below ``thr_px`` (1.0 without such
+    pairs; pairs sharing the camera centre are not counted). A pose fitted to matches on repeated texture (the
+    same lettering on two sides of a site) disagrees with the other matches."""
     n_ok, n_all = 0, 0
     this_from_world = cam.invert_rigid(world_from_camera)
-    partners = [j for j in recon.registered_indices() if j != idx and recon.pair(j, idx) is not None]
-    im = recon.images[idx]
-    own = im.camera_id
-    if own is not None and any(recon.images[j].camera_id == own for j in partners):
-        # A fixed camera's own earlier frames overlap its view for sure; other cameras' pairs may be matches of
-        # repeated texture only, which no pose explains.
-        partners = [j for j in partners if recon.images[j].camera_id == own]
-    elif max_gps_apart_m is not None and im.gps is not None:
-        # Photos whose GPS positions lie further apart than a view of the site spans share repeated texture (the
-        # same print on two sides of a site), not the same surfaces: their pairs do not count.
-        near = [j for j in partners if not horizontal_apart_m(im.gps, recon.images[j].gps) > max_gps_apart_m]
-        partners = near or partners
+    partners = agreement_partners(recon, idx, max_gps_apart_m)
     for j in partners:
         p = recon.pair(j, idx)
         if p is None:
@@ -247,6 +254,50 @@ def pose_pair_agreement(
         ok, n = epipolar_agreement(xj, xi, this_from_world @ o.pose, intr.f_px, thr_px)
         n_ok, n_all = n_ok + ok, n_all + n
     return n_ok / n_all if n_all else 1.0
+
+
+def pair_rotation(recon: Reconstruction, a: int, b: int, intr_b: Intrinsics, cfg: MapperConfig) -> np.ndarray | None:
+    """Rotation ``b_from_a`` (3, 3) of images ``a`` (registered) and ``b`` (intrinsics ``intr_b``) from their
+    verified matches alone: the pair's fundamental matrix made essential, decomposed with the cheirality test.
+    None without a pair of at least 8 matches."""
+    p = recon.pair(a, b)
+    if p is None or len(p[0]) < 8:
+        return None
+    m, F = p
+    ia = recon.images[a]
+    Ka, Kb = cam.K_matrix(ia.camera), cam.K_matrix(intr_b)
+    xa = cam.pixels_to_normalized(ia.camera, ia.features.keypoints_px[m[:, 0]].astype(np.float64))
+    xb = cam.pixels_to_normalized(intr_b, recon.images[b].features.keypoints_px[m[:, 1]].astype(np.float64))
+    E = Kb.T @ F @ Ka
+    _, R, _, _ = cv2.recoverPose(E, xa, xb, np.eye(3))
+    return np.asarray(R, np.float64)
+
+
+def pair_rotation_agreement(
+    recon: Reconstruction, idx: int, intr: Intrinsics, world_from_camera: np.ndarray, cfg: MapperConfig
+) -> tuple[float, int]:
+    """Rotation test of a candidate pose of image ``idx``: over its partners (:func:`agreement_partners`) with at
+    least ``cfg.rotation_check_min_matches`` verified matches, the match-weighted fraction whose pair geometry's
+    own rotation (:func:`pair_rotation`) lies within ``cfg.rotation_check_max_deg`` of the rotation the candidate
+    gives, and how many pairs were counted ((1.0, 0) without any). Epipolar distances alone do not see a pose
+    fitted to matches on one repeated planar print: a plane's matches fit many epipolar geometries; the relative
+    rotation of the pairs does."""
+    this_from_world = cam.invert_rigid(world_from_camera)
+    w_ok, w_all, n = 0.0, 0.0, 0
+    for j in agreement_partners(recon, idx, cfg.agreement_max_gps_apart_m):
+        p = recon.pair(j, idx)
+        if p is None or len(p[0]) < cfg.rotation_check_min_matches:
+            continue
+        R_e = pair_rotation(recon, j, idx, intr, cfg)
+        if R_e is None:
+            continue
+        R_c = (this_from_world @ recon.images[j].pose)[:3, :3]
+        ang = float(np.degrees(np.arccos(np.clip((np.trace(R_e.T @ R_c) - 1.0) / 2.0, -1.0, 1.0))))
+        w = float(len(p[0]))
+        w_all += w
+        w_ok += w * (ang <= cfg.rotation_check_max_deg)
+        n += 1
+    return (w_ok / w_all if w_all else 1.0), n
 
 
 def relative_rotation_deg(recon: Reconstruction, a: int, b: int, cfg: MapperConfig) -> float:
