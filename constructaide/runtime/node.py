@@ -40,10 +40,11 @@ import msgspec
 
 from constructaide.errors import UserError
 from constructaide.partition import PARK, SKIP, Partition, Router
+from constructaide.photos import photo_problem
 from constructaide.runtime.bus import Bus, BusConfig, add_bus_args, open_bus, payload_of
 from constructaide.runtime.history import Ledger, digest
 from schemas import codec, keys, validate
-from schemas.messages import Message, NodeError
+from schemas.messages import Message, NodeError, Photo
 
 
 @dataclass(frozen=True)
@@ -55,6 +56,9 @@ class Input:
     ``latched=True`` also fetches the last value published as latched (e.g. the BIM model) when the node starts.
     ``durable=True`` (default): a node started with a state directory also gets, at start, what was published on
     the input while it was down (:mod:`constructaide.runtime.history`), each message handled once.
+    ``check_images=True`` (default): a Photo whose ``data`` is not a decodable JPEG/PNG of its declared size is
+    refused with a NodeError before the handler (:func:`constructaide.photos.photo_problem`); False only for test
+    and bench nodes that carry opaque bytes.
     """
 
     key: str
@@ -65,6 +69,7 @@ class Input:
     fields: dict[str, str] = field(default_factory=dict)
     with_key: bool = True
     durable: bool = True
+    check_images: bool = True
 
 
 @dataclass(frozen=True)
@@ -420,6 +425,8 @@ class RunningNode:
             self.ctx.error(self._topics.get(inp.handler, inp.key), f"cannot decode {inp.type.__name__}: {e}", key)
             return
         bad = [] if inp.raw else validate.problems(msg)  # NaN poses, negative sizes, schedule cycles, ...
+        if not bad and inp.check_images and isinstance(msg, Photo):
+            bad = [p for p in (photo_problem(msg),) if p]  # garbage / truncated / bomb bodies, wrong size
         if bad:
             self.errors += 1
             self.ctx.error(
