@@ -69,9 +69,10 @@ JPEG_MAGIC, PNG_MAGIC = b"\xff\xd8\xff", b"\x89PNG\r\n\x1a\n"
 def verify_image(data: bytes, max_pixels: int = MAX_PIXELS, reduced: bool = False) -> tuple[str, int, int]:
     """(Pillow format, width_px, height_px as stored) of JPEG/PNG bytes after a full decode.
 
-    Checked in this order: format and magic (JPEG ``ff d8 ff``, PNG signature), header size against ``max_pixels`` (before any pixel is decoded: decompression
-    bombs), PNG chunk CRCs, a decode of every byte (truncation), the JPEG end-of-image marker. ``reduced``: JPEGs
-    decode at 1/8 scale (DCT scaling; every entropy-coded byte is still read, about 15x faster). Raises PhotoError.
+    Checked in this order: format and magic (JPEG ``ff d8 ff``, PNG signature), header size against
+    ``max_pixels`` (before any pixel is decoded: decompression bombs), PNG chunk CRCs, a decode of every byte
+    (truncation), the JPEG end-of-image marker. ``reduced``: JPEGs decode at 1/8 scale (DCT scaling; every
+    entropy-coded byte is still read, about 15x faster). Raises PhotoError.
     """
     if not data:
         raise PhotoError("empty photo data")
