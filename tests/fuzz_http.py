@@ -156,8 +156,9 @@ def _dumps(x: Any) -> bytes:
 
 
 @st.composite
-def bad_request(draw: st.DrawFn, bodies: dict[str, list[dict[str, Any]]], annotation_id: str) -> tuple:
-    """(label, method, path, params, body bytes or None) for one endpoint, bad in one or more parts."""
+def bad_request(draw: st.DrawFn, bodies: dict[str, list[dict[str, Any]]], annotation_ids: tuple[str, str]) -> tuple:
+    """(label, method, path, params, body bytes or None) for one endpoint, bad in one or more parts.
+    ``annotation_ids``: one to edit and read, one to delete (so edits keep a target after the delete)."""
     eps = [e for e in ENDPOINTS if e.path not in SKIPPED]
     extra = ["static_traversal", "unknown_path", "wrong_method"]
     e = draw(st.sampled_from(eps + extra))  # type: ignore[operator]
@@ -189,7 +190,7 @@ def bad_request(draw: st.DrawFn, bodies: dict[str, list[dict[str, Any]]], annota
     for name in [p[1:-1] for p in e.path.split("/") if p.startswith("{")]:
         good = {
             "photo_id": draw(st.sampled_from(["p1", "p2", "p5"])),
-            "annotation_id": annotation_id,
+            "annotation_id": annotation_ids[e.method == "DELETE"],
             "global_id": "wall",
             "mode": "photoreal",
             "kind": "combined",
@@ -271,7 +272,7 @@ def send(http: httpx.Client, req: tuple) -> httpx.Response:
 @contextlib.contextmanager
 def workbench_server() -> Iterator[tuple[httpx.Client, Any, str]]:
     """The workbench node on an in-process bus (real HTTP server, any free port), fed the scene of
-    tests/test_workbench_api over the bus; yields (client, good bodies, an annotation id)."""
+    tests/test_workbench_api over the bus; yields (client, good bodies, annotation ids to edit and to delete)."""
     from test_workbench_api import CAM_A, T0, S, _feed, _project
 
     from constructaide.runtime import start_node
@@ -308,6 +309,9 @@ def workbench_server() -> Iterator[tuple[httpx.Client, Any, str]]:
         assert errors.items == [], [e.reason for _, e in errors.items]
         with httpx.Client(base_url=node.obj.url, timeout=60) as http:
             assert len(http.get("/api/photos").json()) == 6
-            made = http.post("/api/annotations", json={"photo_id": "p1", "element_ids": ["col"], "text": "t"})
-            assert made.status_code == 201, made.text
-            yield http, good_bodies(lambda w: _project(CAM_A, w), T0), made.json()["annotation_id"]
+            ids = []
+            for text in ("edit me", "delete me"):
+                made = http.post("/api/annotations", json={"photo_id": "p1", "element_ids": ["col"], "text": text})
+                assert made.status_code == 201, made.text
+                ids.append(made.json()["annotation_id"])
+            yield http, good_bodies(lambda w: _project(CAM_A, w), T0), (ids[0], ids[1])

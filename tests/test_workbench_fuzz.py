@@ -14,12 +14,12 @@ EXAMPLES = int(os.environ.get("CONSTRUCTAIDE_FUZZ_EXAMPLES", "60"))
 
 
 def test_every_endpoint_refuses_bad_requests_with_a_json_4xx() -> None:
-    with workbench_server() as (http, bodies, ann_id):
+    with workbench_server() as (http, bodies, ann_ids):
         seen: set[str] = set()
 
         @settings(max_examples=EXAMPLES, derandomize=True, deadline=None, database=None,
                   suppress_health_check=list(HealthCheck))  # fmt: skip
-        @given(bad_request(bodies, ann_id))
+        @given(bad_request(bodies, ann_ids))
         def feed(req: tuple) -> None:
             seen.add(req[0].split(" / ")[0])
             check(send(http, req), req[0])
@@ -38,7 +38,7 @@ def test_the_fuzz_findings_stay_fixed() -> None:
         assert resp.status_code == status, resp.text[:300]
         return resp.json()["error"]
 
-    with workbench_server() as (http, bodies, ann_id):
+    with workbench_server() as (http, bodies, ann_ids):
         good = bodies["POST /api/annotations"][1]
         nan = json.dumps({**good, "polygon_px": [[1.0, float("nan")], [9.0, 1.0], [9.0, 9.0]]}, allow_nan=True)
         assert "NaN is not a JSON number" in err(http.post("/api/annotations", content=nan), 400)

@@ -81,6 +81,8 @@ def rigid_pose(T: NDArray[np.float64], max_t_m: float = MAX_WORLD_M) -> bool:
     if T.shape != (4, 4) or not np.isfinite(T).all() or np.abs(T[:3, 3]).max() > max_t_m:
         return False
     R = T[:3, :3]
+    if np.abs(R).max() > 1.001:  # before any product: no overflow on absurd entries
+        return False
     ok_rot = np.allclose(R.T @ R, np.eye(3), atol=1e-3) and np.linalg.det(R) > 0
     return bool(ok_rot and np.allclose(T[3], (0.0, 0.0, 0.0, 1.0)))
 
