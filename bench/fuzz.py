@@ -1,9 +1,11 @@
 """Longer fuzz run than the suite's: every node with message inputs fed bad payloads (tests/fuzz_payloads.py).
 
 Prints inputs tried per message type and kind, NodeErrors returned, inputs that must be refused but were not,
-crashes (a worker that died or did not finish); appends the figures to BENCHMARKS.md.
+crashes (a worker that died or did not finish); then the workbench's HTTP API fed bad requests on every endpoint
+(tests/fuzz_http.py): answers by status class, 5xx and not-JSON errors, and whether the server still answered a
+good request after each; appends the figures to BENCHMARKS.md.
 
-    python bench/fuzz.py [--examples N] [--seed S]
+    python bench/fuzz.py [--examples N] [--http-examples N] [--seed S]
 """
 
 from __future__ import annotations
@@ -44,9 +46,42 @@ def make_feed(h: Harness, spec, examples: int, seed_: int, missed: list[str], co
     return feed
 
 
+def fuzz_http(examples: int, seed_: int) -> tuple[list[list], dict[str, int]]:
+    """Rows [endpoint, tried, 2xx, 4xx, 5xx] and counts (bad answers, server down after a request)."""
+    from fuzz_http import bad_request, check, send, workbench_server
+
+    per: dict[str, list[int]] = {}
+    counts = {"bad": 0, "down": 0}
+    bad_lines: list[str] = []
+    with workbench_server() as (http, bodies, ann_ids):
+
+        @seed(seed_)
+        @settings(max_examples=examples, deadline=None, database=None,
+                  suppress_health_check=list(HealthCheck), phases=["generate"])  # fmt: skip
+        @given(bad_request(bodies, ann_ids))
+        def feed(req: tuple) -> None:
+            row = per.setdefault(req[0].split(" / ")[0], [0, 0, 0, 0])
+            resp = send(http, req)
+            row[0] += 1
+            row[{2: 1, 4: 2}.get(resp.status_code // 100, 3)] += 1
+            try:
+                check(resp, req[0])
+            except (AssertionError, ValueError) as e:
+                counts["bad"] += 1
+                bad_lines.append(str(e).splitlines()[0][:160])
+            if http.get("/api/site").status_code != 200:
+                counts["down"] += 1
+
+        feed()
+    for line in bad_lines[:10]:
+        print("HTTP", line)
+    return [[k, *v] for k, v in sorted(per.items())], counts
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--examples", type=int, default=300, help="bad payloads per node")
+    ap.add_argument("--http-examples", type=int, default=1000, help="bad requests to the workbench HTTP API")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
     per_type: dict[str, list[int]] = {}
@@ -80,12 +115,24 @@ def main() -> int:
         f"({code_version()}). Not refused by the recorder by design: it records whatever is on the bus; bit flips "
         "that still decode to a valid message are handled as messages."
     )
+    t1 = time.monotonic()
+    http_rows, http = fuzz_http(args.http_examples, args.seed)
+    n_http = sum(r[1] for r in http_rows)
+    body += "\n\nWorkbench HTTP API (the node's real server on an in-process bus; tests/fuzz_http.py):\n\n"
+    body += table(["endpoint", "requests", "2xx", "4xx", "5xx"], http_rows)
+    body += (
+        f"\n\n{n_http} bad or mutated requests (seed {args.seed}): path ids unknown / traversals / huge, query "
+        "numbers NaN / infinite / beyond int64, bodies not JSON, wrong shapes, one value replaced, oversized, deeply "
+        f"nested; 5xx {sum(r[4] for r in http_rows)}, answers that are not a JSON error {http['bad']}, server not "
+        f"answering the good request after one {http['down']}; {time.monotonic() - t1:.0f} s."
+    )
     for line in missed[:10]:
         print("MISSED", line)
     print(body)
     print(f"tried {tried}, NodeErrors {refused}, missed {len(missed)}, crashes {counts['crashes']}")
+    print(f"http: {n_http} requests, bad answers {http['bad']}, down {http['down']}")
     write_section("fuzz (bad input)", body)
-    return 0 if counts["crashes"] == 0 else 1
+    return 0 if counts["crashes"] == 0 and http["bad"] == 0 and http["down"] == 0 else 1
 
 
 if __name__ == "__main__":

@@ -50,7 +50,12 @@ def problems(msg: Any) -> list[str]:
         if data:
             size = image_size(data)
             if size is not None and size[0] * size[1] > MAX_IMAGE_PIXELS:
-                out.append(f"{type(msg).__name__}.{f} declares {size[0]}x{size[1]} pixels (limit {MAX_IMAGE_PIXELS})")
+                pid = getattr(msg, "photo_id", "")
+                of = f" of photo {pid}" if pid else ""
+                out.append(
+                    f"{type(msg).__name__}.{f}{of} declares {size[0]}x{size[1]} pixels (limit {MAX_IMAGE_PIXELS}; "
+                    "decompression bomb guard)"
+                )
     return out[:MAX_PROBLEMS]
 
 

@@ -182,3 +182,47 @@ def test_register_refuses_clicks_off_the_photo(tmp_path: Path) -> None:
         assert "point(s) [2] off the 64x48 image" in err.reason and err.key == key
         assert "p0" in node.obj.inbox.pending
         h.good()
+
+
+@pytest.mark.parametrize("name", ["register", "occlude", "render", "progress", "workbench"])
+def test_photo_nodes_refuse_bodies_that_are_not_the_declared_image(name: str, tmp_path: Path) -> None:
+    """Found by bench/fuzz.py: a garbage JPEG body reached register's handler. The runtime now decodes every Photo
+    (constructaide.photos.photo_problem) before any handler: each bad body is a NodeError naming the photo id."""
+    import msgspec
+    from fuzz_payloads import bomb_png
+
+    good = good_photo("p0")
+    bodies = {
+        "garbage": (b"\xff\xd8\xff\xe0" + bytes(200), "not an image"),
+        "truncated": (good.data[: len(good.data) // 3], "truncated"),
+        "not_an_image": (b"GIF89a" + bytes(40), "not an image (unrecognised bytes: starts 474946"),
+        "bomb": (bomb_png(), "decompression bomb"),  # refused by schemas.validate from the header
+        "wrong_size": (good_photo("x", seed=3).data, "decodes to 64x48 px, declares 65x48"),
+    }
+    spec, bus, errors, ctx = start(name, tmp_path)
+    with bus, ctx as node:
+        h = Harness(name, node, bus, errors)
+        key = keys.key(keys.PHOTO, site=SITE, camera="cam-a")
+        for label, (data, why) in bodies.items():
+            pid = f"bad-{label}"
+            bad = msgspec.structs.replace(good, photo_id=pid, data=data, width_px=65 if label == "wrong_size" else 64)
+            done = node.processed
+            (err,) = h.send(key, codec.encode(bad))
+            assert err.key == key and f"photo {pid}" in err.reason and why in err.reason, (label, err.reason)
+            assert node.processed == done, f"{label} reached the handler"
+        h.good()
+
+
+def test_photo_problem_accepts_png_and_undeclared_size() -> None:
+    import cv2
+    import msgspec
+    import numpy as np
+
+    from constructaide.photos import photo_problem
+
+    png = cv2.imencode(".png", np.zeros((48, 64, 3), np.uint8))[1].tobytes()
+    p = msgspec.structs.replace(good_photo("p"), data=png, media_type="image/png")
+    assert photo_problem(p) is None
+    assert photo_problem(msgspec.structs.replace(p, width_px=0, height_px=0)) is None
+    assert "declares 48x64" in (photo_problem(msgspec.structs.replace(p, width_px=48, height_px=64)) or "")
+    assert "limit 1000 px" in (photo_problem(good_photo("q"), max_pixels=1000) or "")

@@ -123,7 +123,7 @@ SPEC = NodeSpec(
     "test",
     _Cfg,
     _Counting,
-    (Input(keys.PHOTO, Photo, "on_photo"), Input(keys.ANCHORS, AnchorClicks, "on_anchors")),
+    (Input(keys.PHOTO, Photo, "on_photo", check_images=False), Input(keys.ANCHORS, AnchorClicks, "on_anchors")),
 )
 
 

@@ -39,7 +39,11 @@ class Slow:
 
 
 SPEC = NodeSpec(
-    name="slow", description="test", config_type=Cfg, factory=Slow, inputs=(Input(keys.PHOTO, Photo, "on_photo"),)
+    name="slow",
+    description="test",
+    config_type=Cfg,
+    factory=Slow,
+    inputs=(Input(keys.PHOTO, Photo, "on_photo", check_images=False),),
 )
 
 
@@ -153,7 +157,11 @@ class Chunked:
 
 
 CHUNKED = NodeSpec(
-    name="chunked", description="test", config_type=Cfg, factory=Chunked, inputs=(Input(keys.PHOTO, Photo, "on_photo"),)
+    name="chunked",
+    description="test",
+    config_type=Cfg,
+    factory=Chunked,
+    inputs=(Input(keys.PHOTO, Photo, "on_photo", check_images=False),),
 )
 
 

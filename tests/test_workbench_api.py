@@ -224,7 +224,7 @@ def test_pick_contract(client) -> None:
     snapped = client.get(f"/api/pick?photo_id=p1&u={cu}&v={cv}&snap_px=8").json()
     assert snapped["snapped"] == "vertex" and np.allclose(snapped["point_in_world_m"], corner, atol=1e-4)
     assert "'u' is required" in _error(client.get("/api/pick?photo_id=p1&v=3"), 400)
-    assert "not a valid float" in _error(client.get("/api/pick?photo_id=p1&u=abc&v=3"), 400)
+    assert "not a valid finite number" in _error(client.get("/api/pick?photo_id=p1&u=abc&v=3"), 400)
     assert "outside" in _error(client.get("/api/pick?photo_id=p1&u=9000&v=3"), 400)
     assert "not registered" in _error(client.get("/api/pick?photo_id=p6&u=3&v=3"), 409)
     assert "unknown photo" in _error(client.get("/api/pick?photo_id=zz&u=3&v=3"), 404)

@@ -7,6 +7,16 @@ ledger was created, skips what it already handled (by key and payload digest: a 
 byte for byte is handled once) and handles the rest in publication order. A handled message is marked done in the
 same SQLite transaction as the node's state snapshot (when it has one), so a restart resumes exactly there.
 
+Retention (:class:`Retention`): the ledger's handled rows are pruned by age (``keep_days``, default 30) and by
+count (``max_rows``, default 1e6), at most every ``prune_every_secs`` and only after the start's history catch-up.
+The rule that keeps delivery exactly-once: a prune that deletes the rows handled before ``cut`` moves the
+ledger's history horizon (``since_ns``, what a restart asks publishers for) to ``cut + skew_margin_secs`` (never
+past now). A publication the history cache could still re-deliver at the next start is then either older than
+the horizon (not asked for; it was handled or queued before the prune, since the node was running and caught up)
+or newer, and was handled at or after its publication time minus the clock skew, so its row is still there. The
+effective retention is therefore never shorter than the bus history asked for; clock skew between publisher and
+node beyond the margin could re-handle a message (at least once, never lost).
+
 Pure: no zenoh. Times are ``time.time_ns()`` of the publisher (one clock on loopback).
 """
 
@@ -14,12 +24,15 @@ from __future__ import annotations
 
 import collections
 import hashlib
+import math
 import sqlite3
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+
+import msgspec
 
 HISTORY_ROOT = "history"
 """Prefix of history queries: ``history/<key expression>`` asks for the cached publications under it."""
@@ -76,9 +89,24 @@ class PublicationCache:
         return len(self._items)
 
 
+class Retention(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """How long a ledger keeps handled-message rows (see the module docstring for the idempotence rule)."""
+
+    keep_days: float = 30.0
+    """Rows handled longer ago are pruned (0: no age limit)."""
+    max_rows: int = 1_000_000
+    """About this many rows at most: the oldest beyond are pruned (0: no count limit; rows of one commit share a
+    time and go together)."""
+    prune_every_secs: float = 3600.0
+    """Least time between two prunes (a prune is one DELETE on an index; not per message)."""
+    skew_margin_secs: float = 3600.0
+    """Clock skew tolerated between publishers and the node: rows are kept this much longer than the horizon."""
+
+
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (name TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS handled (digest TEXT PRIMARY KEY, key TEXT NOT NULL, handled_ns INTEGER NOT NULL);
+CREATE INDEX IF NOT EXISTS handled_by_time ON handled (handled_ns);
 CREATE TABLE IF NOT EXISTS state (name TEXT PRIMARY KEY, data BLOB NOT NULL, saved_ns INTEGER NOT NULL);
 CREATE TABLE IF NOT EXISTS outbox (seq INTEGER PRIMARY KEY AUTOINCREMENT, key TEXT NOT NULL, payload BLOB NOT NULL,
     preview INTEGER NOT NULL);
@@ -93,8 +121,12 @@ class Ledger:
     Writes are transactions (WAL journal): a SIGKILL leaves the last committed state. Thread-safe.
     """
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, retention: Retention | None = None) -> None:
         self.path = Path(path)
+        self.retention = retention or Retention()
+        self.pruned = 0
+        """Rows pruned by this instance."""
+        self._last_prune = -math.inf
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._db = sqlite3.connect(str(self.path), check_same_thread=False, isolation_level=None)
         self._lock = threading.Lock()
@@ -173,6 +205,43 @@ class Ledger:
     def load_state(self) -> dict[str, bytes]:
         with self._lock:
             return {n: bytes(d) for n, d in self._db.execute("SELECT name, data FROM state")}
+
+    def maybe_prune(self, now_ns: int | None = None) -> int:
+        """:meth:`prune` when the last one is at least ``prune_every_secs`` old; rows pruned."""
+        if time.monotonic() - self._last_prune < self.retention.prune_every_secs:
+            return 0
+        return self.prune(now_ns)
+
+    def prune(self, now_ns: int | None = None) -> int:
+        """Delete handled rows older than ``keep_days`` and the oldest beyond ``max_rows``, and move the history
+        horizon (``since_ns``) past them by the skew margin (never past ``now_ns``); rows deleted. Call only once
+        the start's history is queued (the runtime does)."""
+        r = self.retention
+        now = time.time_ns() if now_ns is None else now_ns
+        self._last_prune = time.monotonic()
+        cut = now - int(r.keep_days * 86_400e9) if r.keep_days > 0 else None
+        with self._lock:
+            if r.max_rows > 0:
+                row = self._db.execute(
+                    "SELECT handled_ns FROM handled ORDER BY handled_ns DESC LIMIT 1 OFFSET ?", (r.max_rows - 1,)
+                ).fetchone()
+                if row is not None:  # rows handled before the max_rows-th newest go
+                    cut = int(row[0]) if cut is None else max(cut, int(row[0]))
+            if cut is None:
+                return 0
+            horizon = min(now, cut + int(r.skew_margin_secs * 1e9))
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                n = self._db.execute("DELETE FROM handled WHERE handled_ns < ?", (cut,)).rowcount
+                if n and horizon > self.since_ns:
+                    self._db.execute("UPDATE meta SET value=? WHERE name='since_ns'", (str(horizon),))
+                    self.since_ns = horizon
+                self._db.execute("COMMIT")
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+        self.pruned += n
+        return int(n)
 
     def handled_count(self) -> int:
         with self._lock:

@@ -40,10 +40,11 @@ import msgspec
 
 from constructaide.errors import UserError
 from constructaide.partition import PARK, SKIP, Partition, Router
+from constructaide.photos import photo_problem
 from constructaide.runtime.bus import Bus, BusConfig, add_bus_args, open_bus, payload_of
-from constructaide.runtime.history import Ledger, digest
+from constructaide.runtime.history import Ledger, Retention, digest
 from schemas import codec, keys, validate
-from schemas.messages import Message, NodeError
+from schemas.messages import Message, NodeError, Photo
 
 
 @dataclass(frozen=True)
@@ -55,6 +56,9 @@ class Input:
     ``latched=True`` also fetches the last value published as latched (e.g. the BIM model) when the node starts.
     ``durable=True`` (default): a node started with a state directory also gets, at start, what was published on
     the input while it was down (:mod:`constructaide.runtime.history`), each message handled once.
+    ``check_images=True`` (default): a Photo whose ``data`` is not a decodable JPEG/PNG of its declared size is
+    refused with a NodeError before the handler (:func:`constructaide.photos.photo_problem`); False only for test
+    and bench nodes that carry opaque bytes.
     """
 
     key: str
@@ -65,6 +69,7 @@ class Input:
     fields: dict[str, str] = field(default_factory=dict)
     with_key: bool = True
     durable: bool = True
+    check_images: bool = True
 
 
 @dataclass(frozen=True)
@@ -197,6 +202,7 @@ class RunningNode:
         queue_size: int = 64,
         state_dir: str | Path | None = None,
         partition: Partition | None = None,
+        retention: Retention | None = None,
     ) -> None:
         self.spec = spec
         self.config = config
@@ -208,7 +214,9 @@ class RunningNode:
         self.ctx = NodeContext(bus, self.site, spec.name, tuple(o.key for o in spec.outputs if o.latched))
         self.obj = spec.factory(config, self.ctx)
         worker = f"-w{partition.spec().replace('/', 'of')}" if partition is not None else ""
-        self.ledger = Ledger(Path(state_dir) / f"{self.site}-{spec.name}{worker}.sqlite") if state_dir else None
+        path = Path(state_dir or ".") / f"{self.site}-{spec.name}{worker}.sqlite"
+        self.ledger = Ledger(path, retention) if state_dir else None
+        self._caught_up = False  # the start's history is queued: the ledger may be pruned (Retention)
         self.replayed = 0
         self.duplicates = 0
         self._inflight: set[str] = set()
@@ -293,6 +301,7 @@ class RunningNode:
             held, self._held = self._held or [], None
         for inp, key, payload in held:
             self._enqueue(inp, key, payload, held_ok=False)
+        self._caught_up = True
         if self.replayed:
             self.ctx.log.info("replayed %d messages published while the node was down", self.replayed)
 
@@ -370,6 +379,9 @@ class RunningNode:
         seqs = self.ledger.done_many(handled, state, out)
         with self._guard:
             self._inflight.difference_update(d for d, _ in handled)
+        if self._caught_up and self.ledger.maybe_prune():
+            self.ctx.log.info("ledger pruned: %d rows kept, history since %d", self.ledger.handled_count(),
+                              self.ledger.since_ns)  # fmt: skip
         self._send_outbox(list(zip(seqs, out, strict=True)))
 
     def _send_outbox(self, out: list[tuple[int, tuple[str, bytes, bool]]]) -> None:
@@ -420,6 +432,8 @@ class RunningNode:
             self.ctx.error(self._topics.get(inp.handler, inp.key), f"cannot decode {inp.type.__name__}: {e}", key)
             return
         bad = [] if inp.raw else validate.problems(msg)  # NaN poses, negative sizes, schedule cycles, ...
+        if not bad and inp.check_images and isinstance(msg, Photo):
+            bad = [p for p in (photo_problem(msg),) if p]  # garbage / truncated / bomb bodies, wrong size
         if bad:
             self.errors += 1
             self.ctx.error(
@@ -502,10 +516,14 @@ def start_node(
     queue_size: int = 64,
     state_dir: str | Path | None = None,
     partition: Partition | None = None,
+    retention: Retention | None = None,
 ) -> Iterator[RunningNode]:
     """Start a node on a bus; stops it (drains its worker, drops its token) on exit. With ``partition`` it is one
-    worker of several of its kind (:mod:`constructaide.partition`)."""
-    node = RunningNode(spec, config, bus, queue_size=queue_size, state_dir=state_dir, partition=partition)
+    worker of several of its kind (:mod:`constructaide.partition`); ``retention``: how long the ledger keeps
+    handled rows (default :class:`Retention`)."""
+    node = RunningNode(
+        spec, config, bus, queue_size=queue_size, state_dir=state_dir, partition=partition, retention=retention
+    )
     try:
         node.start()
         yield node
@@ -573,6 +591,18 @@ def add_node_args(parser: argparse.ArgumentParser) -> None:
         help="folder of the node's SQLite ledger/state: resume after a crash, get what was missed "
         "(default $CONSTRUCTAIDE_STATE_DIR; none: start empty)",
     )
+    parser.add_argument(
+        "--ledger-keep-days",
+        type=float,
+        default=Retention().keep_days,
+        help="days the ledger keeps handled-message ids (0: no age limit; default %(default)s)",
+    )
+    parser.add_argument(
+        "--ledger-max-rows",
+        type=int,
+        default=Retention().max_rows,
+        help="about this many handled-message ids kept at most (0: no limit; default %(default)s)",
+    )
     parser.add_argument("-v", "--verbose", action="store_true")
     parser.add_argument(
         "--partition", metavar="I/N", help="run as worker I of N of this node kind (cameras by rendezvous hashing)"
@@ -605,9 +635,12 @@ def run_node_cli(spec: NodeSpec, argv: list[str] | None = None, *, prog: str | N
             partition = Partition.parse(args.partition, args.cameras.split(",")) if args.partition else None
         except ValueError as e:
             raise UserError(str(e)) from None
+        if args.ledger_keep_days < 0 or args.ledger_max_rows < 0:
+            raise UserError("--ledger-keep-days and --ledger-max-rows must be >= 0")
+        retention = Retention(keep_days=args.ledger_keep_days, max_rows=args.ledger_max_rows)
         with (
             open_bus(BusConfig.from_args(args, role=spec.name)) as bus,
-            start_node(spec, config, bus, state_dir=args.state_dir, partition=partition),
+            start_node(spec, config, bus, state_dir=args.state_dir, partition=partition, retention=retention),
         ):
             logging.getLogger("constructaide").info(
                 "node %s live on site %s (pid %d)", spec.name, config.site, os.getpid()

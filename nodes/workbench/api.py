@@ -12,6 +12,7 @@ import hmac
 import ipaddress
 import json
 import logging
+import math
 import socket
 import threading
 from collections.abc import Callable, MutableMapping
@@ -29,7 +30,7 @@ from starlette.routing import Mount, Route
 from starlette.staticfiles import StaticFiles
 from starlette.types import ASGIApp, Receive, Scope, Send
 
-from nodes.workbench.service import ApiError, Workbench
+from nodes.workbench.service import ApiError, Workbench, at_ns_of
 
 log = logging.getLogger("constructaide.workbench")
 STATIC = Path(str(resources.files("nodes.workbench") / "static"))
@@ -49,6 +50,27 @@ def is_loopback(host: str) -> bool:
 # ---------------------------------------------------------------------------------------------------- handlers
 
 
+MAX_BODY_BYTES = 1 << 20
+"""Largest request body (anchor clicks, selections, annotations are a few kB): 413 beyond."""
+INT64 = 1 << 63
+
+
+def int64(raw: str) -> int:
+    """An integer that fits int64 (times in ns, indices); ValueError otherwise."""
+    v = int(raw)
+    if not -INT64 <= v < INT64:
+        raise ValueError(f"{raw[:40]} is outside the int64 range")
+    return v
+
+
+def finite_float(raw: str) -> float:
+    """A finite float (pixels, radii); ValueError for NaN, infinities and overflow."""
+    v = float(raw)
+    if not math.isfinite(v):
+        raise ValueError(f"{raw[:40]} is not finite")
+    return v
+
+
 def _q(req: Request, name: str, conv: Callable[[str], Any] = str, default: Any = ...) -> Any:
     raw = req.query_params.get(name)
     if raw is None:
@@ -58,15 +80,42 @@ def _q(req: Request, name: str, conv: Callable[[str], Any] = str, default: Any =
     try:
         return conv(raw)
     except ValueError:
-        raise ApiError(400, f"query parameter {name}={raw!r} is not a valid {conv.__name__}") from None
+        what = {"int64": "integer (int64)", "finite_float": "finite number"}.get(conv.__name__, conv.__name__)
+        raise ApiError(400, f"query parameter {name}={raw[:60]!r} is not a valid {what}") from None
+
+
+async def _body(req: Request) -> bytes:
+    """The request body, at most :data:`MAX_BODY_BYTES` (413 beyond, before reading it all)."""
+    declared = req.headers.get("content-length", "")
+    if declared.isdigit() and int(declared) > MAX_BODY_BYTES:
+        raise ApiError(413, f"request body of {declared} bytes is larger than the limit of {MAX_BODY_BYTES}")
+    chunks, n = [], 0
+    async for chunk in req.stream():
+        n += len(chunk)
+        if n > MAX_BODY_BYTES:
+            raise ApiError(413, f"request body is larger than the limit of {MAX_BODY_BYTES} bytes")
+        chunks.append(chunk)
+    return b"".join(chunks)
+
+
+def _no_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not a JSON number")
+
+
+def strict_json(body: bytes) -> Any:
+    """JSON of a request body: no NaN / Infinity, floats finite, integers within int64 (else ApiError 400)."""
+    try:
+        return json.loads(body or b"{}", parse_constant=_no_constant, parse_float=finite_float, parse_int=int64)
+    except json.JSONDecodeError as e:
+        raise ApiError(400, f"body is not valid JSON: {e}") from None
+    except (ValueError, UnicodeDecodeError) as e:
+        raise ApiError(400, f"body is not acceptable JSON: {str(e)[:200]}") from None
+    except RecursionError:
+        raise ApiError(400, "body JSON is nested too deeply") from None
 
 
 async def _json(req: Request) -> Any:
-    body = await req.body()
-    try:
-        return json.loads(body or b"{}")
-    except json.JSONDecodeError as e:
-        raise ApiError(400, f"body is not valid JSON: {e}") from None
+    return strict_json(await _body(req))
 
 
 def _obj(x: Any) -> dict[str, Any]:
@@ -146,12 +195,13 @@ def model_mesh(req: Request) -> Response:
 
 
 def visible(req: Request) -> JSONResponse:
-    return JSONResponse({"at_ns": (t := _q(req, "at_ns", int)), "indices": _wb(req).visible_indices(t)})
+    return JSONResponse({"at_ns": (t := _q(req, "at_ns", int64)), "indices": _wb(req).visible_indices(t)})
 
 
 def pick(req: Request) -> JSONResponse:
     wb = _wb(req)
-    out = wb.pick_photo(_q(req, "photo_id"), _q(req, "u", float), _q(req, "v", float), _q(req, "snap_px", float, 0.0))
+    u, v = _q(req, "u", finite_float), _q(req, "v", finite_float)
+    out = wb.pick_photo(_q(req, "photo_id"), u, v, _q(req, "snap_px", finite_float, 0.0))
     return JSONResponse(out)
 
 
@@ -160,14 +210,29 @@ async def pick_view(req: Request) -> JSONResponse:
     return JSONResponse(await asyncio.to_thread(_wb(req).pick_view, body))
 
 
+ANCHOR_BODY = '{"points": [{"pixel": [u, v], "world": [x, y, z]}, ...]}'
+
+
+async def _anchor_body(req: Request) -> bytes:
+    """The body of solve / anchors, checked as strict JSON (NaN, infinities, huge numbers, deep nesting: 400)
+    before the typed decode."""
+    body = await _body(req)
+    try:
+        strict_json(body)
+    except ApiError as e:
+        raise ApiError(400, f"body must be {ANCHOR_BODY}: {e.reason}") from None
+    return body
+
+
 async def solve(req: Request) -> JSONResponse:
-    out = await asyncio.to_thread(_wb(req).solve, req.path_params["photo_id"], await req.body())
+    out = await asyncio.to_thread(_wb(req).solve, req.path_params["photo_id"], await _anchor_body(req))
     out.pop("_req", None)
     return JSONResponse(out)
 
 
 async def anchors(req: Request) -> JSONResponse:
-    return JSONResponse(await asyncio.to_thread(_wb(req).submit_anchors, req.path_params["photo_id"], await req.body()))
+    body = await _anchor_body(req)
+    return JSONResponse(await asyncio.to_thread(_wb(req).submit_anchors, req.path_params["photo_id"], body))
 
 
 async def select(req: Request) -> JSONResponse:
@@ -182,7 +247,7 @@ def outline(req: Request) -> JSONResponse:
 def element(req: Request) -> JSONResponse:
     g = _wb(req).geometry()
     try:
-        return JSONResponse(g.element_info(req.path_params["global_id"], _q(req, "at_ns", int, None)))
+        return JSONResponse(g.element_info(req.path_params["global_id"], _q(req, "at_ns", int64, None)))
     except KeyError:
         raise ApiError(404, f"unknown element {req.path_params['global_id']!r}") from None
 
@@ -215,11 +280,9 @@ def history(req: Request) -> JSONResponse:
 
 async def peek(req: Request) -> Response:
     body = _obj(await _json(req))
-    try:
-        at = int(body["at_ns"])
-        poly = body.get("polygon")
-    except (KeyError, TypeError, ValueError):
-        raise ApiError(400, 'peek needs {"at_ns": int, "polygon": [[u, v], ...] (optional)}') from None
+    if "at_ns" not in body:
+        raise ApiError(400, 'peek needs {"at_ns": int, "polygon": [[u, v], ...] (optional)}')
+    at, poly = at_ns_of(body["at_ns"]), body.get("polygon")
     png, meta = await asyncio.to_thread(_wb(req).peek, req.path_params["photo_id"], at, poly)
     return Response(png, media_type="image/png", headers={"X-Peek": json.dumps(meta)})
 

@@ -48,6 +48,11 @@ THUMB_WIDTH_PX = 240
 FUTURE_RGBA = (255, 170, 0, 200)
 STANDING_RGBA = (200, 200, 200, 150)
 
+MAX_COORD_PX = 32768.0  # polygon / brush vertices beyond this are refused (off-image parts are clipped)
+INT64 = 1 << 63
+MAX_WORLD_M = 1e6  # site-local metres: world points and camera positions beyond this are refused
+MAX_FOCAL_PX = 1e6
+
 Publish = Callable[[str, Message], None]
 
 
@@ -58,6 +63,41 @@ class ApiError(Exception):
         super().__init__(reason)
         self.status = status
         self.reason = reason
+
+
+def points_px(x: Any, what: str) -> list[tuple[float, float]]:
+    """[(u, v)] of a JSON list of pixel pairs: finite, within +-:data:`MAX_COORD_PX`; ApiError 400 otherwise."""
+    try:
+        pts = [(float(u), float(v)) for u, v in x]
+    except (TypeError, ValueError) as e:
+        raise ApiError(400, f"{what} must be a list of [u, v] pixel pairs: {e}") from None
+    if not all(np.isfinite(c) and abs(c) <= MAX_COORD_PX for p in pts for c in p):
+        raise ApiError(400, f"{what} has non-finite or absurd pixel coordinates (beyond {MAX_COORD_PX:.0f} px)")
+    return pts
+
+
+def rigid_pose(T: NDArray[np.float64], max_t_m: float = MAX_WORLD_M) -> bool:
+    """Whether a 4x4 is finite and rigid: orthonormal rotation (det +1), |t| <= ``max_t_m``, last row 0 0 0 1."""
+    if T.shape != (4, 4) or not np.isfinite(T).all() or np.abs(T[:3, 3]).max() > max_t_m:
+        return False
+    R = T[:3, :3]
+    if np.abs(R).max() > 1.001:  # before any product: no overflow on absurd entries
+        return False
+    ok_rot = np.allclose(R.T @ R, np.eye(3), atol=1e-3) and np.linalg.det(R) > 0
+    return bool(ok_rot and np.allclose(T[3], (0.0, 0.0, 0.0, 1.0)))
+
+
+def at_ns_of(x: Any) -> int:
+    """An integer time in ns (int64); ApiError 400 otherwise."""
+    if isinstance(x, bool) or not isinstance(x, (int, float)) or not np.isfinite(x) or not -INT64 <= x < INT64:
+        raise ApiError(400, f"at_ns must be an integer time in ns, not {str(x)[:40]}")
+    return int(x)
+
+
+def photo_id_of(x: Any) -> str | None:
+    if x is not None and not isinstance(x, str):
+        raise ApiError(400, f"photo_id must be a string, not {type(x).__name__}")
+    return x
 
 
 def decode_rgb(data: bytes) -> NDArray[np.uint8]:
@@ -346,10 +386,28 @@ class Workbench:
             at = body.get("at_ns")
         except (KeyError, TypeError, ValueError, msgspec.ValidationError) as e:
             raise ApiError(400, f"pick needs world_from_camera (16 numbers), intrinsics, u and v: {e}") from None
-        if not np.all(np.isfinite(wfc)) or intr.f_px <= 0:
-            raise ApiError(400, "camera must be finite with a positive focal")
+        if not rigid_pose(wfc):
+            raise ApiError(
+                400, "world_from_camera must be a rigid transform (rotation, |t| <= 1e6 m, last row 0 0 0 1)"
+            )
+        numbers = [u, v, snap, intr.f_px, intr.fy_over_fx, intr.cx_px, intr.cy_px, intr.k1, intr.k2]
+        if (
+            not np.isfinite(numbers).all()
+            or not (0 < intr.f_px <= MAX_FOCAL_PX and 0.01 <= intr.fy_over_fx <= 100 and 0 <= snap <= MAX_COORD_PX)
+            or max(abs(intr.cx_px), abs(intr.cy_px)) > MAX_COORD_PX
+            or max(abs(intr.k1), abs(intr.k2)) > 100
+        ):
+            raise ApiError(
+                400,
+                "u, v, snap_px and the intrinsics must be finite and plausible: 0 < f_px <= 1e6, fy_over_fx in "
+                "[0.01, 100], |cx|, |cy| <= 32768 px, |k1|, |k2| <= 100",
+            )
+        if not (0 < intr.width_px <= MAX_COORD_PX and 0 < intr.height_px <= MAX_COORD_PX):
+            raise ApiError(400, f"view size {intr.width_px}x{intr.height_px} is not positive or beyond 32768 px")
+        if not (-0.5 <= u < intr.width_px - 0.5 and -0.5 <= v < intr.height_px - 0.5):
+            raise ApiError(400, f"pixel ({u}, {v}) is outside the {intr.width_px}x{intr.height_px} view")
         g = self.geometry()
-        visible = g.standing(int(at)) if at is not None else None
+        visible = g.standing(at_ns_of(at)) if at is not None else None
         return g.pick(cam.PinholeCamera(intr, wfc), u, v, visible, snap_px=snap).as_json()
 
     # -- anchors ----------------------------------------------------------------------------------------------
@@ -371,6 +429,11 @@ class Workbench:
         if bad:
             raise ApiError(400, f"clicks {bad} are outside the {w}x{h} photo")
         world = np.array([q.world for q in req.points], np.float64).reshape(-1, 3)
+        far = [i for i, x in enumerate(world) if not (np.isfinite(x).all() and np.abs(x).max() <= MAX_WORLD_M)]
+        if far:
+            raise ApiError(400, f"clicks {far} have non-finite or absurd world points (beyond {MAX_WORLD_M:.0e} m)")
+        if req.focal_px is not None and not (np.isfinite(req.focal_px) and 0 < req.focal_px <= MAX_FOCAL_PX):
+            raise ApiError(400, f"focal_px {req.focal_px} is not a positive focal length in pixels (<= 1e6)")
         focal = req.focal_px or p.focal_px
         note = ""
         try:
@@ -432,14 +495,17 @@ class Workbench:
                 ids = g.grow([str(x) for x in body["element_ids"]], str(body["by"]))
             elif mode == "region":
                 img, _ = self._render(photo_id)
-                poly = body.get("polygon")
-                brush = body.get("brush")
+                poly = points_px(body.get("polygon") or [], "polygon")
+                brush = points_px(body.get("brush") or [], "brush")
+                radius = float(body.get("radius_px", 12.0))
+                if not 0 < radius <= MAX_COORD_PX:
+                    raise ApiError(400, f"radius_px must be a positive number of pixels, not {radius}")
                 scale = img.scale
                 mask = regions.region_mask(
                     img.ids.shape,
                     polygon=img.from_photo_px(np.asarray(poly, np.float64)).tolist() if poly else None,
                     brush=img.from_photo_px(np.asarray(brush, np.float64)).tolist() if brush else None,
-                    radius_px=float(body.get("radius_px", 12.0)) * scale,
+                    radius_px=radius * scale,
                 )
                 if not mask.any():
                     raise ApiError(400, "region is empty: give a polygon of >= 3 points or a brush stroke")
@@ -501,10 +567,15 @@ class Workbench:
                 raise ApiError(404, f"unknown annotation {annotation_id!r}")
             prev = revs[-1]
             body = {**msgspec.to_builtins(prev), **body}
-        photo_id = body.get("photo_id")
+        if not isinstance(body, dict):
+            raise ApiError(400, "body must be a JSON object")
+        photo_id = photo_id_of(body.get("photo_id"))
         p = self.photo(photo_id) if photo_id else None
-        element_ids = tuple(str(x) for x in body.get("element_ids") or ())
-        polygon = tuple((float(x), float(y)) for x, y in body.get("polygon_px") or ())
+        ids = body.get("element_ids") or ()
+        if not isinstance(ids, (list, tuple)) or not all(isinstance(x, str) for x in ids):
+            raise ApiError(400, "element_ids must be a list of strings")
+        element_ids = tuple(ids)
+        polygon = tuple(points_px(body.get("polygon_px") or (), "polygon_px"))
         if not element_ids and len(polygon) < 3:
             raise ApiError(400, "an annotation needs element_ids or a polygon_px of >= 3 points")
         if polygon and p is None:
@@ -515,6 +586,9 @@ class Workbench:
         if polygon and p is not None and p.photo_id in self.state.registrations:
             world = self._lift_vertices(p.photo_id, polygon)
         try:
+            rgba = tuple(int(c) for c in body.get("rgba") or (0, 0, 0, 0))
+            if not all(0 <= c <= 255 for c in rgba):
+                raise ValueError(f"rgba {rgba} is not 0-255")
             ann = Annotation(
                 site=self.site,
                 annotation_id=annotation_id or uuid.uuid4().hex[:12],
@@ -527,7 +601,7 @@ class Workbench:
                 text=str(body.get("text", "")),
                 author=str(body.get("author", "")),
                 created_ns=prev.created_ns if prev is not None else now,
-                rgba=tuple(int(c) for c in body.get("rgba") or (0, 0, 0, 0)),  # type: ignore[arg-type]
+                rgba=rgba,  # type: ignore[arg-type]
                 polygon_in_world_m=world,
                 revision=prev.revision + 1 if prev is not None else 0,
                 modified_ns=now,
@@ -630,7 +704,7 @@ class Workbench:
         w, h = p.width_px, p.height_px
         if w <= 0 or h <= 0:
             h, w = decode_rgb(p.data).shape[:2]
-        region = regions.region_mask((h, w), polygon=[(float(x), float(y)) for x, y in polygon]) if polygon else None
+        region = regions.region_mask((h, w), polygon=points_px(polygon, "polygon")) if polygon else None
         if polygon and (region is None or not region.any()):
             raise ApiError(400, "peek region is empty: give a polygon of >= 3 points inside the photo")
         if at_ns < p.capture_time_ns:
