@@ -745,6 +745,11 @@ def main(argv: list[str] | None = None) -> int:
         help="stdout of an earlier run of the same command: sets whose rows it printed are taken from it",
     )
     ap.add_argument("--default-site-runs", type=int, default=1, help="runs on the 110-photo default sites (default 1)")
+    ap.add_argument(
+        "--skip-pycolmap-default",
+        action="store_true",
+        help="do not run pycolmap on the 110-photo default sites (about 55 min each on 2 cores); say so in the notes",
+    )
     ap.add_argument("--first-draw", type=int, default=0, help="click-noise draw of the first run (default 0)")
     ap.add_argument("--sets", default=None, help=f"comma-separated subset of {','.join(SETS)} (default: all)")
     ap.add_argument(
@@ -823,7 +828,15 @@ def main(argv: list[str] | None = None) -> int:
         n = args.default_site_runs if size == "default" else min(runs, args.synthetic_runs)
         if resumed(f"synthetic {size} (seed {seed})"):
             continue
-        srows, note = synth_rows(size, seed, n, cfgs, first, pycolmap_runs=1 if size == "default" else 3)
+        pyc = 1 if size == "default" else 3
+        if args.skip_pycolmap_default and size == "default":
+            pyc = 0
+            notes.append(
+                f"synthetic default (seed {seed}): pycolmap not run in this run (--skip-pycolmap-default: about 55 "
+                "min here); its rows are from the earlier run named in the section 'registration (selected draws, "
+                "sets or variants)' of 2026-12-03 08:18"
+            )
+        srows, note = synth_rows(size, seed, n, cfgs, first, pycolmap_runs=pyc)
         rows += srows
         if note:
             notes.append(note)
