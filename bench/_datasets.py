@@ -75,6 +75,18 @@ class GtCamera:
         uv = xy @ self.K[:2, :2].T + self.K[:2, 2]
         return uv, p[:, 2]
 
+    def visible(self, points_in_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixels (N, 2) and a mask (N,) of the world points this camera sees: in front, inside the image, and
+        within the radius where its lens model is one-to-one (r (1 + k1 r^2 + k2 r^4) still increasing: beyond
+        it, radial distortion folds points from far outside the view back into the image)."""
+        uv, z = self.project(points_in_world)
+        p = points_in_world @ self.camera_from_world[:3, :3].T + self.camera_from_world[:3, 3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r2 = np.sum((p[:, :2] / p[:, 2:3]) ** 2, axis=1)
+        monotone = 1 + 3 * self.k1 * r2 + 5 * self.k2 * r2**2 > 0
+        inside = (uv[:, 0] >= 0) & (uv[:, 0] < self.width_px) & (uv[:, 1] >= 0) & (uv[:, 1] < self.height_px)
+        return uv, (z > 0) & inside & monotone
+
 
 def load_temple(root: Path = TEMPLE_DIR) -> list[GtCamera]:
     lines = (root / "templeSR_par.txt").read_text().split("\n")

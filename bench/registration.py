@@ -161,10 +161,7 @@ def evaluate(
         d = float(np.linalg.norm(T[:3, 3] - T_gt[:3, 3]))
         dist.append(d)
         dist_pct.append(100 * d / float(np.linalg.norm(T_gt[:3, 3] - centre)))
-        px_gt, z = c.project(X_check)
-        vis = (
-            (z > 0) & (px_gt[:, 0] >= 0) & (px_gt[:, 0] < c.width_px) & (px_gt[:, 1] >= 0) & (px_gt[:, 1] < c.height_px)
-        )
+        px_gt, vis = c.visible(X_check)
         px_est, z_est = cam.project_points(intr, cam.invert_rigid(T), X_check[vis])
         e = np.linalg.norm(px_est - px_gt[vis], axis=1)
         e[~np.isfinite(e)] = c.width_px
