@@ -405,9 +405,12 @@ class RunningNode:
             if ids and not router.owns_any(ids):
                 router.skipped += 1
                 return
-        self._handle_now(inp, key, payload)
+        # Messages parked for a photo now owned were published before it (anchor clicks sent ahead of the photo):
+        # they are handled first, in their publication order, as an unpartitioned node would (the register node
+        # then registers the photo from its clicks instead of trying it without them first).
         for item in router.release():
             self._handle_now(*item)
+        self._handle_now(inp, key, payload)
 
     def _handle_now(self, inp: Input, key: str, payload: bytes) -> None:
         try:

@@ -383,14 +383,18 @@ class StreamingRegistrar:
         triangulate_tracks(r, cfg, only=tracks)
         confirm_model_points(r, tracks, cfg)
         self._new_since_global += 1
+        held = self._held_images()
         if c.global_ba_every and self._new_since_global >= c.global_ba_every:
-            bundle(r, cfg)
+            movable = [i for i in r.registered_indices() if i not in held]
+            if movable:
+                bundle(r, cfg, window=movable if held else None)
             triangulate_tracks(r, cfg)
             self._new_since_global = 0
         elif c.local_ba:
-            window = local_window(r, idx, c.local_ba_window)
-            bundle(r, msgspec.structs.replace(cfg, ba_max_nfev=c.local_ba_iterations), window=window)
-            triangulate_tracks(r, cfg, only=image_tracks(r, window))
+            window = [i for i in local_window(r, idx, c.local_ba_window) if i not in held]
+            if window:
+                bundle(r, msgspec.structs.replace(cfg, ba_max_nfev=c.local_ba_iterations), window=window)
+                triangulate_tracks(r, cfg, only=image_tracks(r, window))
         why = mapper.implausible(im, cfg)
         if why:
             im.status, im.message = "failed", f"implausible registration ({im.method}): {why}"
@@ -405,6 +409,14 @@ class StreamingRegistrar:
             if rec is not None and j != idx:
                 rec.world_from_camera, rec.intrinsics = r.images[j].pose, r.images[j].camera
         return sorted(set(changed), key=changed.index)
+
+    def _held_images(self) -> set[int]:
+        """Map images the adjustments never move: fixed cameras' fast-path key frames. Their pose was tracked from
+        the camera's previous frame and published as such, and the camera's next frames are tracked from it; an
+        adjustment over the map's few views (SIFT tracks matched across cameras on repeated texture among them)
+        would move it to a pose nobody published and hand that on to every later frame of the camera."""
+        r = self.recon
+        return {i for i in r.registered_indices() if r.images[i].method.startswith("fastpath")}
 
     def _lookup(self, world_from_camera: np.ndarray, intr: Intrinsics, px: np.ndarray, t_ns: int) -> np.ndarray:
         if self.depth_lookup is None:
