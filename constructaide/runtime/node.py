@@ -41,7 +41,7 @@ import msgspec
 from constructaide.errors import UserError
 from constructaide.partition import PARK, SKIP, Partition, Router
 from constructaide.runtime.bus import Bus, BusConfig, add_bus_args, open_bus, payload_of
-from constructaide.runtime.history import Ledger, digest
+from constructaide.runtime.history import Ledger, digest, read_state
 from schemas import codec, keys, validate
 from schemas.messages import Message, NodeError
 
@@ -187,6 +187,9 @@ class RunningNode:
     With ``hold_outputs = True`` too, what its handlers publish is held and committed with that snapshot (an
     outbox), then sent; a snapshot is also taken whenever the inbox runs dry. A crash then neither loses nor
     repeats an output (the outbox left by a crash between commit and send is sent at the next start).
+    A node object with ``adopt_state(sources, owns_camera)`` is handed, after its own restore, the state blobs of
+    the other state files of its kind in ``state_dir`` (other worker counts, removed workers, the single instance)
+    and a predicate of the cameras it owns: a worker that gains a camera takes over that camera's state.
     """
 
     def __init__(
@@ -225,6 +228,18 @@ class RunningNode:
             if saved:
                 restore(saved)
                 self.ctx.log.info("state restored from %s", self.ledger.path)
+        adopt = getattr(self.obj, "adopt_state", None)
+        if self.ledger is not None and callable(adopt):
+            # Hand-over: the state files of the node kind's other workers (another worker count, a removed worker,
+            # the single instance) lie beside this one's; the node takes its cameras' state from them (the freshest
+            # per camera; a single instance owns every camera).
+            folder = self.ledger.path.parent
+            others = [folder / f"{self.site}-{spec.name}.sqlite"]
+            others += sorted(folder.glob(f"{self.site}-{spec.name}-w*of*.sqlite"))
+            sources = [read_state(p) for p in others if p != self.ledger.path and p.exists()]
+            sources = [b for b in sources if b]
+            if sources:
+                adopt(sources, partition.owns_camera if partition is not None else lambda _camera: True)
         self._queue = Inbox(queue_size, MAX_BLOCK_SECS)
         self._subs: list[Any] = []
         self._topics: dict[str, str] = {}

@@ -153,6 +153,30 @@ class StreamingRegistrar:
     def has_registrations(self) -> bool:
         return bool(self.recon.registered_indices())
 
+    def can_track(self, camera_id: str | None) -> bool:
+        """Whether the fast path holds a tracked frame of this fixed camera (its next frame needs no map)."""
+        return camera_id is not None and camera_id in self.fast.tracks
+
+    def adopt_camera(self, camera_id: str, other: StreamingRegistrar) -> int:
+        """Take over fixed camera ``camera_id`` from another worker's registrar (a hand-over when workers are added
+        or removed): its fast-path track and its pose records, so its next frame registers by the fast path without
+        new clicks. Its map images stay behind (a bumped camera's frame then matches this worker's map only).
+        Returns the number of pose records taken."""
+        self.fast.tracks[camera_id] = other.fast.tracks[camera_id]
+        frames = self.by_camera.setdefault(camera_id, [])
+        taken = 0
+        for pid in other.by_camera.get(camera_id, []):
+            rec = other.poses.get(pid)
+            if rec is None or pid in self.poses:
+                continue
+            self.poses[pid] = rec
+            self.viewpoints.add_photo(pid)
+            frames.append(pid)
+            taken += 1
+        frames.sort(key=lambda p: self.poses[p].capture_time_ns if p in self.poses else 0)
+        self._bound_camera(frames)
+        return taken
+
     def click_disagreement_px(self, photo_id: str, pixels_px: np.ndarray, points_in_world: np.ndarray) -> float:
         """Median distance (px) between clicked pixels (N, 2) and their model points (N, 3) projected under the
         registered pose of ``photo_id`` (inf for points behind the camera). Raises KeyError when it is not
