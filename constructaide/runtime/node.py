@@ -7,7 +7,8 @@ Structs, and calls handlers sequentially on one worker thread fed by an inbox (:
 but never longer than ``MAX_BLOCK_SECS``; then the message is taken beyond the bound. zenoh delivers on its link
 threads: while one waits the whole link stalls, and a publisher blocked long enough takes the transport down
 (``wait_before_close``, raised in :meth:`BusConfig.zenoh_config`), losing every later message; short waits keep
-the links flowing. Nothing accepted is dropped. A node object may
+the links flowing. Nothing accepted is dropped; a sender pushing faster than the node takes gets one NodeError
+(topic ``backpressure``, naming its camera and the queue) per episode, until the inbox runs dry. A node object may
 define ``on_idle()``: it runs after a message when the queue is empty (and at least every ``IDLE_EVERY``
 messages), so handlers can mark work dirty and coalesce it. An ``on_idle`` that does a bounded share of its work
 returns True while more is pending: it is called again as long as no message waits. A payload that fails to
@@ -140,20 +141,27 @@ class Inbox:
     def put(self, item: Any, stop: threading.Event | None = None) -> bool:
         """Append ``item``, waiting for room up to ``max_block_secs``; False (not appended) when ``stop`` is set
         while waiting."""
+        return self.put_checked(item, stop)[0]
+
+    def put_checked(self, item: Any, stop: threading.Event | None = None) -> tuple[bool, bool]:
+        """:meth:`put`, also telling whether the item went beyond the bound (it waited ``max_block_secs`` in
+        vain): ``(appended, overflowed)``."""
         deadline = time.monotonic() + self.max_block_secs
+        over = False
         with self._cond:
             while len(self._items) >= self.maxsize:
                 if stop is not None and stop.is_set():
-                    return False
+                    return False, False
                 left = deadline - time.monotonic()
                 if left <= 0:
                     self.overflows += 1
+                    over = True
                     break
                 self._cond.wait(min(left, 0.2))
             self._items.append(item)
             self.peak = max(self.peak, len(self._items))
             self._cond.notify_all()
-            return True
+            return True, over
 
     def put_last(self, item: Any) -> None:
         """Append without waiting (the stop marker: after everything already accepted)."""
@@ -241,6 +249,7 @@ class RunningNode:
             if sources:
                 adopt(sources, partition.owns_camera if partition is not None else lambda _camera: True)
         self._queue = Inbox(queue_size, MAX_BLOCK_SECS)
+        self._pressure: dict[str, int] = {}  # camera / topic -> messages beyond the bound in this episode
         self._subs: list[Any] = []
         self._topics: dict[str, str] = {}
         self._token: Any = None
@@ -329,10 +338,34 @@ class RunningNode:
         self.idle.clear()
         # Waits while the inbox is full (back-pressure), at most MAX_BLOCK_SECS, and never past close(): a zenoh
         # callback thread stuck here would keep the process from exiting.
-        if not self._queue.put(item, self._closed):
+        ok, over = self._queue.put_checked(item, self._closed)
+        if not ok:
             self.dropped_after_close += 1
             return False
+        if over:
+            self._overloaded(inp, key)
         return True
+
+    def _overloaded(self, inp: Input, key: str) -> None:
+        """A message went beyond the full inbox: its sender pushes faster than this node takes. One NodeError per
+        camera (or topic) and episode (until the inbox runs dry), naming the camera and the queue; nothing is
+        dropped (the message is queued beyond the bound, so latency grows)."""
+        fields = keys.parse(inp.key, key) or {}
+        source = fields.get("camera") or self._topics.get(inp.handler, inp.key)
+        with self._guard:
+            if source in self._pressure:
+                self._pressure[source] += 1
+                return
+            self._pressure[source] = 1
+        worker = f" worker {self.partition.spec()}" if self.partition is not None else ""
+        what = f"camera {source}" if fields.get("camera") else f"topic {source}"
+        self.ctx.error(
+            "backpressure",
+            f"{what} pushes faster than node {self.spec.name}{worker} takes: its inbox ({inp.handler}, "
+            f"{self._queue.maxsize} messages) stayed full for {self._queue.max_block_secs:g} s; messages are queued "
+            "beyond the bound (none dropped, latency grows) until it drains",
+            key,
+        )
 
     def _run(self) -> None:
         on_idle = getattr(self.obj, "on_idle", None)
@@ -361,6 +394,13 @@ class RunningNode:
                         pass
             finally:
                 if self._queue.empty():
+                    if self._pressure:
+                        with self._guard:
+                            done, self._pressure = self._pressure, {}
+                        self.ctx.log.info(
+                            "back-pressure episode over: %s",
+                            ", ".join(f"{k} ({n} beyond the bound)" for k, n in done.items()),
+                        )
                     self.idle.set()
 
     def _mark_done(self, dig: str, key: str, final: bool = False) -> None:
