@@ -1,7 +1,7 @@
 """Partitioned register workers in real processes (``constructaide run`` with ``[workers] register = 2``) on the
 small synthetic site (fixed cameras): every photo is handled by exactly one worker; every frame two workers register
-one worker registers too, as accurately or better; frames that only one worker's shared map registers (a knocked
-camera alone on its worker) fail with a NeedsAnchor request."""
+one worker registers too, as accurately; no pose either run publishes as good is wrong; a frame left failed (a
+knocked camera's, which a worker cannot register reliably) has asked for an anchor."""
 
 from __future__ import annotations
 
@@ -134,7 +134,7 @@ def test_two_register_workers_register_each_photo_once_as_one_worker_does(
     cameras = sorted({p.camera_id for p in fixed if p.camera_id})
     shares = [Partition.parse(f"{i}/2", cameras).my_cameras() for i in range(2)]
     assert all(shares), f"both workers must own a camera for the test to mean anything: {shares}"
-    one, _ = run_register(tmp_path, hub_port, 1, fixed, fixed_anchors)
+    one, asked1 = run_register(tmp_path, hub_port, 1, fixed, fixed_anchors)
     two, asked2 = run_register(tmp_path, hub_port, 2, fixed, fixed_anchors)
     # each photo handled by exactly one worker: the workers' own counts (logged when they stop) add up
     handled = []
@@ -149,31 +149,44 @@ def test_two_register_workers_register_each_photo_once_as_one_worker_does(
     assert set(last1) == set(last2) == {p.photo_id for p in fixed}
     registered1 = {p for p, r in last1.items() if r.status != "failed"}
     registered2 = {p for p, r in last2.items() if r.status != "failed"}
-    assert len(registered1) >= len(fixed) - 1
+    assert len(registered1) >= len(fixed) // 2, f"only {len(registered1)} of {len(fixed)} registered"
     assert registered2 <= registered1
-    # What differs: frames a worker cannot register from its own cameras' map (on this site cam-east is knocked and
-    # re-registers against the other cameras' triangulated points with one worker); none is lost silently: each
-    # failed with a NeedsAnchor request, and all of them are frames of a camera alone on its worker.
+    # None is lost silently: a photo left failed asked for an anchor, in both runs. What differs with two workers:
+    # frames a worker cannot register from its own cameras' map, all of them frames of a camera alone on its worker.
+    assert {p for p in last1 if p not in registered1} <= asked1, "a frame failed without asking for an anchor"
+    assert {p for p in last2 if p not in registered2} <= asked2, "a frame failed without asking for an anchor"
     missing = registered1 - registered2
-    assert missing <= asked2, "a frame failed without asking for an anchor"
     camera_of = {p.photo_id: p.camera_id for p in fixed}
     alone = [share[0] for share in shares if share is not None and len(share) == 1]
     assert all(camera_of[p] in alone for p in missing), {camera_of[p] for p in missing}
-    assert len(missing) <= 3, f"{len(missing)} frames differ from one worker"
-    # poses: as accurate with two workers as with one (scored against the site's truth; tests only)
+    # Poses, scored against the site's truth (tests only): every pose either run published as good, not only each
+    # photo's last one (a consumer uses whatever arrives), within the band, and the same with two workers as with one.
     truth = load_cameras(small_site)
-    bad = []
-    for pid in registered2:
-        t = np.array(truth[rel_of[pid]]["world_from_camera"])
-        errs = []
-        for last in (last1, last2):
-            est = cam.pose_from_tuple(last[pid].world_from_camera)
-            errs.append(cam.rotation_angle_deg(est[:3, :3], t[:3, :3]))
-        # the same or better: one worker's shared map also lets frames of one camera register (wrongly, by up to
-        # 6 deg in development runs) against another camera's points
-        if not (errs[1] <= errs[0] + 0.05 and errs[1] < 1.5):
-            bad.append((rel_of[pid], [round(e, 2) for e in errs]))
-    if bad:
-        # Known open bug (issue #24): under some timings the streaming registrar publishes a wrong pose as good
-        # (seen in CI: a cam-south frame 152 deg off with two workers, 6 deg with one). Reported, not hidden.
-        pytest.xfail(f"wrong poses published (rotation error deg, 1 worker vs 2): {bad}")
+
+    def errors(regs: list) -> dict[str, list[tuple[float, float]]]:
+        out: dict[str, list[tuple[float, float]]] = {}
+        for _k, r in regs:
+            if r.status == "failed":
+                continue
+            t = np.array(truth[rel_of[r.photo_id]]["world_from_camera"])
+            est = cam.pose_from_tuple(r.world_from_camera)
+            err = (cam.rotation_angle_deg(est[:3, :3], t[:3, :3]), float(np.linalg.norm(est[:3, 3] - t[:3, 3])))
+            out.setdefault(r.photo_id, []).append(err)
+        return out
+
+    errs1, errs2 = errors(one), errors(two)
+    report = {
+        rel_of[p]: [round(max(e[0] for e in errs[p]), 2) if p in errs else "failed" for errs in (errs1, errs2)]
+        for p in last1
+    }
+    print("worst published rotation error (deg) per photo, 1 vs 2 workers:", json.dumps(report))
+    bad = [
+        (rel_of[p], n + 1, round(rot, 2), round(pos, 2))
+        for n, errs in enumerate((errs1, errs2))
+        for p, es in errs.items()
+        for rot, pos in es
+        if not (rot < 1.5 and pos < 1.5)
+    ]
+    assert not bad, f"wrong poses published as good (photo, workers, rotation deg, position m): {bad}"
+    for p in registered2:
+        assert abs(errs2[p][-1][0] - errs1[p][-1][0]) < 0.25, (rel_of[p], errs1[p], errs2[p])

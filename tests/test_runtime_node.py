@@ -115,6 +115,31 @@ def test_a_stalled_handler_holds_a_delivery_only_briefly(monkeypatch) -> None:
         assert node.obj.seen == [f"p{i}" for i in range(8)]
 
 
+def test_a_camera_pushing_faster_than_the_node_takes_gets_one_node_error_per_episode(monkeypatch) -> None:
+    """Back-pressure signal: frames beyond the full inbox are queued (none dropped, in order) and the camera's
+    sender gets one NodeError naming the camera and the queue, not one per frame; once the inbox ran dry a new
+    overload is a new episode."""
+    import constructaide.runtime.node as node_mod
+    from schemas.messages import NodeError
+
+    monkeypatch.setattr(node_mod, "MAX_BLOCK_SECS", 0.05)
+    with LocalBus() as bus:
+        errors = bus.collect(keys.key(keys.ERRORS, site="t"))
+        with start_node(SPEC, Cfg(site="t"), bus, queue_size=2) as node:
+            for episode in (1, 2):
+                t, sent = _publish_in_background(bus, 8)
+                assert sent.wait(30)  # 8 frames into a queue of 2 behind a blocked handler
+                node.obj.release.set()
+                t.join(10)
+                assert node.wait_idle(30)
+                node.obj.release.clear()
+                got = [m for _k, m in errors.items if isinstance(m, NodeError) and m.topic == "backpressure"]
+                assert len(got) == episode, [m.reason for m in got]
+                assert "camera c" in got[-1].reason and "on_photo, 2 messages" in got[-1].reason
+                assert got[-1].node == "slow" and "none dropped" in got[-1].reason
+        assert node.obj.seen == [f"p{i}" for i in range(8)] * 2  # nothing dropped, in order
+
+
 def test_close_unblocks_a_publisher_stuck_on_a_full_queue() -> None:
     """A callback blocked on the node's full queue must not outlive close() (it kept processes alive)."""
     with LocalBus() as bus:

@@ -250,3 +250,17 @@ class Ledger:
     def close(self) -> None:
         with self._lock:
             self._db.close()
+
+
+def read_state(path: str | Path) -> dict[str, bytes]:
+    """The state blobs of another node's ledger file, read-only (empty when it has none or cannot be read)."""
+    try:
+        db = sqlite3.connect(f"file:{Path(path)}?mode=ro", uri=True)
+    except sqlite3.Error:
+        return {}
+    try:
+        return {n: bytes(d) for n, d in db.execute("SELECT name, data FROM state")}
+    except sqlite3.Error:
+        return {}
+    finally:
+        db.close()

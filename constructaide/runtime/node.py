@@ -7,7 +7,8 @@ Structs, and calls handlers sequentially on one worker thread fed by an inbox (:
 but never longer than ``MAX_BLOCK_SECS``; then the message is taken beyond the bound. zenoh delivers on its link
 threads: while one waits the whole link stalls, and a publisher blocked long enough takes the transport down
 (``wait_before_close``, raised in :meth:`BusConfig.zenoh_config`), losing every later message; short waits keep
-the links flowing. Nothing accepted is dropped. A node object may
+the links flowing. Nothing accepted is dropped; a sender pushing faster than the node takes gets one NodeError
+(topic ``backpressure``, naming its camera and the queue) per episode, until the inbox runs dry. A node object may
 define ``on_idle()``: it runs after a message when the queue is empty (and at least every ``IDLE_EVERY``
 messages), so handlers can mark work dirty and coalesce it. An ``on_idle`` that does a bounded share of its work
 returns True while more is pending: it is called again as long as no message waits. A payload that fails to
@@ -42,7 +43,7 @@ from constructaide.errors import UserError
 from constructaide.partition import PARK, SKIP, Partition, Router
 from constructaide.photos import photo_problem
 from constructaide.runtime.bus import Bus, BusConfig, add_bus_args, open_bus, payload_of
-from constructaide.runtime.history import Ledger, Retention, digest
+from constructaide.runtime.history import Ledger, Retention, digest, read_state
 from schemas import codec, keys, validate
 from schemas.messages import Message, NodeError, Photo
 
@@ -145,20 +146,27 @@ class Inbox:
     def put(self, item: Any, stop: threading.Event | None = None) -> bool:
         """Append ``item``, waiting for room up to ``max_block_secs``; False (not appended) when ``stop`` is set
         while waiting."""
+        return self.put_checked(item, stop)[0]
+
+    def put_checked(self, item: Any, stop: threading.Event | None = None) -> tuple[bool, bool]:
+        """:meth:`put`, also telling whether the item went beyond the bound (it waited ``max_block_secs`` in
+        vain): ``(appended, overflowed)``."""
         deadline = time.monotonic() + self.max_block_secs
+        over = False
         with self._cond:
             while len(self._items) >= self.maxsize:
                 if stop is not None and stop.is_set():
-                    return False
+                    return False, False
                 left = deadline - time.monotonic()
                 if left <= 0:
                     self.overflows += 1
+                    over = True
                     break
                 self._cond.wait(min(left, 0.2))
             self._items.append(item)
             self.peak = max(self.peak, len(self._items))
             self._cond.notify_all()
-            return True
+            return True, over
 
     def put_last(self, item: Any) -> None:
         """Append without waiting (the stop marker: after everything already accepted)."""
@@ -192,6 +200,9 @@ class RunningNode:
     With ``hold_outputs = True`` too, what its handlers publish is held and committed with that snapshot (an
     outbox), then sent; a snapshot is also taken whenever the inbox runs dry. A crash then neither loses nor
     repeats an output (the outbox left by a crash between commit and send is sent at the next start).
+    A node object with ``adopt_state(sources, owns_camera)`` is handed, after its own restore, the state blobs of
+    the other state files of its kind in ``state_dir`` (other worker counts, removed workers, the single instance)
+    and a predicate of the cameras it owns: a worker that gains a camera takes over that camera's state.
     """
 
     def __init__(
@@ -233,7 +244,20 @@ class RunningNode:
             if saved:
                 restore(saved)
                 self.ctx.log.info("state restored from %s", self.ledger.path)
+        adopt = getattr(self.obj, "adopt_state", None)
+        if self.ledger is not None and callable(adopt):
+            # Hand-over: the state files of the node kind's other workers (another worker count, a removed worker,
+            # the single instance) lie beside this one's; the node takes its cameras' state from them (the freshest
+            # per camera; a single instance owns every camera).
+            folder = self.ledger.path.parent
+            others = [folder / f"{self.site}-{spec.name}.sqlite"]
+            others += sorted(folder.glob(f"{self.site}-{spec.name}-w*of*.sqlite"))
+            sources = [read_state(p) for p in others if p != self.ledger.path and p.exists()]
+            sources = [b for b in sources if b]
+            if sources:
+                adopt(sources, partition.owns_camera if partition is not None else lambda _camera: True)
         self._queue = Inbox(queue_size, MAX_BLOCK_SECS)
+        self._pressure: dict[str, int] = {}  # camera / topic -> messages beyond the bound in this episode
         self._subs: list[Any] = []
         self._topics: dict[str, str] = {}
         self._token: Any = None
@@ -323,10 +347,34 @@ class RunningNode:
         self.idle.clear()
         # Waits while the inbox is full (back-pressure), at most MAX_BLOCK_SECS, and never past close(): a zenoh
         # callback thread stuck here would keep the process from exiting.
-        if not self._queue.put(item, self._closed):
+        ok, over = self._queue.put_checked(item, self._closed)
+        if not ok:
             self.dropped_after_close += 1
             return False
+        if over:
+            self._overloaded(inp, key)
         return True
+
+    def _overloaded(self, inp: Input, key: str) -> None:
+        """A message went beyond the full inbox: its sender pushes faster than this node takes. One NodeError per
+        camera (or topic) and episode (until the inbox runs dry), naming the camera and the queue; nothing is
+        dropped (the message is queued beyond the bound, so latency grows)."""
+        fields = keys.parse(inp.key, key) or {}
+        source = fields.get("camera") or self._topics.get(inp.handler, inp.key)
+        with self._guard:
+            if source in self._pressure:
+                self._pressure[source] += 1
+                return
+            self._pressure[source] = 1
+        worker = f" worker {self.partition.spec()}" if self.partition is not None else ""
+        what = f"camera {source}" if fields.get("camera") else f"topic {source}"
+        self.ctx.error(
+            "backpressure",
+            f"{what} pushes faster than node {self.spec.name}{worker} takes: its inbox ({inp.handler}, "
+            f"{self._queue.maxsize} messages) stayed full for {self._queue.max_block_secs:g} s; messages are queued "
+            "beyond the bound (none dropped, latency grows) until it drains",
+            key,
+        )
 
     def _run(self) -> None:
         on_idle = getattr(self.obj, "on_idle", None)
@@ -355,6 +403,13 @@ class RunningNode:
                         pass
             finally:
                 if self._queue.empty():
+                    if self._pressure:
+                        with self._guard:
+                            done, self._pressure = self._pressure, {}
+                        self.ctx.log.info(
+                            "back-pressure episode over: %s",
+                            ", ".join(f"{k} ({n} beyond the bound)" for k, n in done.items()),
+                        )
                     self.idle.set()
 
     def _mark_done(self, dig: str, key: str, final: bool = False) -> None:
@@ -417,9 +472,12 @@ class RunningNode:
             if ids and not router.owns_any(ids):
                 router.skipped += 1
                 return
-        self._handle_now(inp, key, payload)
+        # Messages parked for a photo now owned were published before it (anchor clicks sent ahead of the photo):
+        # they are handled first, in their publication order, as an unpartitioned node would (the register node
+        # then registers the photo from its clicks instead of trying it without them first).
         for item in router.release():
             self._handle_now(*item)
+        self._handle_now(inp, key, payload)
 
     def _handle_now(self, inp: Input, key: str, payload: bytes) -> None:
         try:

@@ -10,6 +10,7 @@ inputs go straight to its methods.
 from __future__ import annotations
 
 import sys
+from collections.abc import Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -51,6 +52,12 @@ class OccludeNode(OcclusionPipeline):
         if self.meshes:
             self.renderer = ModelView(self.meshes)
         self.ctx.log.info("resumed: %d photos, %d registrations", len(self.photos), len(self.registrations))
+
+    def adopt_state(self, sources: list[dict[str, bytes]], owns_camera: Callable[[str], bool]) -> None:
+        """Partitioned worker: take over its cameras' frames from the other workers' state files."""
+        taken = state.adopt_cameras(self, [b["pipeline"] for b in sources if "pipeline" in b], owns_camera)
+        if taken:
+            self.ctx.log.info("took over cameras %s from other workers' state", ", ".join(taken))
 
 
 INPUTS = (

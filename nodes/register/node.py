@@ -8,6 +8,8 @@ updates) only feeds the depth lookup that gives anchor features 3D points; it ne
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import msgspec
 
 from constructaide.runtime import Input, NodeContext, NodeSpec, Output, run_node_cli
@@ -80,6 +82,12 @@ class RegisterNode:
             len(self.inbox.pending),
         )
 
+    def adopt_state(self, sources: list[dict[str, bytes]], owns_camera: Callable[[str], bool]) -> None:
+        """Partitioned worker: take over its cameras' state from the other workers' state files."""
+        taken = state.adopt_cameras(self, sources, owns_camera)
+        if taken:
+            self.ctx.log.info("took over cameras %s from other workers' state", ", ".join(taken))
+
     # -- handlers -------------------------------------------------------------
 
     def on_photo(self, msg: m.Photo, key: str) -> None:
@@ -88,7 +96,7 @@ class RegisterNode:
             self._register_anchor(msg, self.inbox.pending_anchors.pop(msg.photo_id))
             self._retry_pending()
             return
-        if not self.registrar.has_registrations():
+        if not self.registrar.has_registrations() and not self.registrar.can_track(msg.camera_id):
             self._enqueue(msg)
             if self.inbox.first_ask(msg):
                 self._publish_needs_anchor(msg.photo_id, "no registered photos yet: please click anchors on this photo")

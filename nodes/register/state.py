@@ -12,6 +12,7 @@ depth lookup (an EGL view) is not kept, it is rebuilt from ``bim``. Pure: no bus
 from __future__ import annotations
 
 import pickle
+from collections.abc import Callable
 from typing import Any
 
 STATE_VERSION = 1
@@ -70,3 +71,36 @@ def load_into(node: Any, blobs: dict[str, bytes]) -> bool:
                 setattr(node, f, doc[f])
             return True
     return False
+
+
+def adopt_cameras(node: Any, sources: list[dict[str, bytes]], owns_camera: Callable[[str], bool]) -> list[str]:
+    """Hand the node's registrar the cameras it owns from other workers' saved ``map`` blobs (``sources``): per
+    camera the freshest fast-path track (latest tracked frame, this node's own included), with its pose records,
+    and each owned camera's waiting photos that no source registered. Returns the cameras taken over."""
+    mine = node.registrar
+    best: dict[str, tuple[int, Any]] = {
+        c: (t.capture_time_ns, None) for c, t in mine.fast.tracks.items() if owns_camera(c)
+    }
+    docs = []
+    for blobs in sources:
+        if "map" not in blobs:
+            continue
+        doc = pickle.loads(blobs["map"])  # noqa: S301 - the site's own state files (same state directory)
+        if doc.get("version") != STATE_VERSION:
+            continue
+        docs.append(doc)
+        reg = doc["registrar"]
+        for c, t in reg.fast.tracks.items():
+            if owns_camera(c) and t.capture_time_ns > best.get(c, (-1, None))[0]:
+                best[c] = (t.capture_time_ns, reg)
+    taken = sorted(c for c, (_, reg) in best.items() if reg is not None)
+    for c in taken:
+        mine.adopt_camera(c, best[c][1])
+    registered = set(mine.poses).union(*(d["registrar"].poses for d in docs)) if docs else set(mine.poses)
+    for doc in docs:
+        inbox = doc["inbox"]
+        for pid, photo in inbox.pending.items():
+            if photo.camera_id and owns_camera(photo.camera_id) and pid not in registered:
+                node.inbox.pending.setdefault(pid, photo)
+        node.inbox.asked_groups |= {g for g in inbox.asked_groups if owns_camera(g)}
+    return taken

@@ -153,6 +153,30 @@ class StreamingRegistrar:
     def has_registrations(self) -> bool:
         return bool(self.recon.registered_indices())
 
+    def can_track(self, camera_id: str | None) -> bool:
+        """Whether the fast path holds a tracked frame of this fixed camera (its next frame needs no map)."""
+        return camera_id is not None and camera_id in self.fast.tracks
+
+    def adopt_camera(self, camera_id: str, other: StreamingRegistrar) -> int:
+        """Take over fixed camera ``camera_id`` from another worker's registrar (a hand-over when workers are added
+        or removed): its fast-path track and its pose records, so its next frame registers by the fast path without
+        new clicks. Its map images stay behind (a bumped camera's frame then matches this worker's map only).
+        Returns the number of pose records taken."""
+        self.fast.tracks[camera_id] = other.fast.tracks[camera_id]
+        frames = self.by_camera.setdefault(camera_id, [])
+        taken = 0
+        for pid in other.by_camera.get(camera_id, []):
+            rec = other.poses.get(pid)
+            if rec is None or pid in self.poses:
+                continue
+            self.poses[pid] = rec
+            self.viewpoints.add_photo(pid)
+            frames.append(pid)
+            taken += 1
+        frames.sort(key=lambda p: self.poses[p].capture_time_ns if p in self.poses else 0)
+        self._bound_camera(frames)
+        return taken
+
     def click_disagreement_px(self, photo_id: str, pixels_px: np.ndarray, points_in_world: np.ndarray) -> float:
         """Median distance (px) between clicked pixels (N, 2) and their model points (N, 3) projected under the
         registered pose of ``photo_id`` (inf for points behind the camera). Raises KeyError when it is not
@@ -383,14 +407,18 @@ class StreamingRegistrar:
         triangulate_tracks(r, cfg, only=tracks)
         confirm_model_points(r, tracks, cfg)
         self._new_since_global += 1
+        held = self._held_images()
         if c.global_ba_every and self._new_since_global >= c.global_ba_every:
-            bundle(r, cfg)
+            movable = [i for i in r.registered_indices() if i not in held]
+            if movable:
+                bundle(r, cfg, window=movable if held else None)
             triangulate_tracks(r, cfg)
             self._new_since_global = 0
         elif c.local_ba:
-            window = local_window(r, idx, c.local_ba_window)
-            bundle(r, msgspec.structs.replace(cfg, ba_max_nfev=c.local_ba_iterations), window=window)
-            triangulate_tracks(r, cfg, only=image_tracks(r, window))
+            window = [i for i in local_window(r, idx, c.local_ba_window) if i not in held]
+            if window:
+                bundle(r, msgspec.structs.replace(cfg, ba_max_nfev=c.local_ba_iterations), window=window)
+                triangulate_tracks(r, cfg, only=image_tracks(r, window))
         why = mapper.implausible(im, cfg)
         if why:
             im.status, im.message = "failed", f"implausible registration ({im.method}): {why}"
@@ -405,6 +433,14 @@ class StreamingRegistrar:
             if rec is not None and j != idx:
                 rec.world_from_camera, rec.intrinsics = r.images[j].pose, r.images[j].camera
         return sorted(set(changed), key=changed.index)
+
+    def _held_images(self) -> set[int]:
+        """Map images the adjustments never move: fixed cameras' fast-path key frames. Their pose was tracked from
+        the camera's previous frame and published as such, and the camera's next frames are tracked from it; an
+        adjustment over the map's few views (SIFT tracks matched across cameras on repeated texture among them)
+        would move it to a pose nobody published and hand that on to every later frame of the camera."""
+        r = self.recon
+        return {i for i in r.registered_indices() if r.images[i].method.startswith("fastpath")}
 
     def _lookup(self, world_from_camera: np.ndarray, intr: Intrinsics, px: np.ndarray, t_ns: int) -> np.ndarray:
         if self.depth_lookup is None:
