@@ -433,7 +433,7 @@ def bench_set(
                 times["pycolmap"].append(secs)
                 gt_aligned = align_to_gt(colmap_est, cams)
                 per_draw["pycolmap"].append({**evaluate(cams, gt_aligned, X_check, priors), "anchors_used": 0})
-            if anchor_poses:
+            if anchor_poses and r < pycolmap_runs:
                 aligned = align_to_anchor_poses(colmap_est, anchor_poses)
                 per_draw["pycolmap_anchor"].append(
                     {**evaluate(cams, aligned, X_check, priors), "anchors_used": len(anchor_poses)}
