@@ -69,3 +69,45 @@ def test_generator_is_deterministic(tmp_path: Path) -> None:
     write_big_ifc(a, 120, seed=5)
     write_big_ifc(b, 120, seed=5)
     assert a.read_bytes() == b.read_bytes()
+
+
+def _box_grid(n: int = 20) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    import trimesh
+
+    box = trimesh.creation.box((1.0, 1.0, 2.0))
+    return {f"b{i:02d}{j:02d}": (box.vertices + (3.0 * i, 3.0 * j, 1.0), box.faces) for i in range(n) for j in range(n)}
+
+
+def test_draw_ranges_merge_consecutive_drawn_elements() -> None:
+    from constructaide.modelview import draw_ranges
+
+    tri_range = np.array([[0, 0], [0, 2], [2, 2], [2, 5], [5, 6], [6, 9]])  # element 2 has no triangles
+    first, count = draw_ranges(tri_range, np.array([True, True, True, True, False, True]))
+    assert first.tolist() == [0, 18] and count.tolist() == [15, 9]
+    first, count = draw_ranges(tri_range, np.zeros(6, bool))
+    assert len(first) == 0 and len(count) == 0
+
+
+def test_frustum_culling_draws_less_and_changes_no_pixel(monkeypatch) -> None:  # noqa: ANN001
+    import constructaide.modelview as mv
+    from constructaide.modelscene import scene_from_meshes
+
+    scene = scene_from_meshes(_box_grid())
+    intr = centered_intrinsics(320, 240, 700.0, -0.05, 0.01)
+    wfc = look_at((-8.0, -8.0, 3.0), (3.0, 3.0, 1.0))  # sees the corner of the grid
+    vis = np.ones(scene.num_elements + 1, bool)
+    vis[5::7] = False  # some hidden elements
+    ras = mv.GLRasterizer()
+    try:
+        culled = ras.render(scene, intr, wfc, vis)
+        drawn = ras.last_drawn_vertices
+        monkeypatch.setattr(mv, "frustum_mask", lambda lo, hi, clip: np.ones(len(lo), bool))
+        full = ras.render(scene, intr, wfc, vis)
+        drawn_full = ras.last_drawn_vertices
+    finally:
+        ras.close()
+    assert drawn_full == 3 * 12 * int(vis[1:].sum())
+    assert 0 < drawn < drawn_full / 2
+    assert len(np.unique(culled.ids)) > 10
+    np.testing.assert_array_equal(culled.ids, full.ids)
+    np.testing.assert_array_equal(culled.depth_m, full.depth_m)
