@@ -23,6 +23,7 @@ from __future__ import annotations
 import hashlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -72,7 +73,7 @@ class ScheduleView:
 
     def built(self, at_ns: int, basis: str = "actual") -> NDArray[np.bool_]:
         """(n + 1,) bool: element stands at ``at_ns``. ``basis``: "planned" or "actual" (actual when known)."""
-        b = "actual" if basis == "actual" else "planned"
+        b: Literal["actual", "planned"] = "actual" if basis == "actual" else "planned"
         return self._per_window(lambda w: stands(w, at_ns, b))
 
     def future(self, at_ns: int) -> NDArray[np.bool_]:
