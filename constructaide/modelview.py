@@ -185,6 +185,60 @@ def scene_far_m(scene: BimScene, world_from_camera: NDArray[np.float64], extra_m
     return float(np.linalg.norm(corners - c, axis=1).max() * 1.5 + extra_m + 1.0)
 
 
+def element_bounds(scene: BimScene) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+    """Per element index (row 0 = background): bbox min (n + 1, 3), max (n + 1, 3) in metres and whether it has
+    triangles (n + 1,)."""
+    n = scene.num_elements
+    lo = np.zeros((n + 1, 3))
+    hi = np.zeros((n + 1, 3))
+    counts = scene.tri_range[:, 1] - scene.tri_range[:, 0]
+    has = counts > 0
+    has[0] = False
+    if has.any():
+        starts = 3 * scene.tri_range[has, 0]
+        pos = scene.positions_m.astype(np.float64)
+        lo[has] = np.minimum.reduceat(pos, starts, axis=0)
+        hi[has] = np.maximum.reduceat(pos, starts, axis=0)
+    return lo, hi, has
+
+
+def frustum_mask(
+    lo: NDArray[np.float64], hi: NDArray[np.float64], clip_from_world: NDArray[np.float64]
+) -> NDArray[np.bool_]:
+    """(K,) bool: the boxes ``lo``/``hi`` (K, 3) metres that may intersect the view volume of ``clip_from_world``
+    (4, 4). Conservative: a box is culled only when all eight corners lie outside one clip plane."""
+    corners = np.stack(
+        [
+            np.stack([(lo, hi)[i][:, 0], (lo, hi)[j][:, 1], (lo, hi)[k][:, 2]], axis=1)
+            for i in (0, 1)
+            for j in (0, 1)
+            for k in (0, 1)
+        ],
+        axis=1,
+    )  # (K, 8, 3)
+    clip = corners @ clip_from_world[:3, :3].T + clip_from_world[:3, 3]
+    w = corners @ clip_from_world[3, :3] + clip_from_world[3, 3]
+    out = np.ones(len(lo), bool)
+    for axis in range(3):
+        out &= ~np.all(clip[..., axis] < -w, axis=1)
+        out &= ~np.all(clip[..., axis] > w, axis=1)
+    return out
+
+
+def draw_ranges(tri_range: NDArray[np.int64], draw: NDArray[np.bool_]) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
+    """(first vertex, vertex count) int32 arrays of the runs of consecutive drawn elements; ``draw`` is
+    (n + 1,) bool over element indices (row 0 ignored), ``tri_range`` as in :class:`BimScene`."""
+    d = np.asarray(draw, bool).copy()
+    d[0] = False
+    edges = np.diff(np.concatenate([[0], d.astype(np.int8), [0]]))
+    starts = np.flatnonzero(edges == 1)
+    ends = np.flatnonzero(edges == -1) - 1  # inclusive element index of each run
+    first = 3 * tri_range[starts, 0]
+    count = 3 * (tri_range[ends, 1] - tri_range[starts, 0])
+    keep = count > 0
+    return first[keep].astype(np.int32), count[keep].astype(np.int32)
+
+
 def vertex_array(arrays: Sequence[NDArray[np.generic]], dynamic: bool = False) -> tuple[int, list[int]]:
     """A GL vertex array with one buffer per array, attribute location = position in ``arrays``: uint32 arrays as
     integer attributes, others as float (N,) or (N, k). Returns (vao, buffers); needs a current context."""
@@ -289,6 +343,9 @@ class GLRasterizer:
         self._ground_buffers: list[int] = []
         self._num_vertices = 0
         self._scene: BimScene | None = None
+        self._bounds: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]] | None = None
+        self.last_drawn_vertices = 0
+        """Vertices submitted by the last render after culling (elements hidden or outside the view skipped)."""
         self._lut_tex = 0
         self._lut_shape = (0, 0)
         self._target = IdTarget(2)
@@ -340,6 +397,7 @@ class GLRasterizer:
             np.zeros(_LUT_WIDTH * rows, np.uint8),
         )
         self._lut_shape = (rows, _LUT_WIDTH)
+        self._bounds = element_bounds(scene)
         self._scene = scene
 
     def _set_ground(self, scene: BimScene, ground_z_m: float, extent_m: float) -> None:
@@ -417,9 +475,21 @@ class GLRasterizer:
         GL.glUniformMatrix4fv(self._u_clip, 1, GL.GL_TRUE, clip_from_world.astype(np.float32))
         GL.glUniformMatrix4fv(self._u_cam, 1, GL.GL_TRUE, camera_from_world.astype(np.float32))
         GL.glUniform1i(self._u_vis, 0)
-        if self._num_vertices:
-            GL.glBindVertexArray(self._vao)
-            GL.glDrawArrays(GL.GL_TRIANGLES, 0, self._num_vertices)
+        self.last_drawn_vertices = 0
+        if self._num_vertices and self._bounds is not None:
+            # Culling: only runs of elements that are visible and whose bbox meets the view volume are submitted
+            # (the soup is ordered by element; the visibility texture still decides per vertex).
+            lo, hi, has = self._bounds
+            draw = visible & has
+            draw[draw] = frustum_mask(lo[draw], hi[draw], clip_from_world)
+            first, count = draw_ranges(scene.tri_range, draw)
+            if len(first):
+                GL.glBindVertexArray(self._vao)
+                if len(first) == 1:
+                    GL.glDrawArrays(GL.GL_TRIANGLES, int(first[0]), int(count[0]))
+                else:
+                    GL.glMultiDrawArrays(GL.GL_TRIANGLES, first, count, len(first))
+                self.last_drawn_vertices = int(count.sum())
         if ground_z_m is not None:
             GL.glBindVertexArray(self._ground_vao)
             GL.glDrawArrays(GL.GL_TRIANGLES, 0, 6)

@@ -21,7 +21,9 @@ actuals for it, else planned) and it is not removed; elements no task names alwa
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -49,13 +51,17 @@ _JUDGED = {"ahead": 0, "on_time": 1, "behind": 2}
 
 @dataclass
 class ScheduleView:
-    """Per-element schedule windows of a model, indexed like a :class:`BimScene` (row 0 unused)."""
+    """Per-element schedule windows of a model, indexed like a :class:`BimScene` (row 0 unused; replace the list
+    rather than editing it in place: distinct windows are cached by its length)."""
 
     windows: list[ElementWindow | None]
     task_elements: dict[str, tuple[str, ...]]
     annotations: dict[str, Annotation] = field(default_factory=dict)
     evidence: dict[str, ElementProgress] = field(default_factory=dict)
     """Latest detected progress per element GlobalId (from ``ProgressUpdate``)."""
+    _distinct: tuple[list[ElementWindow | None], NDArray[np.int64], int] | None = field(
+        default=None, init=False, repr=False
+    )
 
     @classmethod
     def from_model(cls, model: BimModel, scene: BimScene) -> ScheduleView:
@@ -67,16 +73,23 @@ class ScheduleView:
 
     def built(self, at_ns: int, basis: str = "actual") -> NDArray[np.bool_]:
         """(n + 1,) bool: element stands at ``at_ns``. ``basis``: "planned" or "actual" (actual when known)."""
-        out = np.zeros(len(self.windows), bool)
-        for i, w in enumerate(self.windows[1:], start=1):
-            out[i] = stands(w, at_ns, "actual" if basis == "actual" else "planned")
-        return out
+        b: Literal["actual", "planned"] = "actual" if basis == "actual" else "planned"
+        return self._per_window(lambda w: stands(w, at_ns, b))
 
     def future(self, at_ns: int) -> NDArray[np.bool_]:
         """(n + 1,) bool: element is planned to be built after ``at_ns`` (not yet complete per plan)."""
+        return self._per_window(lambda w: planned_state(w, at_ns) in ("not_started", "under_construction"))
+
+    def _per_window(self, fn: Callable[[ElementWindow | None], bool]) -> NDArray[np.bool_]:
+        """(n + 1,) bool of ``fn`` per element (row 0 False), evaluated once per distinct window (elements of one
+        task share theirs: a few hundred calls for a model of tens of thousands of elements)."""
+        if self._distinct is None or self._distinct[2] != len(self.windows):
+            index: dict[ElementWindow | None, int] = {}
+            rows = np.fromiter((index.setdefault(w, len(index)) for w in self.windows[1:]), np.int64)
+            self._distinct = (list(index), rows, len(self.windows))
+        distinct, rows, _ = self._distinct
         out = np.zeros(len(self.windows), bool)
-        for i, w in enumerate(self.windows[1:], start=1):
-            out[i] = planned_state(w, at_ns) in ("not_started", "under_construction")
+        out[1:] = np.array([fn(w) for w in distinct], bool)[rows] if len(rows) else False
         return out
 
     def progress(self, at_ns: int, global_ids: list[str], tolerance_ns: int = 86_400 * 10**9) -> NDArray[np.int8]:
@@ -271,8 +284,9 @@ def render_overlay(
         show = sel[ras.ids.clip(0, scene.num_elements)] & (ras.ids <= scene.num_elements) & free
         classes = sorted({e.ifc_class for e in scene.elements})
         lut = np.zeros((scene.num_elements + 2, 3), np.uint8)
-        for i, e in enumerate(scene.elements, start=1):
-            lut[i] = class_rgb(e.ifc_class)
+        rgb = {c: class_rgb(c) for c in classes}
+        if scene.elements:
+            lut[1 : scene.num_elements + 1] = np.array([rgb[e.ifc_class] for e in scene.elements], np.uint8)
         ids_c = np.minimum(ras.ids, scene.num_elements + 1)
         _fill_lut(layer, show, lut[ids_c[show]], 120, ras.shade)
         present = {scene.elements[i - 1].ifc_class for i in np.unique(ids_c[show]) if 0 < i <= scene.num_elements}
