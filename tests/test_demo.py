@@ -40,9 +40,9 @@ def _run_demo(out: Path, *flags: str, with_stdout: bool = False):
 
 
 def test_demo_small_site_end_to_end(small_site: Path, tmp_path: Path) -> None:
-    summary = _run_demo(tmp_path)
+    summary, stdout = _run_demo(tmp_path, with_stdout=True)
     assert summary["photos pushed"] == "23"
-    assert summary["node errors"] == "0"
+    assert summary["node errors"] == "0", re.findall(r"^  error from (\S+): (.*)$", stdout, re.M)
     assert summary["overlays behind latest mask"] == "0"  # the demo waited for the render node to catch up
     registered = int(summary["registered (anchor)"]) + int(summary["registered (auto)"])
     assert registered >= 19  # every fixed-camera frame; phones without clicks ask for an anchor

@@ -350,6 +350,9 @@ def main(argv: list[str]) -> int:
     for m in final.values():
         counts[f"registration {m.status}"] += 1
     unanswered = len({photos[r].photo_id for r in order} - final.keys())
+    # Back-pressure NodeErrors say a node lagged behind the push (nothing dropped): reported apart from faults.
+    pressure = [(k, e) for k, e in errors.items if e.topic == "backpressure"]
+    faults = [(k, e) for k, e in errors.items if e.topic != "backpressure"]
     summary = [
         ("photos pushed", len(order)),
         ("up-front anchor click sets", len(anchors)),
@@ -372,7 +375,8 @@ def main(argv: list[str]) -> int:
         ("overlays", len(overlays.items)),
         ("progress evidence (photos)", len({m.photo_id for _, m in evidence.items})),
         ("overlays behind latest mask", f"{len(stale)}" + ("" if settled == "settled" else f" ({settled})")),
-        ("node errors", len(errors.items)),
+        ("node errors", len(faults)),
+        ("back-pressure signals", f"{len(pressure)} (photos pushed faster than a node took them; none dropped)"),
         ("wall time", f"{time.monotonic() - t_start:.0f} s"),
         ("MCAP recording", str(mcap_path)),
         ("rerun file", f"{rrd_path}  (view: rerun {rrd_path})"),
@@ -380,10 +384,12 @@ def main(argv: list[str]) -> int:
         ("workbench", f"{workbench_url}  (running while the demo runs; --stay keeps it)"),
     ]
     width = max(len(k) for k, _ in summary)
+    for _, e in pressure[:3]:
+        print(f"  back-pressure at {e.node}: {e.reason}")
     print("\nConstructAide demo summary")
     for k, v in summary:
         print(f"  {k:<{width}}  {v}")
-    for _, e in errors.items[:5]:
+    for _, e in faults[:5]:
         print(f"  error from {e.node}: {e.reason}")
     bad = {k: v for k, v in exit_codes.items() if v not in (0, None)}
     if bad:
