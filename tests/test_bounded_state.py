@@ -16,6 +16,7 @@ from constructaide.runtime import NodeContext
 from constructaide.runtime.local import LocalBus
 from nodes.occlude.pipeline import Config as OccludeConfig
 from nodes.occlude.pipeline import OcclusionPipeline
+from nodes.register import state as register_state
 from nodes.register.node import Config as RegisterConfig
 from nodes.register.node import RegisterNode
 from nodes.register.streaming import StreamConfig
@@ -69,6 +70,45 @@ def test_register_state_is_flat_over_many_frames_of_one_camera() -> None:
     assert sizes[0] == sizes[1], sizes
     assert sizes[1]["poses"] <= 5 and sizes[1]["recent_photos"] == 4 and sizes[1]["map_images"] == 1
     assert first.photo_id in node.registrar.poses  # the anchor frame is in the map: kept
+
+
+@pytest.mark.slow  # ~10-20 s on the shared 2-core machine (SIFT of every key frame)
+def test_register_map_keeps_a_bounded_number_of_key_frames_per_camera() -> None:
+    """A camera whose frames keep joining the map as key frames (the site changes) retires its oldest ones: the
+    map's images, features and pairs stay flat, the anchor stays, every frame still registers."""
+    scene = PlaneScene(1)
+    intr, T = mast_camera(W, H)
+    rng = np.random.default_rng(5)
+    cfg = RegisterConfig(
+        site=SITE,
+        keep_recent_photos=4,
+        stream=StreamConfig(max_frames_per_camera=4, key_frame_every_secs=90.0, max_map_images_per_camera=3),
+    )
+    bus = LocalBus()
+    regs = bus.collect(keys.pattern(keys.REGISTRATION, site=SITE))
+    node = RegisterNode(cfg, NodeContext(bus, SITE, "register"))
+    first = make_photo(encode_jpeg(scene.render(intr, T)), "cam-a", 0)
+    px, pts = anchor_clicks(intr, T, noise_px=0.2)
+    node.on_anchors(clicks_msg(first.photo_id, px, pts), "")
+    node.on_photo(first, "")
+    held = []
+    saved: dict[str, tuple[int, bool]] = {}
+    for k in range(1, 17):
+        i, t = jitter(T, intr, rng, 0.2, 0.004)
+        node.on_photo(make_photo(encode_jpeg(scene.render(i, t)), "cam-a", k * 60), "")
+        if k in (8, 16):
+            r = node.registrar.recon
+            held.append((len(r.images), len(r.pairs), sum(im.features.descriptors.nbytes for im in r.images)))
+            blobs = register_state.dump_map(node, saved)  # the durable state forgets retired images' features
+            assert set(saved) == {im.name for im in r.images}
+            assert k == 8 or any(v == b"" for n, v in blobs.items() if n.startswith("feat/"))
+    got = [r for _k, r in regs.items]
+    assert len(got) == 17 and all(r.status != "failed" for r in got), [r.message for r in got if r.status == "failed"]
+    assert sum("joined the map as a key frame" in r.message for r in got) >= 6
+    assert held[0][0] == held[1][0] == 3, held  # the anchor and the two newest key frames
+    assert held[1][1] <= 3 and held[1][2] <= 1.2 * held[0][2], held
+    assert first.photo_id in node.registrar.recon  # the anchor is never retired
+    assert got[-1].photo_id in node.registrar.recon
 
 
 def _photo(img: np.ndarray, camera: str, t_ns: int) -> Photo:

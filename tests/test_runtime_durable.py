@@ -53,6 +53,16 @@ def test_ledger_round_trip_and_atomic_state(tmp_path: Path) -> None:
     led.close()
 
 
+def test_ledger_empty_state_blob_deletes_its_name(tmp_path: Path) -> None:
+    led = Ledger(tmp_path / "s.sqlite")
+    led.save_state({"map": b"m", "feat/a": b"fa", "feat/b": b"fb"})
+    led.done(digest("k", b"1"), "k", {"feat/a": b"", "map": b"m2"})  # image a left the map
+    assert led.load_state() == {"map": b"m2", "feat/b": b"fb"}
+    led.save_state({"feat/b": b"", "feat/never": b""})
+    assert led.load_state() == {"map": b"m2"}
+    led.close()
+
+
 def test_restart_in_process_replays_what_was_missed_once(tmp_path: Path) -> None:
     bus = LocalBus()
     site = "dur"

@@ -172,8 +172,7 @@ class Ledger:
                         "INSERT INTO outbox (key, payload, preview) VALUES (?, ?, ?)", (k, p, int(pv))
                     )
                     seqs.append(int(cur.lastrowid or 0))
-                for name, data in (state or {}).items():
-                    self._db.execute("INSERT OR REPLACE INTO state VALUES (?, ?, ?)", (name, data, now))
+                self._write_state(state or {}, now)
                 self._db.execute("COMMIT")
             except BaseException:
                 self._db.execute("ROLLBACK")
@@ -195,12 +194,19 @@ class Ledger:
         with self._lock:
             self._db.execute("BEGIN IMMEDIATE")
             try:
-                for name, data in state.items():
-                    self._db.execute("INSERT OR REPLACE INTO state VALUES (?, ?, ?)", (name, data, time.time_ns()))
+                self._write_state(state, time.time_ns())
                 self._db.execute("COMMIT")
             except BaseException:
                 self._db.execute("ROLLBACK")
                 raise
+
+    def _write_state(self, state: dict[str, bytes], now_ns: int) -> None:
+        """Inside a transaction: store each blob; an empty one deletes its name (state that went away)."""
+        for name, data in state.items():
+            if data:
+                self._db.execute("INSERT OR REPLACE INTO state VALUES (?, ?, ?)", (name, data, now_ns))
+            else:
+                self._db.execute("DELETE FROM state WHERE name=?", (name,))
 
     def load_state(self) -> dict[str, bytes]:
         with self._lock:

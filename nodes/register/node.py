@@ -199,6 +199,7 @@ class RegisterNode:
 
     def _enqueue(self, msg: m.Photo) -> None:
         for old in self.inbox.enqueue(msg):
+            self.registrar.forget(old.photo_id)  # its features and matches leave the map too
             reg = dropped_registration(self.ctx.site, old, self.config.max_pending)
             self.ctx.publish(
                 keys.key(keys.REGISTRATION, site=self.ctx.site, camera=old.camera_id, photo=old.photo_id), reg

@@ -452,3 +452,48 @@ def local_window(recon: Reconstruction, idx: int, size: int) -> list[int]:
                 shared[i] = shared.get(i, 0) + 1
     best = sorted(shared, key=lambda i: -shared[i])[: max(0, size - 1)]
     return [idx, *best]
+
+
+def remove_images(recon: Reconstruction, drop: set[int] | list[int]) -> np.ndarray:
+    """Take images ``drop`` out of the reconstruction (a bounded map: old key frames retired) and compact it.
+
+    Their pairs and observations go; a triangulated point left with fewer than two observations is untriangulated
+    (a model point keeps its BIM position); tracks left without observations are removed. ``centre_source`` /
+    ``lens_source`` naming a removed image become None. Returns ``old_to_new`` (N_old,) int: each old image's new
+    index, -1 for a removed one (track ids are renumbered too; callers keep no track ids across this call)."""
+    drop = {int(i) for i in drop}
+    n_old = len(recon.images)
+    old_to_new = -np.ones(n_old, np.int64)
+    keep = [i for i in range(n_old) if i not in drop]
+    old_to_new[keep] = np.arange(len(keep))
+    if not drop:
+        return old_to_new
+    recon.pairs = {
+        (int(old_to_new[i]), int(old_to_new[j])): g
+        for (i, j), g in recon.pairs.items()
+        if i not in drop and j not in drop
+    }
+    arrays = {name: recon._array(name).copy() for name in recon._TRACK_ARRAYS}
+    obs = [{int(old_to_new[i]): f for i, f in d.items() if i not in drop} for d in recon.track_obs]
+    alive = np.array([len(d) > 0 for d in obs], bool)
+    thin = np.array([len(d) < 2 for d in obs], bool) & ~arrays["point_from_model"]
+    arrays["points"][thin] = np.nan
+    arrays["point_confirmed"][thin] = False
+    arrays["point_verified"][thin] = False
+    track_new = -np.ones(len(obs) + 1, np.int64)  # index -1 (no track) maps to -1
+    track_new[np.nonzero(alive)[0]] = np.arange(int(alive.sum()))
+    recon.track_obs = [d for d, a in zip(obs, alive, strict=True) if a]
+    recon.feature_track = [track_new[recon.feature_track[i]] for i in keep]
+    recon.images = [recon.images[i] for i in keep]
+    recon._index = {}
+    recon.reset_tracks(len(recon.track_obs))
+    for name, a in arrays.items():
+        setattr(recon, name, a[alive])
+    for im in recon.images:
+        for attr in ("centre_source", "lens_source"):
+            src = getattr(im, attr)
+            if src is not None:
+                setattr(im, attr, None if src in drop else int(old_to_new[src]))
+    names = {im.name for im in recon.images}
+    recon.needs_anchor = [r for r in recon.needs_anchor if r[0] in names]
+    return old_to_new

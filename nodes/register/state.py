@@ -23,7 +23,8 @@ BIM_FIELDS = ("bim",)
 def dump_map(node: Any, saved: dict[str, tuple[int, bool]] | None = None) -> dict[str, bytes]:
     """Blobs of the registrar (without its depth lookup) and the node's queues: ``map``, plus ``feat/<image>`` for
     each map image whose features are not in ``saved`` yet (``{image: (id(features), has PCA)}``, updated): the
-    features (MBs per image, unchanged once extracted) are written once, not with every snapshot."""
+    features (MBs per image, unchanged once extracted) are written once, not with every snapshot; an image that
+    left the map (retired, forgotten) gets an empty ``feat/<image>`` blob, which deletes it from the store."""
     reg = node.registrar
     saved = {} if saved is None else saved
     out: dict[str, bytes] = {}
@@ -37,6 +38,10 @@ def dump_map(node: Any, saved: dict[str, tuple[int, bool]] | None = None) -> dic
                 out[f"feat/{im.name}"] = pickle.dumps(f, protocol=5)
                 saved[im.name] = tag
             im.features = None
+        names = {im.name for im in images}
+        for name in [n for n in saved if n not in names]:
+            out[f"feat/{name}"] = b""
+            del saved[name]
         doc = {"version": STATE_VERSION, "registrar": reg, **{f: getattr(node, f) for f in MAP_FIELDS}}
         out["map"] = pickle.dumps(doc, protocol=5)
         return out

@@ -41,7 +41,14 @@ from nodes.register.features import extract_features, homography_inlier_ratio
 from nodes.register.matching import Vocabulary, match_image
 from nodes.register.photo import FrameImage, PhotoInput
 from nodes.register.pose import rotation_deviation
-from nodes.register.recon import Reconstruction, add_image, image_tracks, link_image_tracks, local_window
+from nodes.register.recon import (
+    Reconstruction,
+    add_image,
+    image_tracks,
+    link_image_tracks,
+    local_window,
+    remove_images,
+)
 from nodes.register.triangulation import confirm_model_points, triangulate_tracks
 from nodes.register.viewpoints import ViewpointGraph, rotation_homography
 from schemas.messages import SPARSE_POINT_FROM_MODEL as POINT_FROM_MODEL
@@ -82,6 +89,10 @@ class StreamConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     """Pose records (and viewpoint-graph entries) kept per fixed camera: beyond it the oldest frames that are not
     in the map (fast-path frames, not key frames or anchors) are forgotten, so a camera's state stays bounded
     however long it runs (0: keep all)."""
+    max_map_images_per_camera: int = 8
+    """Map images (SIFT features, matches, tracks) kept per fixed camera: beyond it the oldest that are not anchors
+    are retired from the map (key frames above all: a camera running for months adds one every
+    ``key_frame_every_secs``), so the map, and the time to match and adjust it, stays bounded (0: keep all)."""
     viewpoint_max_angle_deg: float = 20.0
     densify: bool = True
     densify_pairs: int = 3
@@ -244,6 +255,7 @@ class StreamingRegistrar:
             t0,
             residuals=tuple(float(r) for r in sol.residuals_px),
         )
+        self._retire_camera_images(photo)
         return Outcome(reg, viewpoint_changed=changed, map_changed=True)
 
     def register(self, photo: PhotoInput) -> Outcome:
@@ -284,6 +296,8 @@ class StreamingRegistrar:
                     res.note,
                     t0,
                 )
+                if grew:
+                    self._retire_camera_images(photo)
                 return Outcome(reg, viewpoint_changed=changed, map_changed=grew)
         if not self.has_registrations():
             reason = "no registered images yet: anchor clicks are needed"
@@ -348,6 +362,7 @@ class StreamingRegistrar:
         reg = self._registration(
             photo, "auto", im.method, im.intrinsics, im.world_from_camera, im.num_inliers, im.rms_px, msg, t0
         )
+        self._retire_camera_images(photo)
         return Outcome(reg, num_matched_tracks=im.num_matched_tracks, viewpoint_changed=changed, map_changed=True)
 
     def _try_register(self, idx: int) -> str:
@@ -433,6 +448,44 @@ class StreamingRegistrar:
             if rec is not None and j != idx:
                 rec.world_from_camera, rec.intrinsics = r.images[j].pose, r.images[j].camera
         return sorted(set(changed), key=changed.index)
+
+    def _retire_camera_images(self, photo: PhotoInput) -> None:
+        """After ``photo`` joined the map: retire its fixed camera's oldest registered map images beyond
+        ``max_map_images_per_camera`` (not anchors, not this photo, not the centre or lens source of another
+        image). Their pose records stay (bounded by ``max_frames_per_camera``). Image indices change."""
+        cap, camera_id, keep = self.config.max_map_images_per_camera, photo.camera_id, photo.photo_id
+        if camera_id is None:
+            return
+        r = self.recon
+        mine = [i for i, im in enumerate(r.images) if im.camera_id == camera_id and im.registered]
+        if cap <= 0 or len(mine) <= cap:
+            return
+        sources = {s for im in r.images for s in (im.centre_source, im.lens_source) if s is not None}
+        movable = sorted(
+            (i for i in mine if r.images[i].status != "anchor" and r.images[i].name != keep and i not in sources),
+            key=lambda i: r.images[i].capture_time_ns,
+        )
+        self._remove_images(set(movable[: len(mine) - cap]))
+
+    def forget(self, photo_id: str) -> bool:
+        """Take a photo that is not registered (given up on: pushed out of the waiting queue) out of the map.
+        Returns whether it was there."""
+        if photo_id in self.poses or photo_id not in self.recon:
+            return False
+        self._remove_images({self.recon.index(photo_id)})
+        return True
+
+    def _remove_images(self, drop: set[int]) -> None:
+        """Remove map images ``drop`` (:func:`~nodes.register.recon.remove_images`) and renumber what is keyed by
+        image index here."""
+        if not drop:
+            return
+        new = remove_images(self.recon, drop)
+        self._bow = {int(new[i]): h for i, h in self._bow.items() if new[i] >= 0}
+        self._tried = {
+            int(new[i]): {int(new[j]) for j in js if new[j] >= 0} for i, js in self._tried.items() if new[i] >= 0
+        }
+        self._last_try = {int(new[i]): v for i, v in self._last_try.items() if new[i] >= 0}
 
     def _held_images(self) -> set[int]:
         """Map images the adjustments never move: fixed cameras' fast-path key frames. Their pose was tracked from
