@@ -37,10 +37,9 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from _report import code_version, median, table, write_section  # noqa: E402
 
-from constructaide.app.demo import _anchor_messages  # noqa: E402
+from constructaide import sitedir  # noqa: E402
 from constructaide.app.launch import Launcher  # noqa: E402
 from constructaide.app.supervise import RestartPolicy  # noqa: E402
-from constructaide.photos import photo_from_file  # noqa: E402
 from constructaide.recording import decoded_messages, index_path, read_index  # noqa: E402
 from constructaide.runtime import BusConfig, open_bus  # noqa: E402
 from constructaide.synth import ensure_site  # noqa: E402
@@ -55,14 +54,7 @@ DAY_NS = 86_400 * 10**9
 def frames(site_dir: Path, n: int) -> tuple[list[Photo], dict[str, Photo]]:
     """``n`` fixed-camera frames in capture order (the site's, then repeats with new ids and later times) and the
     site's own photos by relative path (for the up-front anchors)."""
-    doc = tomllib.loads((site_dir / "site.toml").read_text())
-    photos_dir = site_dir / doc["paths"]["photos"]
-    by_rel: dict[str, Photo] = {}
-    for f in sorted(photos_dir.rglob("*.jpg")):
-        rel = f.relative_to(photos_dir).as_posix()
-        camera = rel.split("/")[0]
-        if camera != keys.PHONE:
-            by_rel[rel] = photo_from_file(f, camera_id=camera, site=SITE, tz=doc["site"]["tz"])
+    by_rel = sitedir.site_photos(site_dir, SITE, cameras=lambda camera: camera != keys.PHONE)
     base = sorted(by_rel.values(), key=lambda p: (p.capture_time_ns, p.photo_id))
     span = base[-1].capture_time_ns - base[0].capture_time_ns + DAY_NS
     out = []
@@ -134,7 +126,7 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     site_dir = ensure_site("small", 0, ROOT / ".cache" / "synth")
     doc = tomllib.loads((site_dir / "site.toml").read_text())
     stream, by_rel = frames(site_dir, args.frames)
-    anchors = _anchor_messages(SITE, site_dir, by_rel)
+    anchors = sitedir.anchor_messages(SITE, site_dir, by_rel)
     plan = kill_plan(np.random.default_rng(args.seed), args.frames, args.kills_per_node, tuple(args.victims))
     rec_dir = out / "recordings"
     os.environ["CONSTRUCTAIDE_HISTORY_MB"] = str(args.history_mb)

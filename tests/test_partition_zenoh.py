@@ -12,7 +12,6 @@ import signal
 import subprocess
 import sys
 import threading
-import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +22,7 @@ from constructaide.partition import Partition
 from constructaide.runtime import BusConfig, open_bus
 from constructaide.synth.truth import load_cameras
 from schemas import keys
-from schemas.messages import AnchorClicks, AnchorPoint, Photo
+from schemas.messages import AnchorClicks, Photo
 
 pytestmark = [pytest.mark.zenoh, pytest.mark.slow]
 
@@ -34,29 +33,10 @@ ROOT = Path(__file__).resolve().parents[1]
 def site_photos(site_dir: Path, site: str = SITE) -> tuple[list[Photo], list[AnchorClicks], dict[str, str]]:
     """The site's photos in capture order, the up-front anchor clicks of its anchors.json, and each photo id's
     path relative to photos/."""
-    from constructaide.photos import photo_from_file
+    from constructaide import sitedir
 
-    doc = tomllib.loads((site_dir / "site.toml").read_text())
-    photos_dir = site_dir / doc["paths"]["photos"]
-    by_rel: dict[str, Photo] = {}
-    for f in sorted(photos_dir.rglob("*.jpg")):
-        rel = f.relative_to(photos_dir).as_posix()
-        camera = rel.split("/")[0]
-        by_rel[rel] = photo_from_file(f, None if camera == keys.PHONE else camera, site, doc["site"]["tz"])
-    anchors_doc = json.loads((site_dir / "anchors.json").read_text())
-    anchors = [
-        AnchorClicks(
-            site=site,
-            photo_id=by_rel[a["image"]].photo_id,
-            image_name=a["image"],
-            points=tuple(
-                AnchorPoint(pixel_px=tuple(p["pixel"]), point_in_world_m=tuple(p["world"])) for p in a["points"]
-            ),
-            focal_px=anchors_doc.get("focal_px"),
-        )
-        for a in anchors_doc["anchors"]
-        if a["image"] in by_rel
-    ]
+    by_rel = sitedir.site_photos(site_dir, site)
+    anchors = sitedir.anchor_messages(site, site_dir, by_rel)
     rel_of = {p.photo_id: rel for rel, p in by_rel.items()}
     return sorted(by_rel.values(), key=lambda p: (p.capture_time_ns, p.photo_id)), anchors, rel_of
 

@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import datetime as dt
-import json
 import os
 import queue
 import sys
@@ -101,23 +100,6 @@ def _http_port(requested: int | None) -> int:
     raise UserError("no free TCP port for the workbench")
 
 
-def _anchor_messages(site: str, site_dir: Path, photos: dict[str, Photo]) -> list[AnchorClicks]:
-    """AnchorClicks for every anchor in the site's anchor file whose photo exists (what the user clicked up front)."""
-    doc = json.loads((site_dir / "anchors.json").read_text())
-    out = []
-    for a in doc.get("anchors", []):
-        photo = photos.get(a["image"])
-        if photo is None:
-            continue
-        pts = tuple(AnchorPoint(pixel_px=tuple(p["pixel"]), point_in_world_m=tuple(p["world"])) for p in a["points"])
-        out.append(
-            AnchorClicks(
-                site=site, photo_id=photo.photo_id, image_name=a["image"], points=pts, focal_px=doc.get("focal_px")
-            )
-        )
-    return out
-
-
 class _SimulatedUser:
     """Answers NeedsAnchor requests on the bus as a person would (:class:`constructaide.synth.clicker.SiteClicker`:
     up to 12 visible element corners, 1.5 px noise, about one gross mis-click in 20; reads the site's truth), once
@@ -199,8 +181,8 @@ def _latest_status(items: list) -> dict[str, str]:
 
 
 def main(argv: list[str]) -> int:
+    from constructaide import sitedir
     from constructaide.app.cli import cache_dir
-    from constructaide.photos import photo_from_file
     from constructaide.synth import ensure_site
 
     ap = argparse.ArgumentParser(prog="constructaide demo", description=__doc__)
@@ -228,18 +210,13 @@ def main(argv: list[str]) -> int:
     site_dir = ensure_site(args.size, args.seed, cache_dir() / "synth")
     site_doc = tomllib.loads((site_dir / "site.toml").read_text())
     tz = site_doc["site"]["tz"]
-    photos_dir = site_dir / site_doc["paths"]["photos"]
-
-    files = sorted(p for p in photos_dir.rglob("*") if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
-    photos: dict[str, Photo] = {}
-    for f in tqdm(files, desc="reading photos", unit="photo", file=sys.stderr):
-        rel = f.relative_to(photos_dir).as_posix()
-        camera = rel.split("/")[0]
-        photos[rel] = photo_from_file(f, camera_id=None if camera == keys.PHONE else camera, site=args.site, tz=tz)
-    order = sorted(photos, key=lambda r: (photos[r].capture_time_ns, r))
+    photos = sitedir.site_photos(
+        site_dir, args.site, progress=lambda files: tqdm(files, desc="reading photos", unit="photo", file=sys.stderr)
+    )
+    order = sitedir.in_capture_order(photos)
     if args.max_photos:
         order = order[: args.max_photos]
-    anchors = [a for a in _anchor_messages(args.site, site_dir, photos) if a.image_name in set(order)]
+    anchors = [a for a in sitedir.anchor_messages(args.site, site_dir, photos) if a.image_name in set(order)]
 
     stamp = dt.datetime.now(dt.UTC).strftime("%Y%m%dT%H%M%SZ")
     out = args.out.resolve()
