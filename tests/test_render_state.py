@@ -4,9 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import msgspec
 from render_scenes import four_box_model
 from test_render_node import _photo_and_reg
 
+from constructaide.partition import Partition
 from constructaide.runtime import start_node
 from constructaide.runtime.local import LocalBus
 from nodes.render.node import SPEC, Config
@@ -36,3 +38,43 @@ def test_restart_keeps_photos_and_draws_a_new_mask_without_redrawing(tmp_path: P
             bus.publish(keys.key(keys.OCCLUSION, site="t", kind="combined", photo=photo.photo_id), mask)
             ((_, ov),) = got.wait(1, timeout=60)
             assert ov.photo_id == photo.photo_id
+
+
+def test_a_camera_moved_to_another_worker_keeps_its_photos(tmp_path: Path) -> None:
+    """Two render workers, then one: the one takes the camera's cached photos from worker 1's state file, so a
+    later mask redraws a photo drawn there and a photo whose registration comes only now is drawn."""
+    cameras = ("cam-a", "cam-b", "cam-c", "cam-d")
+    parts = [Partition.parse(f"{i}/2", cameras) for i in range(2)]
+    owner = next(i for i, p in enumerate(parts) if p.owns_camera("cam-a"))
+    model = four_box_model()
+    photo, reg = _photo_and_reg()
+    later = msgspec.structs.replace(photo, photo_id="p0000000000000002", capture_time_ns=photo.capture_time_ns + 60)
+    later_reg = msgspec.structs.replace(reg, photo_id=later.photo_id, capture_time_ns=later.capture_time_ns)
+    cfg = Config(site="t", modes=("state4d",))
+    photo_key = keys.key(keys.PHOTO, site="t", camera="cam-a")
+    with LocalBus() as bus:
+        bus.publish(keys.key(keys.BIM_MODEL, site="t"), model, latched=True)
+        with (
+            start_node(SPEC, cfg, bus, state_dir=tmp_path, partition=parts[0]) as w0,
+            start_node(SPEC, cfg, bus, state_dir=tmp_path, partition=parts[1]) as w1,
+        ):
+            got = bus.collect(keys.pattern(keys.OVERLAY, site="t"))
+            bus.publish(photo_key, photo)
+            bus.publish(keys.key(keys.REGISTRATION, site="t", camera="cam-a", photo=photo.photo_id), reg)
+            bus.publish(photo_key, later)  # its registration is still to come when the worker goes
+            got.wait(1, timeout=60)
+            assert w0.wait_idle(30) and w1.wait_idle(30)
+            workers = (w0, w1)
+            assert set(workers[owner].obj.photos) == {photo.photo_id, later.photo_id}
+            assert not workers[1 - owner].obj.photos
+    with LocalBus() as bus:  # one plain instance now, with its own (empty) state file
+        bus.publish(keys.key(keys.BIM_MODEL, site="t"), model, latched=True)
+        got = bus.collect(keys.pattern(keys.OVERLAY, site="t"))
+        with start_node(SPEC, cfg, bus, state_dir=tmp_path) as node:
+            assert node.wait_idle(30)
+            assert set(node.obj.photos) == {photo.photo_id, later.photo_id} and photo.photo_id in node.obj.rendered
+            mask = OcclusionMask(site="t", photo_id=photo.photo_id, kind="combined", status="ok", mask_png=b"")
+            bus.publish(keys.key(keys.OCCLUSION, site="t", kind="combined", photo=photo.photo_id), mask)
+            bus.publish(keys.key(keys.REGISTRATION, site="t", camera="cam-a", photo=later.photo_id), later_reg)
+            drawn = got.wait(2, timeout=60)
+            assert {ov.photo_id for _, ov in drawn} == {photo.photo_id, later.photo_id}

@@ -11,6 +11,7 @@ The EGL context lives on the node's worker thread (created on first render).
 from __future__ import annotations
 
 from collections import OrderedDict
+from collections.abc import Callable
 
 import msgspec
 
@@ -72,6 +73,13 @@ class RenderNode:
         if "render" in blobs:
             state.load_into(self, blobs["render"])
             self.ctx.log.info("resumed: %d photos drawn, %d to draw", len(self.rendered), len(self.dirty))
+
+    def adopt_state(self, sources: list[dict[str, bytes]], owns_camera: Callable[[str], bool]) -> None:
+        """Partitioned worker: take over its cameras' cached photos from the other workers' state files."""
+        taken = state.adopt_cameras(self, [b["render"] for b in sources if "render" in b], owns_camera)
+        if taken:
+            self._evict()
+            self.ctx.log.info("took over cameras %s from other workers' state", ", ".join(taken))
 
     # -- inputs ---------------------------------------------------------------------------------------
 

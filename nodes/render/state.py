@@ -8,6 +8,7 @@ restart draws the progress mode without them until they come again). Read back o
 from __future__ import annotations
 
 import pickle
+from collections.abc import Callable
 from typing import Any
 
 STATE_VERSION = 1
@@ -24,3 +25,28 @@ def load_into(node: Any, blob: bytes) -> None:
         raise ValueError(f"render state version {doc.get('version')} (this build reads {STATE_VERSION})")
     for f in FIELDS:
         setattr(node, f, doc[f])
+
+
+def adopt_cameras(node: Any, sources: list[bytes], owns_camera: Callable[[str], bool]) -> list[str]:
+    """Take over the cameras this worker owns from other workers' ``render`` blobs: each cached photo of an owned
+    camera that this worker does not hold, with its registration, mask and whether it is drawn or waits to be
+    (so a later mask redraws it and a photo the other worker had not drawn yet is drawn here). The cache bounds
+    apply afterwards. Returns the cameras taken."""
+    taken: set[str] = set()
+    for blob in sources:
+        doc = pickle.loads(blob)  # noqa: S301 - the site's own state files (same state directory)
+        if doc.get("version") != STATE_VERSION:
+            continue
+        for pid, photo in doc["photos"].items():
+            camera = photo.camera_id
+            if not camera or not owns_camera(camera) or pid in node.photos:
+                continue
+            node.photos[pid] = photo
+            node._photo_bytes += len(photo.data)
+            for table in ("registrations", "masks", "dirty"):
+                if pid in doc[table]:
+                    getattr(node, table)[pid] = doc[table][pid]
+            if pid in doc["rendered"]:
+                node.rendered.add(pid)
+            taken.add(camera)
+    return sorted(taken)
