@@ -1,6 +1,6 @@
 """Chunked payloads on real zenoh sessions (loopback hub): a 10 MiB payload in 1 MiB parts arrives whole and once
 live, to a late joiner's latched fetch and in a history query; the wire holds bounded parts with a header, small
-payloads go unchanged; corrupt or incomplete transfers never deliver."""
+payloads go unchanged; corrupt or incomplete transfers and previews above chunk_bytes never deliver."""
 
 from __future__ import annotations
 
@@ -85,6 +85,7 @@ def test_corrupt_or_incomplete_transfers_never_deliver(hub_port: int) -> None:
         corrupt[2] = (h, bytes([p[0] ^ 0xFF]) + p[1:])
         put(corrupt)
         put(list(Transfer(payload, MIB).parts())[1:])  # the first part missing
+        pub.publish(KEY, payload, preview=True)  # a preview above chunk_bytes is not sent (never chunked)
         put([(None, b"marker")])  # same session and key: delivered after the parts above
         got.wait(1, timeout=30)
         assert got.items == [(KEY, b"marker")]
