@@ -11,7 +11,9 @@ per storey, :mod:`constructaide.synth.bigmodel`) through the shipping code.
 * late joiner: a zenoh hub session publishes the encoded model latched (``ZenohBus.publish(latched=True)``, what
   the ingest node's ``NodeContext.publish`` does for ``BIM_MODEL``); a new process joins later, subscribes with
   ``fetch_latched=True`` (what a node's latched input does) and reports the time from opening its session until
-  it holds the decoded model.
+  it holds the decoded model, and the largest zenoh payload it got (the samples the bus reassembles); once with
+  the model as one payload (``chunk_bytes=0``, the baseline: how it went before chunking) and once in parts of
+  the default ``chunk_bytes`` (:mod:`constructaide.runtime.chunks`).
 
     python bench/bigmodel.py [--elements 50000] [--out DIR] [--runs 3] [--no-write]
 """
@@ -74,7 +76,13 @@ print(json.dumps(out))
 
 JOINER = r"""
 import json, sys, threading, time
-from constructaide.runtime import BusConfig, open_bus
+from constructaide.runtime import BusConfig, open_bus, chunks
+sizes = []
+_unpack = chunks.Receiver.unpack
+def _spy(self, key, payload, attachment):
+    sizes.append(len(payload))  # every zenoh sample the subscription gets, before reassembly
+    return _unpack(self, key, payload, attachment)
+chunks.Receiver.unpack = _spy
 from schemas import codec, keys
 from schemas.messages import BimModel
 port, site = int(sys.argv[1]), sys.argv[2]
@@ -91,7 +99,7 @@ with open_bus(BusConfig(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{po
     sub = bus.subscribe(keys.pattern(keys.BIM_MODEL, site=site), on_model, fetch_latched=True)
     ok = got.wait(120)
     sub.close()
-out = {"ok": ok, "open_s": t_open - t0}
+out = {"ok": ok, "open_s": t_open - t0, "samples": len(sizes), "largest_mib": max(sizes, default=0) / 2**20}
 if ok:
     out.update(received_s=box["recv"] - t_open, decoded_s=box["decoded"] - t_open, elements=len(box["model"].elements))
 out["maxrss_mib"] = [int(l.split()[1]) for l in open("/proc/self/status") if l.startswith("VmHWM")][0] / 1024
@@ -175,18 +183,52 @@ def bench_render(payload: bytes, runs: int) -> tuple[dict[str, float], list[list
     return info, rows
 
 
-def bench_late_join(payload: bytes, runs: int) -> list[dict]:
+def bench_late_join(payload: bytes, runs: int, chunk_bytes: int) -> list[dict]:
+    """Late joiners of a hub session that publishes ``payload`` latched with ``chunk_bytes`` (0: one payload)."""
     from constructaide.runtime import BusConfig, open_bus
     from schemas import keys
 
     out = []
-    with open_bus(BusConfig(listen=["tcp/127.0.0.1:0"])) as bus:
+    with open_bus(BusConfig(listen=["tcp/127.0.0.1:0"], chunk_bytes=chunk_bytes)) as bus:
         port = bus.listen_port()
         bus.publish(keys.key(keys.BIM_MODEL, site="bench"), payload, latched=True)
         for _ in range(runs):
             out.append(run_child(JOINER, str(port), "bench", timeout=300))
-            print(f"late join: {out[-1]}", file=sys.stderr, flush=True)
+            print(f"late join (chunk_bytes {chunk_bytes}): {out[-1]}", file=sys.stderr, flush=True)
     return out
+
+
+def late_join_rows(payload: bytes, runs: int) -> tuple[list[list[object]], bool]:
+    """One row per setting (one payload, then parts of the default chunk_bytes); False when a join failed."""
+    from constructaide.runtime.bus import default_chunk_bytes
+
+    rows: list[list[object]] = []
+    base: float | None = None
+    all_ok = True
+    for label, chunk in [("one payload (chunk_bytes 0, as before)", 0), ("parts", default_chunk_bytes())]:
+        joins = bench_late_join(payload, runs, chunk)
+        ok = [j for j in joins if j.get("ok")]
+        all_ok &= len(ok) == len(joins)
+        if chunk:
+            label = f"parts of {chunk / 2**20:g} MiB (default chunk_bytes)"
+        if not ok:
+            rows.append([label, f"FAILED 0/{len(joins)}", "", "", "", "", "", ""])
+            continue
+        decoded = median([j["decoded_s"] for j in ok])
+        base = decoded if base is None else base
+        rows.append(
+            [
+                label,
+                median([j["received_s"] for j in ok]),
+                decoded,
+                decoded / base,
+                median([j["largest_mib"] for j in ok]),
+                int(median([j["samples"] for j in ok])),
+                median([j["maxrss_mib"] for j in ok]),
+                f"{len(ok)}/{len(joins)}",
+            ]
+        )
+    return rows, all_ok
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -217,8 +259,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bare iterator: {bare}", file=sys.stderr, flush=True)
         payload = payload_path.read_bytes()
     info, render_rows = bench_render(payload, args.runs)
-    joins = bench_late_join(payload, args.runs)
-    ok_joins = [j for j in joins if j.get("ok")]
+    join_rows, joins_ok = late_join_rows(payload, args.runs)
 
     ingest_s = median([r["load_s"] + r["glb_s"] + r["encode_s"] for r in ours])
     bare_s = median([r["load_s"] for r in bare])
@@ -256,14 +297,16 @@ def main(argv: list[str] | None = None) -> int:
         "BimModel message MiB",
     ]
     render_headers = ["camera", "elements in view", "ID+depth+shade raster ms", "state4d overlay ms (composite + PNG)"]
-    join_txt = (
-        f"{median([j['received_s'] for j in ok_joins]):.2f} s to receive, "
-        f"{median([j['decoded_s'] for j in ok_joins]):.2f} s to hold the decoded model "
-        f"(session open {median([j['open_s'] for j in ok_joins]):.2f} s before), peak RSS "
-        f"{median([j['maxrss_mib'] for j in ok_joins]):.0f} MiB, {len(ok_joins)}/{len(joins)} joins got it"
-        if ok_joins
-        else f"FAILED: 0/{len(joins)} late joiners received the model ({joins[:1]})"
-    )
+    join_headers = [
+        "BimModel on the bus",
+        "receive s",
+        "hold decoded model s",
+        "ratio vs one payload",
+        "largest zenoh payload MiB",
+        "zenoh samples",
+        "joiner peak RSS MiB",
+        "joins that got it",
+    ]
     body = (
         f"Code: {code}. Synthetic IFC4 model (`constructaide.synth.bigmodel`, seed {args.seed}): {counts['towers']} "
         f"tower(s), {counts['storeys']} storeys of a 10x10-bay frame (columns, beams, slabs, walls, windows as "
@@ -276,7 +319,11 @@ def main(argv: list[str] | None = None) -> int:
         f"1920x1080 photo with lens distortion, median of {args.runs} after a warm-up:\n\n"
         + table(render_headers, render_rows)
         + f"\n\nLate joiner (zenoh, loopback, model published latched by the hub session, a new process subscribes "
-        f"with `fetch_latched=True`), median of {args.runs}: {join_txt}.\n\n"
+        f"with `fetch_latched=True`; seconds from its session open), median of {args.runs}"
+        + ("" if joins_ok else " (SOME JOINS FAILED)")
+        + ":\n\n"
+        + table(join_headers, join_rows)
+        + "\n\n"
         f"Machine load average (1 min) at start / end: {load_before:.1f} / {os.getloadavg()[0]:.1f} (shared "
         f"machine; seconds scale with its load)."
     )

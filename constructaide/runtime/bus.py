@@ -7,6 +7,14 @@ instead of losing data); ``preview=True`` publishes with DROP for ring-buffer st
 queryable (e.g. the BIM model): a subscriber that asks with ``fetch_latched=True`` gets it.
 Every session also keeps its recent data publications (:class:`~constructaide.runtime.history.PublicationCache`)
 and answers :meth:`Bus.history` queries over them, so a restarted node gets what was published while it was down.
+
+Large payloads (above ``BusConfig.chunk_bytes``, 4 MiB by default) travel in parts of at most ``chunk_bytes``, each
+with a part header as zenoh attachment (:mod:`constructaide.runtime.chunks`), on every path: live puts (BLOCK),
+latched replies (the last transfer of a key, served part by part) and history replies. Every subscription, latched
+fetch and history query reassembles them: callbacks and :meth:`Bus.history` only ever see whole payloads, once
+per transfer, and only when the sha256 matches. Payloads up to ``chunk_bytes`` go unchanged, with no attachment.
+Previews are never chunked: a preview above ``chunk_bytes`` is not sent (a warning), since parts sent with DROP
+could arrive incomplete and a ring-buffer preview is lossy by contract anyway.
 """
 
 from __future__ import annotations
@@ -21,6 +29,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol
 
+from constructaide.runtime.chunks import Reassembler, Receiver, Transfer, unpack
 from constructaide.runtime.history import HISTORY_ROOT, Publication, PublicationCache
 from schemas import codec
 from schemas.messages import Message
@@ -33,11 +42,26 @@ log = logging.getLogger("constructaide.bus")
 DEFAULT_HUB_PORT = 7447
 BLOCK_WAIT_BEFORE_CLOSE_US = 120_000_000  # 2 min: see BusConfig.zenoh_config
 DEFAULT_HISTORY_MB = 128.0  # publication cache of a session ($CONSTRUCTAIDE_HISTORY_MB)
+DEFAULT_CHUNK_MIB = 4.0  # largest payload sent whole; larger ones go in parts of this size ($CONSTRUCTAIDE_CHUNK_MIB)
+DEFAULT_CHUNK_BUFFER_MIB = 512.0  # incomplete transfers a subscription holds ($CONSTRUCTAIDE_CHUNK_BUFFER_MIB)
 Callback = Callable[[str, bytes], None]
 
 
 class Closeable(Protocol):
     def close(self) -> None: ...
+
+
+def default_chunk_bytes() -> int:
+    return int(float(os.environ.get("CONSTRUCTAIDE_CHUNK_MIB", DEFAULT_CHUNK_MIB)) * 2**20)
+
+
+def default_chunk_buffer_bytes() -> int:
+    return int(float(os.environ.get("CONSTRUCTAIDE_CHUNK_BUFFER_MIB", DEFAULT_CHUNK_BUFFER_MIB)) * 2**20)
+
+
+def warn_large_preview(key: str, size: int, chunk_bytes: int) -> None:
+    log.warning("preview on %s not sent: %d bytes exceed chunk_bytes (%d); previews are never chunked", key, size,
+                chunk_bytes)  # fmt: skip
 
 
 def payload_of(msg: Message | bytes) -> bytes:
@@ -192,6 +216,11 @@ class BusConfig:
         default_factory=lambda: int(float(os.environ.get("CONSTRUCTAIDE_HISTORY_MB", DEFAULT_HISTORY_MB)) * 1e6)
     )
     """Payload bytes of recent data publications kept to answer history queries (0: none)."""
+    chunk_bytes: int = field(default_factory=default_chunk_bytes)
+    """Payloads above this go in parts of at most this many bytes (0: never split)."""
+    chunk_buffer_bytes: int = field(default_factory=default_chunk_buffer_bytes)
+    """Bytes of incomplete transfers a subscription holds (the oldest are dropped beyond); larger payloads are
+    refused."""
     security: BusSecurity | None = None  # TLS / mTLS / ACL from the site TOML (constructaide.runtime.security)
 
     @classmethod
@@ -315,7 +344,7 @@ class ZenohBus(Bus):
                 raise UserError(f"cannot open the zenoh session ({self.config.mode}): {e}") from None
             self.session = zenoh.open(self.config.zenoh_config(as_hub=False))  # the hub port is taken: join it
             self.is_hub = False
-        self._latched: dict[str, bytes] = {}
+        self._latched: dict[str, Transfer] = {}
         self._latched_lock = threading.Lock()
         self._queryables: dict[str, Any] = {}
         self.cache = PublicationCache(self.config.history_bytes)
@@ -324,32 +353,43 @@ class ZenohBus(Bus):
 
     def publish(self, key: str, msg: Message | bytes, *, preview: bool = False, latched: bool = False) -> None:
         z = self._z
-        payload = payload_of(msg)
+        transfer = Transfer(bytes(payload_of(msg)), self.config.chunk_bytes)
+        if preview and transfer.chunked:
+            warn_large_preview(key, len(transfer.payload), self.config.chunk_bytes)
+            return
         if latched:
             with self._latched_lock:
-                self._latched[key] = payload
+                self._latched[key] = transfer
                 if key not in self._queryables:
                     self._queryables[key] = self.session.declare_queryable(key, self._serve_latched)
         if self.config.security is not None and self.config.security.acl:
             self.config.security.check_publish(key)  # zenoh would drop it silently: say so
         if not preview:
-            self.cache.add(key, payload)
-        self.session.put(
-            key,
-            payload,
-            congestion_control=z.CongestionControl.DROP if preview else z.CongestionControl.BLOCK,
-            priority=z.Priority.DATA_LOW if preview else z.Priority.DATA,
-        )
+            self.cache.add(key, transfer.payload)
+        for head, part in transfer.parts():
+            self.session.put(
+                key,
+                part,
+                congestion_control=z.CongestionControl.DROP if preview else z.CongestionControl.BLOCK,
+                priority=z.Priority.DATA_LOW if preview else z.Priority.DATA,
+                attachment=head,
+            )
 
     def _serve_history(self, query: Any) -> None:
         ke = str(query.key_expr)[len(HISTORY_ROOT) + 1 :]
         since = int(query.parameters.get("since_ns") or 0)
         for pub in self.cache.since(lambda k: _ke_match(ke, k), since):
-            query.reply(f"{HISTORY_ROOT}/{pub.key}", pub.payload, attachment=str(pub.time_ns).encode())
+            # attachment: the publication time, then ";" and the part header when chunked
+            for head, part in Transfer(pub.payload, self.config.chunk_bytes).parts():
+                stamp = str(pub.time_ns).encode()
+                query.reply(
+                    f"{HISTORY_ROOT}/{pub.key}", part, attachment=stamp if head is None else stamp + b";" + head
+                )
 
     def history(self, keyexpr: str, since_ns: int = 0, timeout: float = 10.0) -> list[Publication]:
         z = self._z
         out = []
+        parts = Reassembler(self.config.chunk_buffer_bytes, f"history {keyexpr}")
         replies = self.session.get(
             f"{HISTORY_ROOT}/{keyexpr}?since_ns={since_ns}",
             timeout=timeout,
@@ -359,8 +399,11 @@ class ZenohBus(Bus):
             s = reply.ok
             if s is None:
                 continue
-            t = int(s.attachment.to_bytes()) if s.attachment is not None else 0
-            out.append(Publication(str(s.key_expr)[len(HISTORY_ROOT) + 1 :], s.payload.to_bytes(), t))
+            stamp, _, head = (s.attachment.to_bytes() if s.attachment is not None else b"0").partition(b";")
+            key, payload = str(s.key_expr)[len(HISTORY_ROOT) + 1 :], s.payload.to_bytes()
+            whole = unpack(parts, key, payload, head or None)
+            if whole is not None:
+                out.append(Publication(key, whole, int(stamp or 0)))
         out.sort(key=lambda p: p.time_ns)
         return out
 
@@ -368,21 +411,34 @@ class ZenohBus(Bus):
         ke = str(query.key_expr)
         with self._latched_lock:
             items = [(k, v) for k, v in self._latched.items() if _ke_match(ke, k) or k == ke]
-        for k, v in items:
-            query.reply(k, v)
+        for k, transfer in items:
+            for head, part in transfer.parts():
+                query.reply(k, part, attachment=head)
 
     def subscribe(self, keyexpr: str, callback: Callback, *, fetch_latched: bool = False) -> Closeable:
-        def on_sample(sample: Any) -> None:
+        def deliver(key: str, payload: bytes) -> None:
             try:
-                callback(str(sample.key_expr), sample.payload.to_bytes())
+                callback(key, payload)
             except Exception:  # a callback must never kill zenoh's thread
-                log.exception("subscriber callback failed for %s", sample.key_expr)
+                log.exception("subscriber callback failed for %s", key)
+
+        receiver = Receiver(deliver, self.config.chunk_buffer_bytes, f"subscription {keyexpr}")
+
+        def on_sample(sample: Any) -> None:
+            att = sample.attachment
+            receiver(str(sample.key_expr), sample.payload.to_bytes(), att.to_bytes() if att is not None else None)
 
         sub = self.session.declare_subscriber(keyexpr, on_sample)
         if fetch_latched:
-            for reply in self.session.get(keyexpr, timeout=2.0):
-                if reply.ok is not None:
-                    on_sample(reply.ok)
+            # no consolidation (it would keep one part per key); one latched payload per key, the last completed
+            latest: dict[str, bytes] = {}
+            for reply in self.session.get(keyexpr, timeout=2.0, consolidation=self._z.ConsolidationMode.NONE):
+                if (s := reply.ok) is not None:
+                    att = s.attachment.to_bytes() if s.attachment is not None else None
+                    if (whole := receiver.unpack(str(s.key_expr), s.payload.to_bytes(), att)) is not None:
+                        latest[str(s.key_expr)] = whole
+            for k, whole in latest.items():
+                deliver(k, whole)
         return _Closer(sub.undeclare)
 
     def declare_token(self, key: str) -> Closeable:

@@ -4,7 +4,8 @@ The files rotate by size and age, old ones are deleted by the retention rules, a
 lists them (:mod:`nodes.recorder.rotation`; readers take the index for a path); a full disk is reported on the
 error topic and the newest data kept. ``path`` writes one exact file instead (no rotation).
 
-Payloads are recorded byte for byte (see :mod:`nodes.recorder.mcapio` for the file layout).
+Payloads are recorded byte for byte, one message per publication (the bus reassembles payloads sent in parts,
+:mod:`constructaide.runtime.chunks`; see :mod:`nodes.recorder.mcapio` for the file layout).
 The chunk is finished and the file flushed after every Photo/BimModel/BimUpdate (or every
 message with ``flush_on = "message"``), and a background timer flushes anything older than
 ``max_unflushed_secs``; so a SIGKILLed recorder loses at most the event in progress.
