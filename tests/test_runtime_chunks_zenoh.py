@@ -71,7 +71,8 @@ def test_big_payload_live_latched_history_and_small_unchanged(hub_port: int) -> 
 
 def test_corrupt_or_incomplete_transfers_never_deliver(hub_port: int) -> None:
     payload = os.urandom(3 * MIB + 5)
-    with open_bus(BusConfig(hub_port=hub_port)) as pub, open_bus(BusConfig(hub_port=hub_port)) as sub:
+    cfg = BusConfig(hub_port=hub_port, chunk_bytes=MIB)
+    with open_bus(cfg) as pub, open_bus(cfg) as sub:
         got = sub.collect(KEY, decode=False)
         token = sub.declare_token("constructaide/zc/@live/sub2")
         pub.wait_for_tokens(["constructaide/zc/@live/sub2"], timeout=30)
