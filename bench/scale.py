@@ -256,9 +256,12 @@ def run(sim: SimSite, workers: int, burst_days: int, paced_days: int, log_dir: P
     }
 
 
-def soak(n_frames: int, in_flight: int, log_dir: Path, seed: int = 1) -> list[dict]:
+def soak(
+    n_frames: int, in_flight: int, log_dir: Path, seed: int = 1, node_sets: dict[str, list[str]] | None = None
+) -> list[dict]:
     """One camera pushing ``n_frames`` frames 1 min apart (capture time), as fast as the pipeline finishes them
-    (at most ``in_flight`` unfinished); RSS of every node process at every tenth of the run."""
+    (at most ``in_flight`` unfinished); RSS of every node process at every tenth of the run. ``node_sets``: extra
+    config settings per node kind (``field=value``)."""
     sim = simulate(1, 6, seed)
     base_frames = [day[0] for day in sim.days]
     imgs = [cv2.imdecode(np.frombuffer(p.data, np.uint8), cv2.IMREAD_COLOR) for p in base_frames]
@@ -275,6 +278,8 @@ def soak(n_frames: int, in_flight: int, log_dir: Path, seed: int = 1) -> list[di
         ]
         bim = bus.collect(keys.key(keys.BIM_MODEL, site=SITE), fetch_latched=True)
         sets = {"register": [], "occlude": [], "render": ["modes=['state4d']"]}
+        for kind, extra in (node_sets or {}).items():
+            sets[kind] = sets.get(kind, []) + extra
         for kind in KINDS:
             launcher.start(kind, sets=sets[kind])
         launcher.wait_live(bus, list(KINDS))
@@ -317,7 +322,13 @@ def soak(n_frames: int, in_flight: int, log_dir: Path, seed: int = 1) -> list[di
 
 def soak_main(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory(prefix="scale-soak-") as tmp:
-        samples = soak(args.soak_frames, 4, args.log_dir or Path(tmp))
+        node_sets: dict[str, list[str]] = {}
+        for item in args.soak_set:
+            kind, _, setting = item.partition(":")
+            if kind not in KINDS or "=" not in setting:
+                raise SystemExit(f"--soak-set {item!r}: expected KIND:FIELD=VALUE with KIND one of {', '.join(KINDS)}")
+            node_sets.setdefault(kind, []).append(setting)
+        samples = soak(args.soak_frames, 4, args.log_dir or Path(tmp), node_sets=node_sets)
     kinds = [k for k in (*KINDS, "ingest") if k in samples[0]]
     rows = [
         [s["frames"], f"{s['frames'] / 60:.1f} h", round(s["secs"])] + [round(s[k]) for k in kinds] for s in samples
@@ -340,7 +351,12 @@ def soak_main(args: argparse.Namespace) -> int:
             "and re-exposed so it is a new photo) pushing one frame per minute of capture time, accelerated: the next "
             "frame goes out as soon as fewer than 4 are unfinished; register, occlude and render(state4d) in their "
             "own processes on the loopback bus; resident memory sampled every tenth of the run. The machine was "
-            "shared with other jobs.\n\n" + body + "\n\n" + summary,
+            "shared with other jobs. Node settings beyond the defaults: "
+            + (", ".join(args.soak_set) if args.soak_set else "none")
+            + ".\n\n"
+            + body
+            + "\n\n"
+            + summary,
             command="nice -n 10 python " + " ".join(sys.argv),
         )
     print(f"soak: {samples[-1]['frames']} frames, " + ", ".join(f"{k} {v:+.0f} MiB" for k, v in growth.items()))
@@ -357,6 +373,14 @@ def main() -> int:
     ap.add_argument("--log-dir", type=Path, default=None, help="keep the node logs here (default: a temporary folder)")
     ap.add_argument(
         "--soak-frames", type=int, default=0, help="instead: one camera, this many frames 1 min apart (1440: 24 h)"
+    )
+    ap.add_argument(
+        "--soak-set",
+        action="append",
+        default=[],
+        metavar="KIND:FIELD=VALUE",
+        help="soak: a node setting, e.g. occlude:max_photos_per_camera=50 (repeatable; lowers bounds so a shorter run "
+        "reaches them)",
     )
     args = ap.parse_args()
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
