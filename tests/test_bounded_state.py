@@ -41,23 +41,28 @@ def register_sizes(node: RegisterNode) -> dict[str, int]:
     }
 
 
+def _anchored_node(scene: PlaneScene, stream: StreamConfig):
+    """A register node (in-process bus, 4 recent photos kept) whose camera cam-a's first frame is anchored:
+    (node, registrations collector, that frame)."""
+    intr, T = mast_camera(W, H)
+    bus = LocalBus()
+    regs = bus.collect(keys.pattern(keys.REGISTRATION, site=SITE))
+    node = RegisterNode(
+        RegisterConfig(site=SITE, keep_recent_photos=4, stream=stream), NodeContext(bus, SITE, "register")
+    )
+    first = make_photo(encode_jpeg(scene.render(intr, T)), "cam-a", 0)
+    px, pts = anchor_clicks(intr, T, noise_px=0.2)
+    node.on_anchors(clicks_msg(first.photo_id, px, pts), "")
+    node.on_photo(first, "")
+    return node, regs, first
+
+
 @pytest.mark.slow  # ~15-30 s on the shared 2-core machine (anchor solve, SIFT of the first frame)
 def test_register_state_is_flat_over_many_frames_of_one_camera() -> None:
     scene = PlaneScene(0)
     intr, T = mast_camera(W, H)
     rng = np.random.default_rng(3)
-    cfg = RegisterConfig(
-        site=SITE,
-        keep_recent_photos=4,
-        stream=StreamConfig(max_frames_per_camera=4, key_frame_every_secs=None),
-    )
-    bus = LocalBus()
-    regs = bus.collect(keys.pattern(keys.REGISTRATION, site=SITE))
-    node = RegisterNode(cfg, NodeContext(bus, SITE, "register"))
-    first = make_photo(encode_jpeg(scene.render(intr, T)), "cam-a", 0)
-    px, pts = anchor_clicks(intr, T, noise_px=0.2)
-    node.on_anchors(clicks_msg(first.photo_id, px, pts), "")
-    node.on_photo(first, "")
+    node, regs, first = _anchored_node(scene, StreamConfig(max_frames_per_camera=4, key_frame_every_secs=None))
     sizes = []
     for k in range(1, 15):
         i, t = jitter(T, intr, rng, 0.2, 0.004)
@@ -79,18 +84,8 @@ def test_register_map_keeps_a_bounded_number_of_key_frames_per_camera() -> None:
     scene = PlaneScene(1)
     intr, T = mast_camera(W, H)
     rng = np.random.default_rng(5)
-    cfg = RegisterConfig(
-        site=SITE,
-        keep_recent_photos=4,
-        stream=StreamConfig(max_frames_per_camera=4, key_frame_every_secs=90.0, max_map_images_per_camera=3),
-    )
-    bus = LocalBus()
-    regs = bus.collect(keys.pattern(keys.REGISTRATION, site=SITE))
-    node = RegisterNode(cfg, NodeContext(bus, SITE, "register"))
-    first = make_photo(encode_jpeg(scene.render(intr, T)), "cam-a", 0)
-    px, pts = anchor_clicks(intr, T, noise_px=0.2)
-    node.on_anchors(clicks_msg(first.photo_id, px, pts), "")
-    node.on_photo(first, "")
+    stream = StreamConfig(max_frames_per_camera=4, key_frame_every_secs=90.0, max_map_images_per_camera=3)
+    node, regs, first = _anchored_node(scene, stream)
     held = []
     saved: dict[str, tuple[int, bool]] = {}
     for k in range(1, 17):
