@@ -69,8 +69,13 @@ class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=Tr
     refine_previous_frame: bool = True  # recompute a camera's previous newest frame once a later one arrives
     max_stored_photos: int = 2000  # photos kept for stacks and republishing; the oldest arrivals are dropped
     # ... and at most this many frames of one fixed camera (its earliest captures go first; 0: no per-camera bound),
-    # so a camera's state stays bounded however long it runs
-    max_photos_per_camera: int = 200
+    # so a camera's state stays bounded however long it runs: about 1.1 MB per 960x540 frame at the default working
+    # width (photo JPEG, working image, SIFT features, projected model and own mask, clean plate, masks), held once
+    # more by every state snapshot; the stack takes max_views of them, spread over their time span
+    max_photos_per_camera: int = 40
+    # registrations and viewpoint groups of photos not stored (sent ahead of their photo, or late: the photo was
+    # dropped already) are kept for at most this many such photos, the oldest dropped first
+    max_unstored_inputs: int = 64
     max_time_gap_days: float = 0.0  # 0: no limit on the time between a photo and its neighbours
     dynamic_threshold: float = 0.08  # smoothed squared HSV difference, any channel (paper: 0.05 for the median score)
     dynamic_score: str = "vote"  # "vote": must differ from most neighbours; "median": from the median (paper)
@@ -274,6 +279,7 @@ class OcclusionPipeline:
                 )
             groups[n.photo_id] = np.asarray(n.this_from_neighbour, dtype=np.float64).reshape(3, 3)
         self.store.set_neighbours(msg.photo_id, groups)
+        self._bound_unstored()
         touched = [msg.photo_id] + [p for p in groups if p in self.dynamic_no_stack]
         for pid in touched:
             if pid in self.photos and self._stack_ids(pid) != self.dynamic_stack_ids.get(pid):
@@ -295,6 +301,7 @@ class OcclusionPipeline:
         self.static_obs_count.pop(msg.photo_id, None)
         self._static(msg.photo_id)
         self._refresh_dynamic_with_region(msg.photo_id)
+        self._bound_unstored()
 
     @_flushing
     def set_sparse(self, msg: SparseCloud) -> None:
@@ -371,6 +378,16 @@ class OcclusionPipeline:
             if donor == photo_id:
                 del self.static_borrowed[other]
         self._dirty.discard(photo_id)
+
+    def _bound_unstored(self) -> None:
+        """Keep the registrations and viewpoint groups of at most ``max_unstored_inputs`` photos that are not
+        stored, the oldest dropped first: an early one waits for its photo, a late one (its photo was dropped, e.g.
+        the register node lags behind a camera's cap) would otherwise stay for good."""
+        cap = max(0, self.config.max_unstored_inputs)
+        unstored = [pid for pid in self.registrations if pid not in self.photos]
+        for pid in unstored[: max(0, len(unstored) - cap)]:
+            del self.registrations[pid]
+        self.store.bound_unstored(cap)
 
     def mask(self, photo_id: str, kind: str) -> tuple[str, bytes] | None:
         """(status, PNG) of the last mask of ``kind`` emitted for a stored photo, else None."""
