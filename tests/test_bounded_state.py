@@ -178,6 +178,26 @@ def test_occlude_bytes_held_stay_flat_once_a_camera_is_full() -> None:
     assert all(d is None or d.dtype == np.uint8 for _, d in pipe.store._features.values())
 
 
+def test_occlude_default_cap_bounds_a_camera_to_tens_of_megabytes() -> None:
+    """What one frame at the default working width (480 px) costs the pipeline, times the default per-camera cap,
+    stays within 64 MiB per camera (with the cap at 200 and float SIFT descriptors a camera took about 280 MiB,
+    held once more by every state snapshot)."""
+    cap = 3
+    pipe = OcclusionPipeline(OccludeConfig(site=SITE, max_photos_per_camera=cap, max_views=2), lambda m, _m: None)
+    held = []
+    for k, fr in enumerate(dynamic_sequence(4, 2 * cap + 1, h=270, w=480)):
+        pipe.add_photo(_photo(fr.image, "cam-a", k * MIN_NS))
+        while pipe.idle():
+            pass
+        if k >= cap:
+            held.append(len(state.dump(pipe)))
+    assert len(pipe.photos) == cap and len(pipe.store._features) == cap
+    assert max(held) <= 1.1 * min(held), held  # full: flat
+    per_frame = max(held) / cap  # the site-wide parts (colour model) counted in too
+    assert 300_000 < per_frame < 1_200_000, per_frame  # the working image alone is 389 kB
+    assert OccludeConfig().max_photos_per_camera * per_frame < 64 * 2**20, per_frame
+
+
 def test_render_state_is_bounded_by_its_photo_cache() -> None:
     bus = LocalBus()
     node = RenderNode(RenderConfig(site=SITE, photo_cache=4), NodeContext(bus, SITE, "render"))
