@@ -68,7 +68,8 @@ class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=Tr
     two_pass: bool = True  # stacks leave out the pixels of their neighbours' own dynamic masks (when known)
     refine_previous_frame: bool = True  # recompute a camera's previous newest frame once a later one arrives
     max_stored_photos: int = 2000  # photos kept for stacks and republishing; the oldest arrivals are dropped
-    # ... and at most this many frames of one fixed camera (its earliest captures go first; 0: no per-camera bound),
+    # ... and at most this many frames of one fixed camera (its earliest captures go first, but not the frame the
+    # others borrow their static mask from, see static_borrow_below_points; 0: no per-camera bound),
     # so a camera's state stays bounded however long it runs: about 1.1 MB per 960x540 frame at the default working
     # width (photo JPEG, working image, SIFT features, projected model and own mask, clean plate, masks), held once
     # more by every state snapshot; the stack takes max_views of them, spread over their time span
@@ -240,10 +241,12 @@ class OcclusionPipeline:
         self.store.add_photo(msg.photo_id, msg.camera_id, msg.capture_time_ns, img)
         cap = self.config.max_photos_per_camera
         if msg.camera_id is not None and cap > 0:
+            # kept: the camera's frames without points borrow its static mask
+            donor = self._static_donor(msg.camera_id) if self.config.static_borrow_below_points > 0 else None
             while len(frames := self.store.by_camera.get(msg.camera_id, [])) > cap:
-                self._forget(
-                    min((p for p in frames if p != msg.photo_id), key=lambda p: self.photos[p].capture_time_ns)
-                )
+                others = [p for p in frames if p != msg.photo_id]
+                older = [p for p in others if p != donor] or others
+                self._forget(min(older, key=lambda p: self.photos[p].capture_time_ns))
         self._dynamic(msg.photo_id, img)
         if msg.camera_id is not None:
             refine: list[str] = []
@@ -672,16 +675,9 @@ class OcclusionPipeline:
         """The static mask (H, W) 0/255 of the camera's frame that judged the most points (at least
         ``static_borrow_below_points``), warped into ``photo_id`` by the stack homography and limited to this
         frame's projected model; None when no frame qualifies."""
-        donors = [
-            q
-            for q in self.store.by_camera.get(camera_id, ())
-            if q != photo_id
-            and self.static_judged.get(q, 0) >= self.config.static_borrow_below_points
-            and self.static_raw.get(q, ("",))[0] == "ok"
-        ]
-        if not donors:
+        q = self._static_donor(camera_id, photo_id)
+        if q is None:
             return None
-        q = max(donors, key=lambda d: self.static_judged[d])
         H_this_from_q = self.store.candidate_neighbours(photo_id).get(q)
         png = self.static_raw[q][1]  # the donor's static occluders before its own dynamic ones are taken out
         if H_this_from_q is None or not png:
@@ -691,6 +687,19 @@ class OcclusionPipeline:
         model = cv2.resize(has_model_small.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST)
         self.static_borrowed[photo_id] = q
         return np.where((warped > 0) & (model > 0), 255, 0).astype(np.uint8)
+
+    def _static_donor(self, camera_id: str, exclude: str | None = None) -> str | None:
+        """The camera's frame (not ``exclude``) whose own static mask judged the most sparse points, at least
+        ``static_borrow_below_points``; None when none does. Its frames that judge fewer borrow its mask, so the
+        per-camera cap drops it last (the frames with points are often the earliest: the register node's map)."""
+        donors = [
+            q
+            for q in self.store.by_camera.get(camera_id, ())
+            if q != exclude
+            and self.static_judged.get(q, 0) >= self.config.static_borrow_below_points
+            and self.static_raw.get(q, ("",))[0] == "ok"
+        ]
+        return max(donors, key=lambda d: self.static_judged[d]) if donors else None
 
     def _user(self, photo_id: str) -> None:
         info = self.photos.get(photo_id)
