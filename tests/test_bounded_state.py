@@ -6,6 +6,7 @@ from __future__ import annotations
 import hashlib
 
 import cv2
+import msgspec
 import numpy as np
 import pytest
 from occlude_scenes import dynamic_sequence
@@ -14,6 +15,7 @@ from test_register_stream_scene import PlaneScene, anchor_clicks, encode_jpeg, j
 
 from constructaide.runtime import NodeContext
 from constructaide.runtime.local import LocalBus
+from nodes.occlude import state
 from nodes.occlude.pipeline import Config as OccludeConfig
 from nodes.occlude.pipeline import OcclusionPipeline
 from nodes.register import state as register_state
@@ -23,7 +25,7 @@ from nodes.register.streaming import StreamConfig
 from nodes.render.node import Config as RenderConfig
 from nodes.render.node import RenderNode
 from schemas import keys
-from schemas.messages import OcclusionMask, Photo, Registration
+from schemas.messages import Intrinsics, OcclusionMask, Photo, Registration, ViewpointGroup, ViewpointNeighbour
 
 MIN_NS = 60 * 10**9
 
@@ -141,6 +143,94 @@ def test_occlude_state_is_flat_over_many_frames_of_one_camera() -> None:
     assert sizes[1]["photos"] == 5 and sizes[1]["stack_frames"] == 5
     dyn = [m for m in emitted if m.kind == "dynamic"]
     assert len({m.photo_id for m in dyn}) == len(frames)  # every frame still got its mask
+
+
+def _registration(photo_id: str, camera: str) -> Registration:
+    intr = Intrinsics(width_px=240, height_px=135, f_px=200.0, cx_px=119.5, cy_px=67.0)
+    pose = (1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, -10.0, 0.0, 0.0, 0.0, 1.0)
+    return Registration(
+        site=SITE, photo_id=photo_id, camera_id=camera, intrinsics=intr, world_from_camera=pose, status="auto"
+    )
+
+
+def _group(photo_id: str, neighbours: list[str]) -> ViewpointGroup:
+    eye = tuple(float(v) for v in np.eye(3).ravel())
+    return ViewpointGroup(
+        site=SITE,
+        photo_id=photo_id,
+        neighbours=tuple(
+            ViewpointNeighbour(photo_id=q, this_from_neighbour=eye, inlier_ratio=0.9, num_matches=200)
+            for q in neighbours
+        ),
+    )
+
+
+def test_occlude_bytes_held_stay_flat_once_a_camera_is_full() -> None:
+    """A camera's frames repeated with new ids and later capture times (as bench/chaos.py streams them), with the
+    register node's late messages: registrations and viewpoint groups of frames the camera's cap dropped already
+    (the register node lags behind), and early ones of frames not arrived yet. What the pipeline holds (its state
+    snapshot, all its arrays and bytes) stays the same size from cycle to cycle."""
+    cap, unstored = 6, 3
+    cfg = OccludeConfig(site=SITE, max_photos_per_camera=cap, max_views=4, max_unstored_inputs=unstored)
+    pipe = OcclusionPipeline(cfg, lambda m, _mask: None, site=SITE)
+    base = [_photo(fr.image, "cam-a", 0) for fr in dynamic_sequence(2, cap, h=135, w=240)]
+    stream = [
+        msgspec.structs.replace(base[k % cap], photo_id=f"{base[k % cap].photo_id}r{k:03d}", capture_time_ns=k * MIN_NS)
+        for k in range(5 * cap)
+    ]
+    held: dict[int, int] = {}
+    tables: dict[int, dict[str, int]] = {}
+    for k, photo in enumerate(stream):
+        pipe.add_photo(photo)
+        if k + 2 < len(stream):  # early: the registration and group of a frame still to come
+            ahead = stream[k + 2].photo_id
+            pipe.add_registration(_registration(ahead, "cam-a"))
+            pipe.set_viewpoints(_group(ahead, [photo.photo_id]))
+        pipe.add_registration(_registration(photo.photo_id, "cam-a"))
+        pipe.set_viewpoints(_group(photo.photo_id, [q.photo_id for q in stream[max(0, k - 3) : k]]))
+        if k >= cap + 2:  # late: a frame the cap dropped, and its group naming the newest frames
+            gone = stream[k - cap - 2].photo_id
+            pipe.add_registration(_registration(gone, "cam-a"))
+            pipe.set_viewpoints(_group(gone, [q.photo_id for q in stream[k - 2 : k + 1]]))
+        while pipe.idle():
+            pass
+        if k >= 2 * cap and k % cap == cap - 1:  # the same point of each cycle, once the camera is full
+            held[k] = len(state.dump(pipe))
+            tables[k] = {"registrations": len(pipe.registrations), "features": len(pipe.store._features)}
+            tables[k].update(occlude_sizes(pipe))
+            # pairs: those the stacks asked for so far; homographies: per photo its group (3) and an early one (1)
+            assert len(pipe.store._shift_cache) <= cap * (cap - 1)
+            assert len(pipe.store.homographies) <= 4 * (cap + unstored), pipe.store.homographies.keys()
+            assert len({a for a, _ in pipe.store.homographies} - set(pipe.photos)) <= unstored
+    first, *rest = sorted(held)
+    assert all(tables[k] == tables[first] for k in rest), tables
+    t = tables[first]
+    assert t["photos"] == t["stack_frames"] == t["features"] == cap
+    assert t["registrations"] == cap + unstored
+    # the frames' images and masks differ a little from cycle to cycle (the colour model learns): within 2 %
+    assert max(held.values()) <= 1.02 * min(held.values()), held
+    # SIFT descriptors (whole numbers 0..255) are kept as bytes
+    assert all(d is None or d.dtype == np.uint8 for _, d in pipe.store._features.values())
+
+
+def test_occlude_default_cap_bounds_a_camera_to_tens_of_megabytes() -> None:
+    """What one frame at the default working width (480 px) costs the pipeline, times the default per-camera cap,
+    stays within 64 MiB per camera (with the cap at 200 and float SIFT descriptors a camera took about 280 MiB,
+    held once more by every state snapshot)."""
+    cap = 3
+    pipe = OcclusionPipeline(OccludeConfig(site=SITE, max_photos_per_camera=cap, max_views=2), lambda m, _m: None)
+    held = []
+    for k, fr in enumerate(dynamic_sequence(4, 2 * cap + 1, h=270, w=480)):
+        pipe.add_photo(_photo(fr.image, "cam-a", k * MIN_NS))
+        while pipe.idle():
+            pass
+        if k >= cap:
+            held.append(len(state.dump(pipe)))
+    assert len(pipe.photos) == cap and len(pipe.store._features) == cap
+    assert max(held) <= 1.1 * min(held), held  # full: flat
+    per_frame = max(held) / cap  # the site-wide parts (colour model) counted in too
+    assert 300_000 < per_frame < 1_200_000, per_frame  # the working image alone is 389 kB
+    assert OccludeConfig().max_photos_per_camera * per_frame < 64 * 2**20, per_frame
 
 
 def test_render_state_is_bounded_by_its_photo_cache() -> None:

@@ -155,6 +155,27 @@ def test_static_borrowing_follows_its_donor_and_moves_to_a_better_one(scene) -> 
     pipe.close()
 
 
+def test_camera_cap_keeps_the_static_donor(scene) -> None:
+    """The per-camera cap drops a camera's earliest frames, but not the one its frames without sparse points borrow
+    the static mask from (in a stream the frames with points are the register node's earliest, its map)."""
+    out = Emitted()
+    pipe = OcclusionPipeline(Config(site=SITE, max_photos_per_camera=3, static_borrow_below_points=20), out)
+    frames = _frames(scene, 6)
+    pipe.set_model(
+        BimModel(site=SITE, revision="r1", geometry_glb=meshes_to_glb(scene.model_meshes), terrain_height_m=0.0)
+    )
+    pipe.set_sparse(_cloud(scene, {frames[0].photo_id: slice(0, len(scene.points_m))}, 1))
+    for p in frames:
+        pipe.add_photo(p)
+        pipe.add_registration(_registration(scene, p.photo_id))
+    kept = [p.photo_id for p in frames if p.photo_id in pipe.photos]
+    assert kept == [frames[0].photo_id, frames[4].photo_id, frames[5].photo_id]
+    assert len(pipe.store.by_camera["cam-a"]) == 3
+    last = out.last("static", frames[5].photo_id)
+    assert last.status == "ok" and last.num_views == 0 and pipe.static_borrowed[frames[5].photo_id] == kept[0]
+    pipe.close()
+
+
 def test_static_borrowing_off_and_phone_photos_never_borrow(scene) -> None:
     out = Emitted()
     pipe = OcclusionPipeline(Config(site=SITE, static_borrow_below_points=0), out)

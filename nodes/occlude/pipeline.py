@@ -68,9 +68,15 @@ class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=Tr
     two_pass: bool = True  # stacks leave out the pixels of their neighbours' own dynamic masks (when known)
     refine_previous_frame: bool = True  # recompute a camera's previous newest frame once a later one arrives
     max_stored_photos: int = 2000  # photos kept for stacks and republishing; the oldest arrivals are dropped
-    # ... and at most this many frames of one fixed camera (its earliest captures go first; 0: no per-camera bound),
-    # so a camera's state stays bounded however long it runs
-    max_photos_per_camera: int = 200
+    # ... and at most this many frames of one fixed camera (its earliest captures go first, but not the frame the
+    # others borrow their static mask from, see static_borrow_below_points; 0: no per-camera bound),
+    # so a camera's state stays bounded however long it runs: about 1.1 MB per 960x540 frame at the default working
+    # width (photo JPEG, working image, SIFT features, projected model and own mask, clean plate, masks), held once
+    # more by every state snapshot; the stack takes max_views of them, spread over their time span
+    max_photos_per_camera: int = 40
+    # registrations and viewpoint groups of photos not stored (sent ahead of their photo, or late: the photo was
+    # dropped already) are kept for at most this many such photos, the oldest dropped first
+    max_unstored_inputs: int = 64
     max_time_gap_days: float = 0.0  # 0: no limit on the time between a photo and its neighbours
     dynamic_threshold: float = 0.08  # smoothed squared HSV difference, any channel (paper: 0.05 for the median score)
     dynamic_score: str = "vote"  # "vote": must differ from most neighbours; "median": from the median (paper)
@@ -235,10 +241,12 @@ class OcclusionPipeline:
         self.store.add_photo(msg.photo_id, msg.camera_id, msg.capture_time_ns, img)
         cap = self.config.max_photos_per_camera
         if msg.camera_id is not None and cap > 0:
+            # kept: the camera's frames without points borrow its static mask
+            donor = self._static_donor(msg.camera_id) if self.config.static_borrow_below_points > 0 else None
             while len(frames := self.store.by_camera.get(msg.camera_id, [])) > cap:
-                self._forget(
-                    min((p for p in frames if p != msg.photo_id), key=lambda p: self.photos[p].capture_time_ns)
-                )
+                others = [p for p in frames if p != msg.photo_id]
+                older = [p for p in others if p != donor] or others
+                self._forget(min(older, key=lambda p: self.photos[p].capture_time_ns))
         self._dynamic(msg.photo_id, img)
         if msg.camera_id is not None:
             refine: list[str] = []
@@ -274,6 +282,7 @@ class OcclusionPipeline:
                 )
             groups[n.photo_id] = np.asarray(n.this_from_neighbour, dtype=np.float64).reshape(3, 3)
         self.store.set_neighbours(msg.photo_id, groups)
+        self._bound_unstored()
         touched = [msg.photo_id] + [p for p in groups if p in self.dynamic_no_stack]
         for pid in touched:
             if pid in self.photos and self._stack_ids(pid) != self.dynamic_stack_ids.get(pid):
@@ -295,6 +304,7 @@ class OcclusionPipeline:
         self.static_obs_count.pop(msg.photo_id, None)
         self._static(msg.photo_id)
         self._refresh_dynamic_with_region(msg.photo_id)
+        self._bound_unstored()
 
     @_flushing
     def set_sparse(self, msg: SparseCloud) -> None:
@@ -371,6 +381,16 @@ class OcclusionPipeline:
             if donor == photo_id:
                 del self.static_borrowed[other]
         self._dirty.discard(photo_id)
+
+    def _bound_unstored(self) -> None:
+        """Keep the registrations and viewpoint groups of at most ``max_unstored_inputs`` photos that are not
+        stored, the oldest dropped first: an early one waits for its photo, a late one (its photo was dropped, e.g.
+        the register node lags behind a camera's cap) would otherwise stay for good."""
+        cap = max(0, self.config.max_unstored_inputs)
+        unstored = [pid for pid in self.registrations if pid not in self.photos]
+        for pid in unstored[: max(0, len(unstored) - cap)]:
+            del self.registrations[pid]
+        self.store.bound_unstored(cap)
 
     def mask(self, photo_id: str, kind: str) -> tuple[str, bytes] | None:
         """(status, PNG) of the last mask of ``kind`` emitted for a stored photo, else None."""
@@ -655,16 +675,9 @@ class OcclusionPipeline:
         """The static mask (H, W) 0/255 of the camera's frame that judged the most points (at least
         ``static_borrow_below_points``), warped into ``photo_id`` by the stack homography and limited to this
         frame's projected model; None when no frame qualifies."""
-        donors = [
-            q
-            for q in self.store.by_camera.get(camera_id, ())
-            if q != photo_id
-            and self.static_judged.get(q, 0) >= self.config.static_borrow_below_points
-            and self.static_raw.get(q, ("",))[0] == "ok"
-        ]
-        if not donors:
+        q = self._static_donor(camera_id, photo_id)
+        if q is None:
             return None
-        q = max(donors, key=lambda d: self.static_judged[d])
         H_this_from_q = self.store.candidate_neighbours(photo_id).get(q)
         png = self.static_raw[q][1]  # the donor's static occluders before its own dynamic ones are taken out
         if H_this_from_q is None or not png:
@@ -674,6 +687,19 @@ class OcclusionPipeline:
         model = cv2.resize(has_model_small.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST)
         self.static_borrowed[photo_id] = q
         return np.where((warped > 0) & (model > 0), 255, 0).astype(np.uint8)
+
+    def _static_donor(self, camera_id: str, exclude: str | None = None) -> str | None:
+        """The camera's frame (not ``exclude``) whose own static mask judged the most sparse points, at least
+        ``static_borrow_below_points``; None when none does. Its frames that judge fewer borrow its mask, so the
+        per-camera cap drops it last (the frames with points are often the earliest: the register node's map)."""
+        donors = [
+            q
+            for q in self.store.by_camera.get(camera_id, ())
+            if q != exclude
+            and self.static_judged.get(q, 0) >= self.config.static_borrow_below_points
+            and self.static_raw.get(q, ("",))[0] == "ok"
+        ]
+        return max(donors, key=lambda d: self.static_judged[d]) if donors else None
 
     def _user(self, photo_id: str) -> None:
         info = self.photos.get(photo_id)

@@ -171,7 +171,9 @@ class TimelapseStore:
     homographies: dict[tuple[str, str], F64] = field(default_factory=dict)
     by_camera: dict[str, list[str]] = field(default_factory=dict)
     _shift_cache: dict[tuple[str, str], F64] = field(default_factory=dict)
-    _features: dict[str, tuple[F64, NDArray[np.float32] | None]] = field(default_factory=dict)
+    # photo -> SIFT keypoints (N, 2) working pixels, descriptors (N, 128) uint8 (OpenCV's float SIFT descriptors are
+    # whole numbers in 0..255: kept as bytes, a quarter of the memory, matched as float32)
+    _features: dict[str, tuple[F64, NDArray[np.uint8] | None]] = field(default_factory=dict)
 
     def add_photo(self, photo_id: str, camera_id: str | None, capture_time_ns: int, image_bgr: U8) -> StackFrame:
         """Store a photo (uint8 BGR (H, W, 3), full resolution). Returns its frame."""
@@ -256,13 +258,16 @@ class TimelapseStore:
         return H
 
     def _frame_features(self, photo_id: str) -> tuple[F64, NDArray[np.float32] | None]:
-        """SIFT keypoints (N, 2) in working pixels and descriptors of a stored frame (cached)."""
+        """SIFT keypoints (N, 2) in working pixels and float32 descriptors (N, 128) of a stored frame (cached,
+        the descriptors as uint8)."""
         if photo_id not in self._features:
             grey = cv2.cvtColor(self.frames[photo_id].image_small, cv2.COLOR_BGR2GRAY)
-            kp, desc = cv2.SIFT.create(nfeatures=self.max_features).detectAndCompute(grey, None)
+            kp, found = cv2.SIFT.create(nfeatures=self.max_features).detectAndCompute(grey, None)
             pts = np.array([k.pt for k in kp], np.float64).reshape(-1, 2)
-            self._features[photo_id] = (pts, None if desc is None else np.asarray(desc, np.float32))
-        return self._features[photo_id]
+            packed = None if found is None else np.clip(np.rint(found), 0, 255).astype(np.uint8)
+            self._features[photo_id] = (pts, packed)
+        pts, desc = self._features[photo_id]
+        return pts, None if desc is None else np.asarray(desc, np.float32)
 
     def _feature_homography(self, photo_id: str, nid: str, min_inliers: int = 40) -> F64 | None:
         """this_from_neighbour (3, 3) in working pixels from SIFT matches + RANSAC (1 px), or None."""
@@ -371,6 +376,14 @@ class TimelapseStore:
         return np.asarray(
             cv2.warpPerspective(np.asarray(image), H_small, (w, h), flags=cv2.INTER_NEAREST, borderValue=0)
         )
+
+    def bound_unstored(self, keep: int) -> None:
+        """Keep the viewpoint groups (homographies from a photo's own group) of at most ``keep`` photos that are
+        not stored, the oldest dropped first (a group may come ahead of its photo, or after it was forgotten)."""
+        owners = list(dict.fromkeys(a for a, _ in self.homographies if a not in self.frames))
+        drop = set(owners[: max(0, len(owners) - keep)])
+        if drop:
+            self.homographies = {k: H for k, H in self.homographies.items() if k[0] not in drop}
 
     def forget(self, photo_id: str) -> None:
         """Drop a photo and every homography that mentions it."""
