@@ -115,6 +115,17 @@ class Watch:
             s.close()
 
 
+def rss_mib(pid: int) -> float:
+    """Resident memory (MiB) of a process, NaN when it is gone."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return float("nan")
+
+
 def kill_plan(
     rng: np.random.Generator, n: int, per_node: int, victims: tuple[str, ...] = VICTIMS
 ) -> list[tuple[int, str]]:
@@ -134,6 +145,7 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     t0 = time.monotonic()
     recover: dict[str, list[float]] = defaultdict(list)
     kills: list[tuple[int, str, int]] = []
+    rss: list[dict] = []  # resident memory of every node process every 100 frames
     with open_bus(BusConfig(listen=["tcp/127.0.0.1:0"], history_bytes=int(args.history_mb * 1e6))) as bus:
         watch = Watch(bus)
         launcher = Launcher(
@@ -178,7 +190,14 @@ def run(args: argparse.Namespace, out: Path) -> dict:
                     next_kill += 1
                 bus.publish(keys.key(keys.PHOTO, site=SITE, camera=photo.camera_id), photo)
                 if (i + 1) % 100 == 0:
-                    print(f"  {i + 1} frames pushed, {len(watch.regs)} registered, {len(kills)} kills", file=sys.stderr)
+                    mem = {p.name: rss_mib(p.proc.pid) for p in launcher.procs if p.proc and p.proc.poll() is None}
+                    rss.append({"frames": i + 1, **mem})
+                    print(
+                        f"  {i + 1} frames pushed, {len(watch.regs)} registered, {len(kills)} kills; RSS MiB "
+                        + ", ".join(f"{k} {v:.0f}" for k, v in mem.items()),
+                        file=sys.stderr,
+                        flush=True,
+                    )
             if pending_kill is not None:
                 node, t_kill, seen = pending_kill
                 watch.wait(lambda: len(watch.back_at[node]) > seen, timeout=120)
@@ -248,6 +267,7 @@ def run(args: argparse.Namespace, out: Path) -> dict:
         "registered_secs": t_registered - t_stream,
         "drawn_secs": t_drawn - t_stream,
         "total_secs": t_end - t0,
+        "rss": rss,
     }
 
 
@@ -299,16 +319,24 @@ def main() -> None:
             ["frames per second (to all drawn)", f"{r['frames'] / max(r['drawn_secs'], 1e-9):.2f}"],
         ],
     )
+    names = [n for n in ("ingest", *VICTIMS) if any(n in row for row in r["rss"])]
+    t3 = table(
+        ["frames pushed", *[f"{n} RSS MiB" for n in names]],
+        [[row["frames"], *[f"{row.get(n, float('nan')):.0f}" for n in names]] for row in r["rss"]],
+    )
     last = f"frames {r['frames']}, kills {r['kills']}, photos lost {r['lost']}, duplicated {r['duplicated']}"
     print(t1)
     print()
     print(t2)
+    print()
+    print(t3)
     if not args.no_write:
         body = (
             f"Code: {code_version()}. Seed {args.seed}; render modes {', '.join(args.modes)}; recorder rotation at "
             f"{args.max_file_mb:g} MB / 60 s. Recover = SIGKILL to the node's liveliness token back (supervisor "
             "back-off 0.2 s doubling per crash within 60 s, process start, state restore).\n\n"
-            f"{t1}\n\n{t2}\n\n`{last}`\n"
+            f"{t1}\n\n{t2}\n\nResident memory of the node processes (a killed node's restarted process from its "
+            f"restart on):\n\n{t3}\n\n`{last}`\n"
         )
         write_section(
             f"Chaos ({r['frames']} frames)",
