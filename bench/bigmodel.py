@@ -35,44 +35,7 @@ sys.path.insert(0, str(ROOT))
 import numpy as np  # noqa: E402
 
 from bench._report import code_version, median, table, write_section  # noqa: E402
-
-CHILD = r"""
-import json, sys, time
-mode, path, out_path = sys.argv[1], sys.argv[2], sys.argv[3]
-out = {}
-if mode == "ingest":
-    from nodes.ingest.ifc import load_site_model
-    from nodes.ingest.revisions import to_bim_model
-    from schemas import codec
-    t0 = time.perf_counter()
-    site = load_site_model([path], tz="UTC")
-    t1 = time.perf_counter()
-    bim = to_bim_model(site, "bench", "r1")
-    t2 = time.perf_counter()
-    payload = codec.encode(bim)
-    t3 = time.perf_counter()
-    if out_path != "-":
-        open(out_path, "wb").write(payload)
-    out = {"load_s": t1 - t0, "glb_s": t2 - t1, "encode_s": t3 - t2, "elements": len(site.elements),
-           "tasks": len(site.tasks), "triangles": int(sum(len(m.faces) for m in site.meshes.values())),
-           "glb_mib": len(bim.geometry_glb) / 2**20, "payload_mib": len(payload) / 2**20}
-else:
-    import os
-    import ifcopenshell, ifcopenshell.geom
-    t0 = time.perf_counter()
-    f = ifcopenshell.open(path)
-    s = ifcopenshell.geom.settings(); s.set("use-world-coords", True)
-    it = ifcopenshell.geom.iterator(s, f, min(os.cpu_count() or 1, 8))
-    n = 0
-    if it.initialize():
-        while True:
-            n += 1
-            if not it.next():
-                break
-    out = {"load_s": time.perf_counter() - t0, "shapes": n}
-out["maxrss_mib"] = [int(l.split()[1]) for l in open("/proc/self/status") if l.startswith("VmHWM")][0] / 1024
-print(json.dumps(out))
-"""
+from bench.ingest import run_child as ingest_child  # noqa: E402
 
 JOINER = r"""
 import json, sys, threading, time
@@ -253,9 +216,9 @@ def main(argv: list[str] | None = None) -> int:
         ifc_mib = ifc.stat().st_size / 2**20
         print(f"generated {counts} in {gen_s:.1f} s, {ifc_mib:.1f} MiB", file=sys.stderr, flush=True)
         payload_path = Path(tmp) / "bim_model.bin"
-        ours = [run_child(CHILD, "ingest", str(ifc), str(payload_path)) for _ in range(args.ingest_runs)]
+        ours = [ingest_child("ingest", [str(ifc)], str(payload_path), timeout=1800) for _ in range(args.ingest_runs)]
         print(f"ingest: {ours}", file=sys.stderr, flush=True)
-        bare = [run_child(CHILD, "iterator", str(ifc), "-") for _ in range(args.ingest_runs)]
+        bare = [ingest_child("iterator", [str(ifc)], timeout=1800) for _ in range(args.ingest_runs)]
         print(f"bare iterator: {bare}", file=sys.stderr, flush=True)
         payload = payload_path.read_bytes()
     info, render_rows = bench_render(payload, args.runs)

@@ -28,19 +28,24 @@ DATA = ROOT.parent / "shared" / "data"
 
 CHILD = r"""
 import json, resource, sys, time
-mode, paths = sys.argv[1], sys.argv[2:]
-t0 = time.perf_counter()
+mode, out_path, paths = sys.argv[1], sys.argv[2], sys.argv[3:]
 out = {}
 if mode == "ingest":
     from nodes.ingest.ifc import load_site_model
     from nodes.ingest.revisions import to_bim_model
+    from schemas import codec
     t0 = time.perf_counter()
     site = load_site_model(paths, tz="UTC")
     t1 = time.perf_counter()
-    bim = to_bim_model(site, "bench", "r")
+    bim = to_bim_model(site, "bench", "r1")
     t2 = time.perf_counter()
-    out = {"load_s": t1 - t0, "glb_s": t2 - t1, "elements": len(site.elements),
-           "triangles": int(sum(len(m.faces) for m in site.meshes.values())), "glb_mib": len(bim.geometry_glb) / 2**20}
+    payload = codec.encode(bim)
+    t3 = time.perf_counter()
+    if out_path != "-":
+        open(out_path, "wb").write(payload)
+    out = {"load_s": t1 - t0, "glb_s": t2 - t1, "encode_s": t3 - t2, "elements": len(site.elements),
+           "tasks": len(site.tasks), "triangles": int(sum(len(m.faces) for m in site.meshes.values())),
+           "glb_mib": len(bim.geometry_glb) / 2**20, "payload_mib": len(payload) / 2**20}
 elif mode == "iterator":
     import os
     import ifcopenshell, ifcopenshell.geom
@@ -61,11 +66,21 @@ else:
 out["maxrss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 print(json.dumps(out))
 """
+"""One fresh process per measurement: ``mode`` ingest (load + GLB + encode; the BimModel payload written to
+``out_path`` unless "-"), iterator (ifcopenshell's bare geometry iterator, the baseline) or import (start-up
+only); prints one JSON line (seconds, sizes, peak RSS)."""
 
 
-def run_child(mode: str, paths: list[str]) -> dict[str, float]:
+def run_child(mode: str, paths: list[str], out_path: str = "-", timeout: float | None = None) -> dict[str, float]:
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.run(
-        [sys.executable, "-c", CHILD, mode, *paths], cwd=ROOT, capture_output=True, text=True, check=False
+        [sys.executable, "-c", CHILD, mode, out_path, *paths],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=timeout,
     )
     if proc.returncode != 0:
         raise RuntimeError(f"{mode} {paths}: {proc.stderr.strip().splitlines()[-1:]}")
