@@ -372,7 +372,8 @@ class ProgressEngine:
         reference = plate.warp_to(intr, T) if plate is not None else None
         points = self._points(photo_id, reg, W / w)
         ev = self.params.evidence
-        confirmed = self._confirmed(t - 1)
+        # the look of each material: elements seen appearing (confirmed) and those the belief draws as built
+        confirmed = np.maximum(self._confirmed(t - 1), built.astype(np.float64))
         seen: dict[int, ElementCue] = {}
         touched: list[str] = []
         layers = None
