@@ -9,7 +9,7 @@ the changes; hypotheses place each change in one interval of the grid made of th
   ``+llr/2`` to hypotheses under which the element is present at ``t`` and ``-llr/2`` otherwise;
 * a *transition* observation (``llr_change`` over ``(ref, t]``: the element's pixels changed since the reference
   plate) adds ``llr`` to hypotheses with a change inside ``(ref, t]``;
-* the prior of a change time is the schedule's (a logistic around the planned date, width from the task length)
+* the prior of a change time is the schedule's (uniform over the planned window, blurred by a logistic slip)
   mixed with a flat prior over the whole project, so the evidence, not the plan, decides once there is any.
 
 Times are int ns UTC. Monotone by construction: no hypothesis removes a constructed element unless a demolition
@@ -41,7 +41,8 @@ class FusionParams:
     (months of project for one week of photos) outweighed the plan wherever the photos were silent (an element built
     before a camera's first frame, a late one never seen changing)."""
     schedule_width_days: float = 1.5
-    """Logistic scale of the schedule prior: this plus half the task's duration."""
+    """Logistic scale of the slip around the planned window (the schedule prior is the window, uniform, blurred by
+    this slip)."""
     margin_days: float = 30.0
     """The flat prior reaches this far before the first planned start and after the last planned finish."""
     finish_from_median: bool = True
@@ -157,13 +158,24 @@ def path_of(window: ElementWindow | None) -> Path:
     return "construction"
 
 
-def _prior_cdf(t: NDArray[np.float64], planned_ns: float | None, width_ns: float, lo: float, hi: float, w: float):
+def _prior_cdf(
+    t: NDArray[np.float64], window: tuple[float, float] | None, width_ns: float, lo: float, hi: float, w: float
+) -> NDArray[np.float64]:
+    """Prior CDF of a change time at ``t`` (ns): with weight ``w`` the planned window ``(start, finish)`` (the
+    change falls anywhere inside it, uniformly: a task's elements are built one after another over its duration)
+    blurred by a logistic slip of scale ``width_ns``; the rest flat over ``[lo, hi]``."""
     flat = np.clip((t - lo) / max(hi - lo, 1.0), 0.0, 1.0)
-    if planned_ns is None:
+    if window is None:
         return flat
-    with np.errstate(over="ignore"):
-        logistic = 1.0 / (1.0 + np.exp(-(t - planned_ns) / width_ns))
-    return w * logistic + (1.0 - w) * flat
+    a, b = window
+    x = np.clip((np.asarray(t, np.float64) - a) / width_ns, -1e6, 1e6)  # t may be +-inf
+    span = (b - a) / width_ns
+    if span < 1e-6:
+        with np.errstate(over="ignore"):
+            planned = 1.0 / (1.0 + np.exp(-x))
+    else:  # uniform on [a, b] convolved with a logistic: difference of softplus
+        planned = (np.logaddexp(0.0, x) - np.logaddexp(0.0, x - span)) / span
+    return w * np.clip(planned, 0.0, 1.0) + (1.0 - w) * flat
 
 
 @dataclass
@@ -217,18 +229,19 @@ class ElementTrack:
         w = self.window
         margin = params.margin_days * NS_PER_DAY
         lo, hi = self.span_ns[0] - margin, self.span_ns[1] + margin
-        planned: list[float | None] = []
-        widths: list[float] = []
+        planned: list[tuple[float, float] | None] = []
         for start, finish in (
             ((w.build_start_ns, w.build_finish_ns) if w else (None, None)),
             ((w.remove_start_ns, w.remove_finish_ns) if w else (None, None)),
         ):
-            dur = (finish - start) if start is not None and finish is not None else 0
-            planned.append(None if finish is None else float(finish))
-            widths.append(params.schedule_width_days * NS_PER_DAY + 0.5 * dur)
+            if finish is None:
+                planned.append(None)
+            else:
+                planned.append((float(finish if start is None else min(start, finish)), float(finish)))
         which = {"construction": [0], "demolition": [1], "temporary": [0, 1]}[path]
         weight = params.schedule_weight
-        return tuple((lambda t, pl=planned[ph], wd=widths[ph]: _prior_cdf(t, pl, wd, lo, hi, weight)) for ph in which)
+        width = params.schedule_width_days * NS_PER_DAY
+        return tuple((lambda t, pl=planned[ph]: _prior_cdf(t, pl, width, lo, hi, weight)) for ph in which)
 
 
 @dataclass(frozen=True)
