@@ -500,10 +500,12 @@ class ProgressEngine:
         )
 
     def photo_state(self, gid: str, status: str, t_ns: int, occluded_fraction: float) -> tuple[str, float]:
-        """State of an element in a photo: the fused estimate at its capture time where it was seen."""
+        """State of an element in a photo: the fused estimate at its capture time (given every photo) where it is
+        in view and not hidden by the occlusion mask, also when too few of its pixels show for this photo's own
+        cues (status ``unknown``); ``occluded`` where the mask hides it."""
         if status == "occluded":
             return "occluded", occluded_fraction
-        if status != "seen" or not self.tracks[gid].observations:
+        if status not in ("seen", "unknown") or not self.tracks[gid].observations:
             return "unknown", 0.0
         p = self.posterior(gid).present_at(t_ns)
         b = self.params.fusion.built_probability
