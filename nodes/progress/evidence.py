@@ -81,7 +81,8 @@ class EvidenceParams:
     appearance_novelty_weight: float = 0.5
     """Without a known look of its material (the first frames of a site, before any element of that material is
     seen appearing) an element's colours are tested against a flat model (anything unlike what would show where
-    it is absent), with this share of the LLR; 0: no appearance evidence then."""
+    it is absent); this weight stands for the material look's confidence (``alpha``) on the mean log ratio, before
+    the ``appearance_max_llr`` clip; 0: no appearance evidence then."""
 
 
 @dataclass

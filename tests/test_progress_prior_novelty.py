@@ -1,0 +1,113 @@
+"""Progress: the schedule prior over a task's window, appearance before a material's look is known, and the state
+an element too small for a photo's own cues reports."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from constructaide.camera import look_at
+from constructaide.schedule4d import ElementWindow
+from nodes.progress.engine import ProgressEngine
+from nodes.progress.evidence import EvidenceParams, photo_evidence, to_lab
+from nodes.progress.fusion import NS_PER_DAY, ElementTrack, FusionParams, Observation, estimate
+from nodes.progress.modelview import LayerRenderer
+from schemas.messages import Intrinsics
+
+D = NS_PER_DAY
+SPAN = (0, 20 * D)
+W, H = 160, 120
+INTR = Intrinsics(width_px=W, height_px=H, f_px=140.0, cx_px=79.5, cy_px=59.5)
+
+
+def test_schedule_prior_spreads_over_the_planned_window() -> None:
+    """Without evidence an element of a 4-day task is as likely finished at any time of the window (blurred by the
+    slip): little at the planned start, about half in the middle, most by the planned finish plus a few slips."""
+    params = FusionParams()
+    tr = ElementTrack("e", ElementWindow(build_start_ns=4 * D, build_finish_ns=8 * D), SPAN)
+    tr.add(Observation("p", 15 * D))  # no evidence, just a time on the grid
+    post = tr.posterior(params)
+    at = [post.present_at(int(t)) for t in np.linspace(0, 20 * D, 81)]
+    assert np.all(np.diff(at) >= -1e-9)
+    assert post.present_at(4 * D) < 0.3
+    assert 0.4 < post.present_at(6 * D) < 0.6
+    assert post.present_at(8 * D + int(3 * params.schedule_width_days * D)) > 0.75
+    # a zero-length window is the plain logistic slip around the planned date
+    point = ElementTrack("e", ElementWindow(build_start_ns=8 * D, build_finish_ns=8 * D), SPAN)
+    point.add(Observation("p", 15 * D))
+    assert point.posterior(params).present_at(8 * D) == pytest.approx(0.5, abs=0.05)
+
+
+def test_an_element_standing_before_the_first_photo_inside_its_window() -> None:
+    """The first photo comes after the task's window: daily photos never see the element change and look weakly
+    like it stands. It stood before the first photo (inside its window), not after the last."""
+    params = FusionParams()
+    obs = [Observation(f"s{d}", d * D, llr_state=0.3) for d in range(9, 15)]
+    obs += [Observation(f"c{d}", d * D, llr_change=-4.0, reference_ns=(d - 1) * D) for d in range(10, 15)]
+    tr = ElementTrack("e", ElementWindow(build_start_ns=4 * D, build_finish_ns=8 * D), SPAN)
+    for o in obs:
+        tr.add(o)
+    post = tr.posterior(params)
+    assert post.present_at(9 * D) > 0.8
+    e = estimate(tr, post, 14 * D, params)
+    assert e.state == "built" and e.finish_ns is not None and e.finish_ns <= 9 * D
+    assert e.deviation == "on_time"
+
+
+def _box(lo: tuple[float, float, float], hi: tuple[float, float, float]) -> tuple[np.ndarray, np.ndarray]:
+    import trimesh
+
+    m = trimesh.creation.box(bounds=np.array([lo, hi]))
+    return np.asarray(m.vertices), np.asarray(m.faces, np.int32)
+
+
+@pytest.fixture(scope="module")
+def scene() -> tuple[LayerRenderer, np.ndarray]:
+    """A column (1) and a slab (2) side by side, seen from 8 m."""
+    r = LayerRenderer()
+    r.set_model(
+        ["col", "slab"],
+        {"col": _box((-2.0, -0.3, 0.0), (-1.3, 0.4, 2.5)), "slab": _box((0.0, -1.0, 0.0), (2.5, 1.0, 0.5))},
+    )
+    return r, look_at((0.0, -8.0, 1.2), (0.0, 0.0, 1.0))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_appearance_before_any_look_of_the_material_is_known(scene, seed: int) -> None:  # noqa: ANN001
+    """First frame of a site: nothing of concrete stands yet that could teach its look. A concrete slab that stands
+    looks unlike the grass around it (positive); where it is absent the grass shows through (negative)."""
+    r, T = scene
+    rng = np.random.default_rng(seed)
+    layers = r.render(INTR, T, np.zeros(3, bool), np.array([False, True, True]))
+    ids = layers.ids_all
+    grass = np.clip(np.array([90.0, 140.0, 80.0]) + rng.normal(0, 20, (H, W, 1)), 0, 255).astype(np.uint8)
+    concrete = np.clip(np.array([150.0, 150.0, 145.0]) + rng.normal(0, 10, (H, W, 1)), 0, 255).astype(np.uint8)
+    standing = grass.copy()
+    standing[ids == 2] = concrete[ids == 2]
+    mats = ["", "steel", "concrete"]
+    free = np.zeros((H, W), bool)
+    raw = EvidenceParams(appearance_negative_scale=1.0, appearance_full_pixels=0)
+    yes = {c.index: c for c in photo_evidence(to_lab(standing), free, layers, mats, raw)}
+    no = {c.index: c for c in photo_evidence(to_lab(grass), free, layers, mats, raw)}
+    assert yes[2].llr_appearance > 0.3, "the slab stands out from the grass"
+    assert no[2].llr_appearance < -0.3 and no[1].llr_appearance < -0.3, "grass where they are absent"
+    weak = EvidenceParams(appearance_negative_scale=1.0, appearance_full_pixels=0, appearance_novelty_weight=0.1)
+    yes_weak = {c.index: c for c in photo_evidence(to_lab(standing), free, layers, mats, weak)}
+    assert 0.0 < yes_weak[2].llr_appearance < yes[2].llr_appearance, "the weight scales the novelty evidence"
+    off = EvidenceParams(appearance_novelty_weight=0.0)
+    assert all(c.llr_appearance == 0.0 for c in photo_evidence(to_lab(standing), free, layers, mats, off))
+
+
+def test_an_element_too_small_for_the_photo_reports_the_fused_state() -> None:
+    """An element in view with too few pixels for this photo's own cues (status ``unknown``) reports the fused
+    estimate at the capture time; one the mask hides stays ``occluded``; one nothing was ever seen of, unknown."""
+    eng = ProgressEngine()
+    window = ElementWindow(build_start_ns=4 * D, build_finish_ns=5 * D)
+    seen = ElementTrack("a", window, SPAN)
+    for d in range(6, 12):
+        seen.add(Observation(f"p{d}", d * D, llr_state=1.0, llr_change=-4.0, reference_ns=(d - 1) * D))
+    eng.tracks = {"a": seen, "b": ElementTrack("b", window, SPAN)}
+    state, conf = eng.photo_state("a", "unknown", 10 * D, 0.1)
+    assert state == "built" and conf >= eng.params.fusion.built_probability
+    assert eng.photo_state("a", "occluded", 10 * D, 0.9) == ("occluded", 0.9)
+    assert eng.photo_state("b", "unknown", 10 * D, 0.1) == ("unknown", 0.0)
