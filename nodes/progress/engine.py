@@ -12,7 +12,7 @@ only those tracks (:mod:`nodes.progress.fusion`). Call from one thread (the rend
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -32,6 +32,7 @@ from nodes.progress.fusion import (
     Observation,
     Posterior,
     estimate,
+    fit_slip_days,
     working_midpoint,
 )
 from nodes.progress.modelview import LayerRenderer, Mesh
@@ -137,6 +138,9 @@ class ProgressEngine:
         self.as_of_ns = 0
         self.tz = "UTC"
         self.annotations: list[Annotation] = []
+        self.fusion = self.params.fusion
+        """The fusion parameters in use: ``params.fusion`` with the slip learnt from the photos (see
+        :meth:`refit_slip`)."""
 
     # -- inputs ---------------------------------------------------------------------------------------
 
@@ -248,7 +252,7 @@ class ProgressEngine:
     def posterior(self, gid: str) -> Posterior:
         post = self.posteriors.get(gid)
         if post is None:
-            post = self.posteriors[gid] = self.tracks[gid].posterior(self.params.fusion)
+            post = self.posteriors[gid] = self.tracks[gid].posterior(self.fusion)
         return post
 
     def estimate(self, gid: str, as_of_ns: int | None = None) -> ElementEstimate:
@@ -257,9 +261,23 @@ class ProgressEngine:
             self.tracks[gid],
             self.posterior(gid),
             self.as_of_ns if as_of_ns is None else as_of_ns,
-            self.params.fusion,
+            self.fusion,
             midpoint=lambda lo, hi: working_midpoint(lo, hi, self.tz, hours),
         )
+
+    def refit_slip(self, tolerance: float = 0.1) -> bool:
+        """Learn the schedule's slip scale from the elements seen appearing so far (:func:`fit_slip_days`); a change
+        beyond ``tolerance`` (relative) redoes every posterior. Returns whether it changed."""
+        base = self.params.fusion
+        if not base.fit_slip:
+            return False
+        width = fit_slip_days(list(self.tracks.values()), base)
+        width = base.schedule_width_days if width is None else width
+        if abs(width - self.fusion.schedule_width_days) <= tolerance * self.fusion.schedule_width_days:
+            return False
+        self.fusion = replace(base, schedule_width_days=width)
+        self.posteriors = {}
+        return True
 
     def _present(self, t_ns: int) -> NDArray[np.float64]:
         out = np.zeros(len(self.global_ids) + 1)
@@ -402,6 +420,7 @@ class ProgressEngine:
         assert layers is not None
         cues = [seen[i] for i in sorted(seen)]
         self.as_of_ns = max(self.as_of_ns, t)
+        self.refit_slip()
         self._learn_materials(lab, occluded, layers.ids_all, t)
         if photo.camera_id:
             frames = self.frames.setdefault(photo.camera_id, [])
@@ -508,7 +527,7 @@ class ProgressEngine:
         if status not in ("seen", "unknown") or not self.tracks[gid].observations:
             return "unknown", 0.0
         p = self.posterior(gid).present_at(t_ns)
-        b = self.params.fusion.built_probability
+        b = self.fusion.built_probability
         if p >= b:
             return "built", p
         if p <= 1.0 - b:

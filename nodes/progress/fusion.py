@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from itertools import combinations_with_replacement
 from typing import Literal
 
@@ -51,6 +51,12 @@ class FusionParams:
     """P(present) at or above which an element counts as built (at or below 1 - this: not built)."""
     tolerance_days: float = 0.0
     """Deviation tolerance around the planned window."""
+    fit_slip: bool = True
+    """Learn the slip scale of this site's schedule from the photos (:func:`fit_slip_days`) once enough elements
+    were seen appearing; ``schedule_width_days`` until then."""
+    fit_min_elements: int = 8
+    """Elements seen appearing (a transition of at least ``fit_min_llr``) needed to learn the slip."""
+    fit_min_llr: float = 3.0
 
 
 @dataclass(frozen=True)
@@ -242,6 +248,47 @@ class ElementTrack:
         weight = params.schedule_weight
         width = params.schedule_width_days * NS_PER_DAY
         return tuple((lambda t, pl=planned[ph]: _prior_cdf(t, pl, width, lo, hi, weight)) for ph in which)
+
+
+SLIP_GRID_DAYS = np.geomspace(1.0 / 24.0, 3.0, 48)
+"""Slip scales :func:`fit_slip_days` chooses from: an hour to three days."""
+
+
+def fit_slip_days(tracks: list[ElementTrack], params: FusionParams) -> float | None:
+    """Slip scale (days) of the site's schedule learnt from the photos (empirical Bayes), or None with too few
+    elements seen appearing.
+
+    Every constructed element seen appearing (a transition of at least ``fit_min_llr`` over ``(ref, t]``, the
+    narrowest when several) is an interval-censored sample of its change time; the scale maximising the likelihood
+    of these intervals under the prior (planned window blurred by the slip, mixed with the flat part, as
+    :meth:`ElementTrack.posterior` uses it) is the one the photos show. How far a schedule slips is a property of
+    the site and its crews, not of one element; the flat part keeps elements far off their plan from inflating it.
+    """
+    samples: list[tuple[ElementTrack, float, float]] = []
+    for tr in tracks:
+        if path_of(tr.window) != "construction" or tr.window is None or tr.window.build_finish_ns is None:
+            continue
+        seen = [
+            (o.time_ns - o.reference_ns, o.reference_ns, o.time_ns)
+            for o in tr.observations.values()
+            if o.reference_ns and o.llr_change >= params.fit_min_llr
+        ]
+        if seen:
+            _, ref, t = min(seen)
+            samples.append((tr, float(ref), float(t)))
+    if len(samples) < params.fit_min_elements:
+        return None
+    best, best_ll = None, -np.inf
+    for width in SLIP_GRID_DAYS:
+        p = replace(params, schedule_width_days=float(width), fit_slip=False)
+        ll = 0.0
+        for tr, ref, t in samples:
+            cdf = tr._prior_cdfs("construction", p)[0]
+            f = cdf(np.array([ref, t]))
+            ll += math.log(max(float(f[1] - f[0]), 1e-12))
+        if ll > best_ll:
+            best, best_ll = float(width), ll
+    return best
 
 
 @dataclass(frozen=True)
