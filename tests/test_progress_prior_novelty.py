@@ -10,7 +10,7 @@ from constructaide.camera import look_at
 from constructaide.schedule4d import ElementWindow
 from nodes.progress.engine import ProgressEngine
 from nodes.progress.evidence import EvidenceParams, photo_evidence, to_lab
-from nodes.progress.fusion import NS_PER_DAY, ElementTrack, FusionParams, Observation, estimate
+from nodes.progress.fusion import NS_PER_DAY, ElementTrack, FusionParams, Observation, estimate, fit_slip_days
 from nodes.progress.modelview import LayerRenderer
 from schemas.messages import Intrinsics
 
@@ -111,3 +111,32 @@ def test_an_element_too_small_for_the_photo_reports_the_fused_state() -> None:
     assert state == "built" and conf >= eng.params.fusion.built_probability
     assert eng.photo_state("a", "occluded", 10 * D, 0.9) == ("occluded", 0.9)
     assert eng.photo_state("b", "unknown", 10 * D, 0.1) == ("unknown", 0.0)
+
+
+def _seen_appearing(slip_days: float, n: int, seed: int) -> list[ElementTrack]:
+    """``n`` elements, one-day tasks over a month, each built at a time drawn around its window (logistic slip of
+    ``slip_days``), seen appearing between two daily photos."""
+    rng = np.random.default_rng(seed)
+    tracks = []
+    for k in range(n):
+        start = int(rng.uniform(2, 28) * D)
+        window = ElementWindow(build_start_ns=start, build_finish_ns=start + D)
+        u = rng.uniform(1e-6, 1 - 1e-6)
+        t_true = start + rng.uniform(0, D) + slip_days * D * np.log(u / (1 - u))
+        day = int(np.ceil(t_true / D)) * D  # the first daily photo that shows it
+        tr = ElementTrack(f"e{k}", window, (0, 30 * D))
+        tr.add(Observation(f"p{k}", day, llr_change=5.0, reference_ns=day - D))
+        tracks.append(tr)
+    return tracks
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_the_slip_of_the_schedule_is_learnt_from_elements_seen_appearing(seed: int) -> None:
+    """A site whose crews keep to the plan within hours gets a narrow prior, one that slips by days a wide one
+    (near the true scale; daily photos censor the change times to a day); too few elements seen appearing: no fit."""
+    params = FusionParams()
+    tight = fit_slip_days(_seen_appearing(0.25, 80, seed), params)
+    loose = fit_slip_days(_seen_appearing(2.0, 80, seed), params)
+    assert tight is not None and loose is not None
+    assert tight < 0.6 < 1.2 < loose < 3.0
+    assert fit_slip_days(_seen_appearing(2.0, params.fit_min_elements - 1, seed), params) is None
