@@ -141,7 +141,7 @@ def iso(t_ns: int | None, tz: str) -> str:
 def observation_rows(engine: ProgressEngine) -> list[dict[str, str]]:
     rows = []
     for rec in sorted(engine.records.values(), key=lambda r: (r.capture_time_ns, r.photo_id)):
-        for idx, (status, _px, occ) in sorted(rec.cues.items()):
+        for idx, (status, _px, occ) in sorted(engine.photo_cues(rec).items()):
             gid = engine.global_ids[idx - 1]
             state, conf = engine.photo_state(gid, status, rec.capture_time_ns, occ)
             rows.append(

@@ -35,7 +35,7 @@ from nodes.progress.fusion import (
     fit_slip_days,
     working_midpoint,
 )
-from nodes.progress.modelview import LayerRenderer, Mesh
+from nodes.progress.modelview import LayerRenderer, Layers, Mesh
 from nodes.progress.plates import ReferencePlate, same_segment
 from schemas.messages import (
     SPARSE_POINT_FROM_MODEL,
@@ -108,6 +108,23 @@ class PhotoRecord:
     filename: str
     cues: dict[int, tuple[str, int, float]]
     processing_ms: float
+    behind: dict[tuple[int, int], tuple[int, int]] = field(default_factory=dict)
+    """(candidate index, believed-built element index behind it) -> (pixels, unoccluded pixels) where the
+    candidate hid that element in the last evidence pass (see :meth:`ProgressEngine.photo_cues`)."""
+
+
+def _behind_candidates(layers: Layers, occluded: NDArray[np.bool_]) -> dict[tuple[int, int], tuple[int, int]]:
+    front = layers.ids_front.astype(np.int64)
+    built = layers.ids_built.astype(np.int64)
+    sel = (front > 0) & (built > 0)
+    if not sel.any():
+        return {}
+    key = front[sel] * (int(built.max()) + 1) + built[sel]
+    keys, counts = np.unique(key, return_counts=True)
+    free = np.unique(key[~occluded[sel]], return_counts=True)
+    vis = dict(zip(free[0].tolist(), free[1].tolist(), strict=True))
+    m = int(built.max()) + 1
+    return {(k // m, k % m): (int(c), int(vis.get(k, 0))) for k, c in zip(keys.tolist(), counts.tolist(), strict=True)}
 
 
 class ProgressEngine:
@@ -438,10 +455,34 @@ class ProgressEngine:
             photo.filename,
             {c.index: (c.status, c.visible_px, c.occluded_fraction) for c in cues},
             ms,
+            _behind_candidates(layers, occluded),
         )
         self.records[photo_id] = record
         evidence = self.photo_evidence_message(record, cues, (W, H))
         return evidence, self.update_message(touched, photo_id)
+
+    def photo_cues(self, record: PhotoRecord) -> dict[int, tuple[str, int, float]]:
+        """What a processed photo shows, per element index (status, visible px, occluded fraction): its cues, plus
+        the believed-built elements it showed only behind candidates that, with every photo since, most probably did
+        not stand at its capture time (below ``peel_probability``): in view, with status ``unknown`` (their pixels
+        were read as the candidate's), so their rows report the fused state. Recomputed from the current belief."""
+        out = dict(record.cues)
+        acc: dict[int, list[int]] = {}
+        t = record.capture_time_ns
+        gone: dict[int, bool] = {}
+        for (f, b), (px, vis) in record.behind.items():
+            if b in out:
+                continue
+            if f not in gone:
+                gone[f] = self.posterior(self.global_ids[f - 1]).present_at(t) < self.params.peel_probability
+            if gone[f]:
+                a = acc.setdefault(b, [0, 0])
+                a[0] += px
+                a[1] += vis
+        for b, (px, vis) in acc.items():
+            if vis >= self.params.evidence.min_pixels:
+                out[b] = ("unknown", vis, 1.0 - vis / px)
+        return out
 
     def _observe(self, photo_id: str, t: int, cues: list[ElementCue]) -> list[str]:
         touched = []

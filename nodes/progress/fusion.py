@@ -274,17 +274,17 @@ def fit_slip_days(tracks: list[ElementTrack], params: FusionParams) -> float | N
             if o.reference_ns and o.llr_change >= params.fit_min_llr
         ]
         if seen:
-            _, ref, t = min(seen)
-            samples.append((tr, float(ref), float(t)))
+            _, ref_ns, t_ns = min(seen)
+            samples.append((tr, float(ref_ns), float(t_ns)))
     if len(samples) < params.fit_min_elements:
         return None
     best, best_ll = None, -np.inf
     for width in SLIP_GRID_DAYS:
         p = replace(params, schedule_width_days=float(width), fit_slip=False)
         ll = 0.0
-        for tr, ref, t in samples:
+        for tr, lo, hi in samples:
             cdf = tr._prior_cdfs("construction", p)[0]
-            f = cdf(np.array([ref, t]))
+            f = cdf(np.array([lo, hi]))
             ll += math.log(max(float(f[1] - f[0]), 1e-12))
         if ll > best_ll:
             best, best_ll = float(width), ll
