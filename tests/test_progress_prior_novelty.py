@@ -140,3 +140,36 @@ def test_the_slip_of_the_schedule_is_learnt_from_elements_seen_appearing(seed: i
     assert tight is not None and loose is not None
     assert tight < 0.6 < 1.2 < loose < 3.0
     assert fit_slip_days(_seen_appearing(2.0, params.fit_min_elements - 1, seed), params) is None
+
+
+def test_a_photo_shows_what_stands_behind_a_candidate_that_did_not_stand() -> None:
+    """A candidate hid a believed-built wall when the photo was read; once every photo says the candidate did not
+    stand then, the photo's rows include the wall (its fused state, status ``unknown``); not while the candidate
+    most probably stood, nor with too few unoccluded pixels."""
+    from nodes.progress.batch import observation_rows
+    from nodes.progress.engine import PhotoRecord
+
+    window = ElementWindow(build_start_ns=4 * D, build_finish_ns=5 * D)
+
+    def engine(candidate_llr: float, visible_px: int) -> ProgressEngine:
+        eng = ProgressEngine()
+        eng.global_ids = ["cand", "wall"]
+        eng.index_of = {"cand": 1, "wall": 2}
+        cand, wall = ElementTrack("cand", window, SPAN), ElementTrack("wall", window, SPAN)
+        for d in range(6, 12):
+            cand.add(Observation(f"p{d}", d * D, llr_state=candidate_llr))
+            wall.add(Observation(f"p{d}", d * D, llr_state=2.0))
+        eng.tracks = {"cand": cand, "wall": wall}
+        eng.records["p10"] = PhotoRecord(
+            "p10", "cam", 10 * D, "p10.jpg", {1: ("seen", 900, 0.0)}, 1.0, {(1, 2): (100, visible_px)}
+        )
+        return eng
+
+    eng = engine(-2.0, 80)
+    assert eng.photo_cues(eng.records["p10"])[2] == ("unknown", 80, pytest.approx(0.2))
+    rows = {r["global_id"]: r["state"] for r in observation_rows(eng)}
+    assert rows == {"cand": "not_built", "wall": "built"}
+    stood = engine(2.0, 80)
+    assert 2 not in stood.photo_cues(stood.records["p10"])
+    small = engine(-2.0, EvidenceParams().min_pixels - 1)
+    assert 2 not in small.photo_cues(small.records["p10"])
