@@ -20,12 +20,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from itertools import combinations_with_replacement
 from typing import Literal
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from constructaide.schedule4d import ElementWindow
 
@@ -164,24 +164,29 @@ def path_of(window: ElementWindow | None) -> Path:
     return "construction"
 
 
+def _window_cdf(t: NDArray[np.float64], a: ArrayLike, b: ArrayLike, width_ns: float) -> NDArray[np.float64]:
+    """CDF at ``t`` (ns) of a time uniform over the planned window ``[a, b]`` (a task's elements are built one
+    after another over its duration) blurred by a logistic slip of scale ``width_ns`` (a zero-length window: the
+    plain logistic). Broadcasts over ``t``, ``a``, ``b``."""
+    a_, b_ = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    x = np.clip((np.asarray(t, np.float64) - a_) / width_ns, -1e6, 1e6)  # t may be +-inf
+    span = (b_ - a_) / width_ns
+    wide = span >= 1e-6
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        logistic = 1.0 / (1.0 + np.exp(-x))
+        uniform = (np.logaddexp(0.0, x) - np.logaddexp(0.0, x - span)) / np.where(wide, span, 1.0)
+    return np.clip(np.where(wide, uniform, logistic), 0.0, 1.0)
+
+
 def _prior_cdf(
     t: NDArray[np.float64], window: tuple[float, float] | None, width_ns: float, lo: float, hi: float, w: float
 ) -> NDArray[np.float64]:
-    """Prior CDF of a change time at ``t`` (ns): with weight ``w`` the planned window ``(start, finish)`` (the
-    change falls anywhere inside it, uniformly: a task's elements are built one after another over its duration)
-    blurred by a logistic slip of scale ``width_ns``; the rest flat over ``[lo, hi]``."""
+    """Prior CDF of a change time at ``t`` (ns): with weight ``w`` the planned ``window`` blurred by the slip
+    (:func:`_window_cdf`), the rest flat over ``[lo, hi]``."""
     flat = np.clip((t - lo) / max(hi - lo, 1.0), 0.0, 1.0)
     if window is None:
         return flat
-    a, b = window
-    x = np.clip((np.asarray(t, np.float64) - a) / width_ns, -1e6, 1e6)  # t may be +-inf
-    span = (b - a) / width_ns
-    if span < 1e-6:
-        with np.errstate(over="ignore"):
-            planned = 1.0 / (1.0 + np.exp(-x))
-    else:  # uniform on [a, b] convolved with a logistic: difference of softplus
-        planned = (np.logaddexp(0.0, x) - np.logaddexp(0.0, x - span)) / span
-    return w * np.clip(planned, 0.0, 1.0) + (1.0 - w) * flat
+    return w * _window_cdf(t, window[0], window[1], width_ns) + (1.0 - w) * flat
 
 
 @dataclass
@@ -264,9 +269,11 @@ def fit_slip_days(tracks: list[ElementTrack], params: FusionParams) -> float | N
     :meth:`ElementTrack.posterior` uses it) is the one the photos show. How far a schedule slips is a property of
     the site and its crews, not of one element; the flat part keeps elements far off their plan from inflating it.
     """
-    samples: list[tuple[ElementTrack, float, float]] = []
+    rows: list[tuple[float, float, float, float, float, float]] = []  # window a, b; seen in (lo, hi]; span
+    margin = params.margin_days * NS_PER_DAY
     for tr in tracks:
-        if path_of(tr.window) != "construction" or tr.window is None or tr.window.build_finish_ns is None:
+        w = tr.window
+        if path_of(w) != "construction" or w is None or w.build_finish_ns is None:
             continue
         seen = [
             (o.time_ns - o.reference_ns, o.reference_ns, o.time_ns)
@@ -275,17 +282,19 @@ def fit_slip_days(tracks: list[ElementTrack], params: FusionParams) -> float | N
         ]
         if seen:
             _, ref_ns, t_ns = min(seen)
-            samples.append((tr, float(ref_ns), float(t_ns)))
-    if len(samples) < params.fit_min_elements:
+            finish = float(w.build_finish_ns)
+            start = finish if w.build_start_ns is None else float(min(w.build_start_ns, w.build_finish_ns))
+            rows.append((start, finish, float(ref_ns), float(t_ns), tr.span_ns[0] - margin, tr.span_ns[1] + margin))
+    if len(rows) < params.fit_min_elements:
         return None
+    a, b, lo, hi, s0, s1 = (np.array(c) for c in zip(*rows, strict=True))
+    t = np.stack([lo, hi], axis=1)  # (N, 2)
+    flat = np.clip((t - s0[:, None]) / np.maximum(s1 - s0, 1.0)[:, None], 0.0, 1.0)
+    wt = params.schedule_weight
     best, best_ll = None, -np.inf
     for width in SLIP_GRID_DAYS:
-        p = replace(params, schedule_width_days=float(width), fit_slip=False)
-        ll = 0.0
-        for tr, lo, hi in samples:
-            cdf = tr._prior_cdfs("construction", p)[0]
-            f = cdf(np.array([lo, hi]))
-            ll += math.log(max(float(f[1] - f[0]), 1e-12))
+        f = wt * _window_cdf(t, a[:, None], b[:, None], float(width) * NS_PER_DAY) + (1.0 - wt) * flat
+        ll = float(np.sum(np.log(np.maximum(f[:, 1] - f[:, 0], 1e-12))))
         if ll > best_ll:
             best, best_ll = float(width), ll
     return best
