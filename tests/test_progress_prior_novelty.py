@@ -173,3 +173,21 @@ def test_a_photo_shows_what_stands_behind_a_candidate_that_did_not_stand() -> No
     assert 2 not in stood.photo_cues(stood.records["p10"])
     small = engine(-2.0, EvidenceParams().min_pixels - 1)
     assert 2 not in small.photo_cues(small.records["p10"])
+
+
+def test_inside_a_wide_evidence_bracket_the_finish_follows_the_prior() -> None:
+    """Absent on day 3, standing on day 7, nothing seen in between: the photos only bracket the change. With a
+    tight slip the finish is the posterior median near the planned window (inside the bracket), not the bracket's
+    middle; the middle is kept as an option."""
+    obs = [Observation("a", 3 * D, llr_state=-3.0), Observation("b", 7 * D, llr_state=3.0)]
+    window = ElementWindow(build_start_ns=int(3.5 * D), build_finish_ns=4 * D)
+    tr = ElementTrack("e", window, SPAN)
+    for o in obs:
+        tr.add(o)
+    tight = FusionParams(schedule_width_days=0.25)
+    e = estimate(tr, tr.posterior(tight), 8 * D, tight)
+    assert e.state == "built" and e.finish_ns is not None
+    assert 3 * D < e.finish_ns <= 7 * D and abs(e.finish_ns - 3.75 * D) < 0.5 * D
+    middle = FusionParams(schedule_width_days=0.25, finish_at_median=False)
+    m = estimate(tr, tr.posterior(middle), 8 * D, middle)
+    assert m.finish_ns == 5 * D

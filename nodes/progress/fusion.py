@@ -47,6 +47,9 @@ class FusionParams:
     """The flat prior reaches this far before the first planned start and after the last planned finish."""
     finish_from_median: bool = True
     """The change interval and finish are the posterior median's (else the most probable interval's middle)."""
+    finish_at_median: bool = True
+    """The finish is the posterior median itself (inside its interval the evidence is flat and the change follows
+    the prior: the slip learnt from the photos places it), else the working-time middle of its interval."""
     built_probability: float = 0.7
     """P(present) at or above which an element counts as built (at or below 1 - this: not built)."""
     tolerance_days: float = 0.0
@@ -339,7 +342,7 @@ def estimate(
             lo = hi = None
         elif state != "built" or t_med > as_of_ns:
             hi = None
-        elif lo is not None and hi is not None:
+        elif lo is not None and hi is not None and not params.finish_at_median:
             finish = midpoint(lo, hi) if midpoint is not None else (lo + hi) // 2
         else:
             finish = t_med
