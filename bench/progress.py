@@ -19,7 +19,9 @@ once its task's planned finish has passed, on time.
   early ones `ahead`, the never-built one `not_built`, on-time ones `on_time`. The schedule gives task dates only,
   while the truth's classes are per-element slots inside a task, so the table also scores the classes against
   each element's own task window (late = finished after its task's planned finish, early = before its planned
-  start), which is what any system reading this schedule can resolve;
+  start), which is what any system reading this schedule can resolve; "resolvable by the photos" is the share of
+  each class for which some photo the element is visible in was taken while it deviated (absent after its task's
+  planned finish, standing before its planned start): the ceiling of any reading of these photos;
 - evidence time per photo (the engine's `process`: decode, layers render, cues, fusion update), median, 1920x1080
   photos when the site has them.
 """
@@ -31,6 +33,7 @@ import csv
 import datetime as dt
 import hashlib
 import json
+import math
 import statistics
 import subprocess
 import sys
@@ -178,6 +181,7 @@ def score(site: Path, recording: Path, out: Path) -> dict:
 
     rows = defaultdict(lambda: {"ours": [], "sched": [], "truth": []})
     seen_by_fixed: set[str] = set()
+    seen_at: dict[str, list[int]] = defaultdict(list)  # element -> capture times of the photos it is visible in
     for pid, rel in sorted(by_id.items(), key=lambda kv: cams[kv[1]]["capture_time_utc_ns"]):
         t = cams[rel]["capture_time_utc_ns"]
         group = "phone" if cams[rel]["camera_id"] is None else "fixed"
@@ -190,6 +194,7 @@ def score(site: Path, recording: Path, out: Path) -> dict:
                 rows[k]["ours"].append(o is not None and o["state"] == "built")
                 rows[k]["sched"].append(sched)
                 rows[k]["truth"].append(g in built_truth)
+            seen_at[g].append(t)
             if group == "fixed":
                 seen_by_fixed.add(g)
     built = {k: (prf(v["ours"], v["truth"]), prf(v["sched"], v["truth"]), len(v["truth"])) for k, v in rows.items()}
@@ -208,7 +213,7 @@ def score(site: Path, recording: Path, out: Path) -> dict:
         errs_sched.append(np.inf if pf is None else (working_hours(pf) - truth_h) / WORK_HOURS)
 
     # deviation classes at the last photo
-    dev = defaultdict(lambda: [0, 0, 0])  # class -> [n, ours right, schedule right]
+    dev = defaultdict(lambda: [0, 0, 0, 0])  # class -> [n, ours right, schedule right, resolvable]
     for g, e in st["elements"].items():
         af = parse(e["actual_finish"])
         absent_at_end = af is None or af.timestamp() * 1e9 > t_last
@@ -234,6 +239,7 @@ def score(site: Path, recording: Path, out: Path) -> dict:
             d[0] += 1
             d[1] += ours in right
             d[2] += "on_time" in right
+            d[3] += _resolvable(cls, af, w, seen_at.get(g, []))
     big = [
         ms
         for pid, ms in summary["evidence_ms_per_photo"].items()
@@ -250,6 +256,22 @@ def score(site: Path, recording: Path, out: Path) -> dict:
         "photos_processed": summary["photos_processed"],
         "photos": len(by_id),
     }
+
+
+def _resolvable(cls: str, af: dt.datetime | None, w, times: list[int]) -> bool:  # noqa: ANN001
+    """Whether any photo the element is visible in (truth population) was taken while its deviation showed:
+    absent after its task's planned finish (late, never built), standing before its task's planned start (early).
+    Otherwise no photo saw it deviate and any task-level reading of the photos calls it on time. On time: always
+    (nothing to see)."""
+    if cls in ("on_time", "on time (task)"):
+        return True
+    if w is None or w.build_finish_ns is None:
+        return False
+    t_af = math.inf if af is None else af.timestamp() * 1e9
+    if cls in ("late", "late (task)", "never_built", "not built (task)"):
+        return any(w.build_finish_ns < t < t_af for t in times)
+    start = w.build_start_ns if w.build_start_ns is not None else w.build_finish_ns
+    return any(t_af < t < start for t in times)
 
 
 def _task_class(af: dt.datetime | None, w, t_last: int) -> str | None:  # noqa: ANN001
@@ -282,8 +304,8 @@ def report(res: dict, label: str) -> tuple[str, str]:
     med = lambda e: float(np.median(np.abs(e))) if e else float("nan")  # noqa: E731
     f_rows = [[label, len(eo), within(eo), med(eo), within(es), med(es)]]
     d_rows = [
-        [label, cls, n, right / n if n else float("nan"), sched / n if n else float("nan")]
-        for cls, (n, right, sched) in sorted(res["deviation"].items())
+        [label, cls, n, right / n if n else float("nan"), sched / n if n else float("nan"), res_ / n if n else 0.0]
+        for cls, (n, right, sched, res_) in sorted(res["deviation"].items())
     ]
     t_rows = [[label, res["photos_processed"], res["photos"], res["n_1080p"], res["ms_1080p"], res["ms_all"]]]
     return "\n".join(map(str, (b_rows, f_rows, d_rows, t_rows))), json.dumps(
@@ -316,7 +338,10 @@ def tables(all_rows: list[dict]) -> str:
         ],
         [r for x in all_rows for r in x["f"]],
     )
-    d = table(["run", "truth class", "elements", "ours right", "schedule right"], [r for x in all_rows for r in x["d"]])
+    d = table(
+        ["run", "truth class", "elements", "ours right", "schedule right", "resolvable by the photos"],
+        [r for x in all_rows for r in x["d"]],
+    )
     t = table(
         [
             "run",

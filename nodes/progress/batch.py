@@ -11,7 +11,7 @@ photos in capture order and writes the batch contract:
   deviation`` (``ahead, on_time, behind, not_built, unknown``, at the last capture time);
 
 times ISO 8601 with the site's offset, empty when unknown; ``camera_id`` empty for phone photos. Also
-``DIR/summary.json`` (counts, as-of time, evidence time per photo).
+``DIR/summary.json`` (counts, as-of time, evidence time per photo, the schedule slip scale learnt from the photos).
 """
 
 from __future__ import annotations
@@ -141,7 +141,7 @@ def iso(t_ns: int | None, tz: str) -> str:
 def observation_rows(engine: ProgressEngine) -> list[dict[str, str]]:
     rows = []
     for rec in sorted(engine.records.values(), key=lambda r: (r.capture_time_ns, r.photo_id)):
-        for idx, (status, _px, occ) in sorted(rec.cues.items()):
+        for idx, (status, _px, occ) in sorted(engine.photo_cues(rec).items()):
             gid = engine.global_ids[idx - 1]
             state, conf = engine.photo_state(gid, status, rec.capture_time_ns, occ)
             rows.append(
@@ -209,6 +209,7 @@ def main(argv: list[str] | None = None) -> int:
         "deviation_counts": {d: sum(r["deviation"] == d for r in els) for d in DEVIATIONS},
         "evidence_ms_per_photo": times,
         "working_width_px": args.working_width,
+        "schedule_slip_days": round(engine.fusion.schedule_width_days, 3),
         "wall_secs": round(time.perf_counter() - t0, 1),
     }
     (args.out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")

@@ -12,7 +12,7 @@ only those tracks (:mod:`nodes.progress.fusion`). Call from one thread (the rend
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -32,9 +32,10 @@ from nodes.progress.fusion import (
     Observation,
     Posterior,
     estimate,
+    fit_slip_days,
     working_midpoint,
 )
-from nodes.progress.modelview import LayerRenderer, Mesh
+from nodes.progress.modelview import LayerRenderer, Layers, Mesh
 from nodes.progress.plates import ReferencePlate, same_segment
 from schemas.messages import (
     SPARSE_POINT_FROM_MODEL,
@@ -107,6 +108,23 @@ class PhotoRecord:
     filename: str
     cues: dict[int, tuple[str, int, float]]
     processing_ms: float
+    behind: dict[tuple[int, int], tuple[int, int]] = field(default_factory=dict)
+    """(candidate index, believed-built element index behind it) -> (pixels, unoccluded pixels) where the
+    candidate hid that element in the last evidence pass (see :meth:`ProgressEngine.photo_cues`)."""
+
+
+def _behind_candidates(layers: Layers, occluded: NDArray[np.bool_]) -> dict[tuple[int, int], tuple[int, int]]:
+    front = layers.ids_front.astype(np.int64)
+    built = layers.ids_built.astype(np.int64)
+    sel = (front > 0) & (built > 0)
+    if not sel.any():
+        return {}
+    key = front[sel] * (int(built.max()) + 1) + built[sel]
+    keys, counts = np.unique(key, return_counts=True)
+    free = np.unique(key[~occluded[sel]], return_counts=True)
+    vis = dict(zip(free[0].tolist(), free[1].tolist(), strict=True))
+    m = int(built.max()) + 1
+    return {(k // m, k % m): (int(c), int(vis.get(k, 0))) for k, c in zip(keys.tolist(), counts.tolist(), strict=True)}
 
 
 class ProgressEngine:
@@ -137,6 +155,9 @@ class ProgressEngine:
         self.as_of_ns = 0
         self.tz = "UTC"
         self.annotations: list[Annotation] = []
+        self.fusion = self.params.fusion
+        """The fusion parameters in use: ``params.fusion`` with the slip learnt from the photos (see
+        :meth:`refit_slip`)."""
 
     # -- inputs ---------------------------------------------------------------------------------------
 
@@ -248,7 +269,7 @@ class ProgressEngine:
     def posterior(self, gid: str) -> Posterior:
         post = self.posteriors.get(gid)
         if post is None:
-            post = self.posteriors[gid] = self.tracks[gid].posterior(self.params.fusion)
+            post = self.posteriors[gid] = self.tracks[gid].posterior(self.fusion)
         return post
 
     def estimate(self, gid: str, as_of_ns: int | None = None) -> ElementEstimate:
@@ -257,9 +278,23 @@ class ProgressEngine:
             self.tracks[gid],
             self.posterior(gid),
             self.as_of_ns if as_of_ns is None else as_of_ns,
-            self.params.fusion,
+            self.fusion,
             midpoint=lambda lo, hi: working_midpoint(lo, hi, self.tz, hours),
         )
+
+    def refit_slip(self, tolerance: float = 0.1) -> bool:
+        """Learn the schedule's slip scale from the elements seen appearing so far (:func:`fit_slip_days`); a change
+        beyond ``tolerance`` (relative) redoes every posterior. Returns whether it changed."""
+        base = self.params.fusion
+        if not base.fit_slip:
+            return False
+        width = fit_slip_days(list(self.tracks.values()), base)
+        width = base.schedule_width_days if width is None else width
+        if abs(width - self.fusion.schedule_width_days) <= tolerance * self.fusion.schedule_width_days:
+            return False
+        self.fusion = replace(base, schedule_width_days=width)
+        self.posteriors = {}
+        return True
 
     def _present(self, t_ns: int) -> NDArray[np.float64]:
         out = np.zeros(len(self.global_ids) + 1)
@@ -372,7 +407,8 @@ class ProgressEngine:
         reference = plate.warp_to(intr, T) if plate is not None else None
         points = self._points(photo_id, reg, W / w)
         ev = self.params.evidence
-        confirmed = self._confirmed(t - 1)
+        # the look of each material: elements seen appearing (confirmed) and those the belief draws as built
+        confirmed = np.maximum(self._confirmed(t - 1), built.astype(np.float64))
         seen: dict[int, ElementCue] = {}
         touched: list[str] = []
         layers = None
@@ -401,6 +437,7 @@ class ProgressEngine:
         assert layers is not None
         cues = [seen[i] for i in sorted(seen)]
         self.as_of_ns = max(self.as_of_ns, t)
+        self.refit_slip()
         self._learn_materials(lab, occluded, layers.ids_all, t)
         if photo.camera_id:
             frames = self.frames.setdefault(photo.camera_id, [])
@@ -418,10 +455,34 @@ class ProgressEngine:
             photo.filename,
             {c.index: (c.status, c.visible_px, c.occluded_fraction) for c in cues},
             ms,
+            _behind_candidates(layers, occluded),
         )
         self.records[photo_id] = record
         evidence = self.photo_evidence_message(record, cues, (W, H))
         return evidence, self.update_message(touched, photo_id)
+
+    def photo_cues(self, record: PhotoRecord) -> dict[int, tuple[str, int, float]]:
+        """What a processed photo shows, per element index (status, visible px, occluded fraction): its cues, plus
+        the believed-built elements it showed only behind candidates that, with every photo since, most probably did
+        not stand at its capture time (below ``peel_probability``): in view, with status ``unknown`` (their pixels
+        were read as the candidate's), so their rows report the fused state. Recomputed from the current belief."""
+        out = dict(record.cues)
+        acc: dict[int, list[int]] = {}
+        t = record.capture_time_ns
+        gone: dict[int, bool] = {}
+        for (f, b), (px, vis) in record.behind.items():
+            if b in out:
+                continue
+            if f not in gone:
+                gone[f] = self.posterior(self.global_ids[f - 1]).present_at(t) < self.params.peel_probability
+            if gone[f]:
+                a = acc.setdefault(b, [0, 0])
+                a[0] += px
+                a[1] += vis
+        for b, (px, vis) in acc.items():
+            if vis >= self.params.evidence.min_pixels:
+                out[b] = ("unknown", vis, 1.0 - vis / px)
+        return out
 
     def _observe(self, photo_id: str, t: int, cues: list[ElementCue]) -> list[str]:
         touched = []
@@ -499,13 +560,15 @@ class ProgressEngine:
         )
 
     def photo_state(self, gid: str, status: str, t_ns: int, occluded_fraction: float) -> tuple[str, float]:
-        """State of an element in a photo: the fused estimate at its capture time where it was seen."""
+        """State of an element in a photo: the fused estimate at its capture time (given every photo) where it is
+        in view and not hidden by the occlusion mask, also when too few of its pixels show for this photo's own
+        cues (status ``unknown``); ``occluded`` where the mask hides it."""
         if status == "occluded":
             return "occluded", occluded_fraction
-        if status != "seen" or not self.tracks[gid].observations:
+        if status not in ("seen", "unknown") or not self.tracks[gid].observations:
             return "unknown", 0.0
         p = self.posterior(gid).present_at(t_ns)
-        b = self.params.fusion.built_probability
+        b = self.fusion.built_probability
         if p >= b:
             return "built", p
         if p <= 1.0 - b:

@@ -75,9 +75,14 @@ class EvidenceParams:
     appearance_full_pixels: int = 200
     """Visible pixels for the full appearance LLR (fewer scale it down linearly; 0: no scaling)."""
     appearance_min_reference_px: int = 150
+    """Pixels a material / absence model needs before it is used."""
     appearance_ring_px: int = 12
     """Background pixels this close to an element's region model what shows where it is absent."""
-    """Pixels a material / absence model needs before it is used."""
+    appearance_novelty_weight: float = 0.5
+    """Without a known look of its material (the first frames of a site, before any element of that material is
+    seen appearing) an element's colours are tested against a flat model (anything unlike what would show where
+    it is absent); this weight stands for the material look's confidence (``alpha``) on the mean log ratio, before
+    the ``appearance_max_llr`` clip; 0: no appearance evidence then."""
 
 
 @dataclass
@@ -343,7 +348,8 @@ def _appearance_cue(
         counts = local[m] - weight[i] * per_el[i]  # leave the element itself out of its material's look
         if materials is not None:
             counts = counts + 0.2 * materials.counts.get(mats[m], np.zeros(NUM_BINS))
-        if counts.sum() < p.appearance_min_reference_px:
+        novelty = counts.sum() < p.appearance_min_reference_px
+        if novelty and p.appearance_novelty_weight <= 0.0:
             continue
         ys, xs = all_ys[first[i] : last[i]], all_xs[first[i] : last[i]]
         if len(ys) < p.min_pixels:
@@ -363,8 +369,12 @@ def _appearance_cue(
                 use = behind == k
                 if local[k].sum() >= p.appearance_min_reference_px:
                     absent[use] = 0.5 * normalised_hist(local[k], 20.0)[b[use]] + 0.5 * others[b[use]]
-        ratio = np.clip(np.log(normalised_hist(counts, 20.0)[b]) - np.log(absent), -4.0, 4.0)
-        alpha = counts.sum() / (counts.sum() + p.appearance_min_reference_px)
+        if novelty:  # no look of its material yet: anything unlike what would show where it is absent
+            ratio = np.clip(np.log(1.0 / NUM_BINS) - np.log(absent), -4.0, 4.0)
+            alpha = p.appearance_novelty_weight
+        else:
+            ratio = np.clip(np.log(normalised_hist(counts, 20.0)[b]) - np.log(absent), -4.0, 4.0)
+            alpha = counts.sum() / (counts.sum() + p.appearance_min_reference_px)
         llr = float(np.clip(alpha * p.appearance_scale * ratio.mean(), -p.appearance_max_llr, p.appearance_max_llr))
         if llr < 0.0:
             llr *= p.appearance_negative_scale

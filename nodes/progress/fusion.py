@@ -9,7 +9,7 @@ the changes; hypotheses place each change in one interval of the grid made of th
   ``+llr/2`` to hypotheses under which the element is present at ``t`` and ``-llr/2`` otherwise;
 * a *transition* observation (``llr_change`` over ``(ref, t]``: the element's pixels changed since the reference
   plate) adds ``llr`` to hypotheses with a change inside ``(ref, t]``;
-* the prior of a change time is the schedule's (a logistic around the planned date, width from the task length)
+* the prior of a change time is the schedule's (uniform over the planned window, blurred by a logistic slip)
   mixed with a flat prior over the whole project, so the evidence, not the plan, decides once there is any.
 
 Times are int ns UTC. Monotone by construction: no hypothesis removes a constructed element unless a demolition
@@ -25,7 +25,7 @@ from itertools import combinations_with_replacement
 from typing import Literal
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from constructaide.schedule4d import ElementWindow
 
@@ -41,15 +41,25 @@ class FusionParams:
     (months of project for one week of photos) outweighed the plan wherever the photos were silent (an element built
     before a camera's first frame, a late one never seen changing)."""
     schedule_width_days: float = 1.5
-    """Logistic scale of the schedule prior: this plus half the task's duration."""
+    """Logistic scale of the slip around the planned window (the schedule prior is the window, uniform, blurred by
+    this slip)."""
     margin_days: float = 30.0
     """The flat prior reaches this far before the first planned start and after the last planned finish."""
     finish_from_median: bool = True
     """The change interval and finish are the posterior median's (else the most probable interval's middle)."""
+    finish_at_median: bool = True
+    """The finish is the posterior median itself (inside its interval the evidence is flat and the change follows
+    the prior: the slip learnt from the photos places it), else the working-time middle of its interval."""
     built_probability: float = 0.7
     """P(present) at or above which an element counts as built (at or below 1 - this: not built)."""
     tolerance_days: float = 0.0
     """Deviation tolerance around the planned window."""
+    fit_slip: bool = True
+    """Learn the slip scale of this site's schedule from the photos (:func:`fit_slip_days`) once enough elements
+    were seen appearing; ``schedule_width_days`` until then."""
+    fit_min_elements: int = 8
+    """Elements seen appearing (a transition of at least ``fit_min_llr``) needed to learn the slip."""
+    fit_min_llr: float = 3.0
 
 
 @dataclass(frozen=True)
@@ -157,13 +167,29 @@ def path_of(window: ElementWindow | None) -> Path:
     return "construction"
 
 
-def _prior_cdf(t: NDArray[np.float64], planned_ns: float | None, width_ns: float, lo: float, hi: float, w: float):
+def _window_cdf(t: NDArray[np.float64], a: ArrayLike, b: ArrayLike, width_ns: float) -> NDArray[np.float64]:
+    """CDF at ``t`` (ns) of a time uniform over the planned window ``[a, b]`` (a task's elements are built one
+    after another over its duration) blurred by a logistic slip of scale ``width_ns`` (a zero-length window: the
+    plain logistic). Broadcasts over ``t``, ``a``, ``b``."""
+    a_, b_ = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    x = np.clip((np.asarray(t, np.float64) - a_) / width_ns, -1e6, 1e6)  # t may be +-inf
+    span = (b_ - a_) / width_ns
+    wide = span >= 1e-6
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        logistic = 1.0 / (1.0 + np.exp(-x))
+        uniform = (np.logaddexp(0.0, x) - np.logaddexp(0.0, x - span)) / np.where(wide, span, 1.0)
+    return np.clip(np.where(wide, uniform, logistic), 0.0, 1.0)
+
+
+def _prior_cdf(
+    t: NDArray[np.float64], window: tuple[float, float] | None, width_ns: float, lo: float, hi: float, w: float
+) -> NDArray[np.float64]:
+    """Prior CDF of a change time at ``t`` (ns): with weight ``w`` the planned ``window`` blurred by the slip
+    (:func:`_window_cdf`), the rest flat over ``[lo, hi]``."""
     flat = np.clip((t - lo) / max(hi - lo, 1.0), 0.0, 1.0)
-    if planned_ns is None:
+    if window is None:
         return flat
-    with np.errstate(over="ignore"):
-        logistic = 1.0 / (1.0 + np.exp(-(t - planned_ns) / width_ns))
-    return w * logistic + (1.0 - w) * flat
+    return w * _window_cdf(t, window[0], window[1], width_ns) + (1.0 - w) * flat
 
 
 @dataclass
@@ -217,18 +243,64 @@ class ElementTrack:
         w = self.window
         margin = params.margin_days * NS_PER_DAY
         lo, hi = self.span_ns[0] - margin, self.span_ns[1] + margin
-        planned: list[float | None] = []
-        widths: list[float] = []
+        planned: list[tuple[float, float] | None] = []
         for start, finish in (
             ((w.build_start_ns, w.build_finish_ns) if w else (None, None)),
             ((w.remove_start_ns, w.remove_finish_ns) if w else (None, None)),
         ):
-            dur = (finish - start) if start is not None and finish is not None else 0
-            planned.append(None if finish is None else float(finish))
-            widths.append(params.schedule_width_days * NS_PER_DAY + 0.5 * dur)
+            if finish is None:
+                planned.append(None)
+            else:
+                planned.append((float(finish if start is None else min(start, finish)), float(finish)))
         which = {"construction": [0], "demolition": [1], "temporary": [0, 1]}[path]
         weight = params.schedule_weight
-        return tuple((lambda t, pl=planned[ph], wd=widths[ph]: _prior_cdf(t, pl, wd, lo, hi, weight)) for ph in which)
+        width = params.schedule_width_days * NS_PER_DAY
+        return tuple((lambda t, pl=planned[ph]: _prior_cdf(t, pl, width, lo, hi, weight)) for ph in which)
+
+
+SLIP_GRID_DAYS = np.geomspace(1.0 / 24.0, 3.0, 48)
+"""Slip scales :func:`fit_slip_days` chooses from: an hour to three days."""
+
+
+def fit_slip_days(tracks: list[ElementTrack], params: FusionParams) -> float | None:
+    """Slip scale (days) of the site's schedule learnt from the photos (empirical Bayes), or None with too few
+    elements seen appearing.
+
+    Every constructed element seen appearing (a transition of at least ``fit_min_llr`` over ``(ref, t]``, the
+    narrowest when several) is an interval-censored sample of its change time; the scale maximising the likelihood
+    of these intervals under the prior (planned window blurred by the slip, mixed with the flat part, as
+    :meth:`ElementTrack.posterior` uses it) is the one the photos show. How far a schedule slips is a property of
+    the site and its crews, not of one element; the flat part keeps elements far off their plan from inflating it.
+    """
+    rows: list[tuple[float, float, float, float, float, float]] = []  # window a, b; seen in (lo, hi]; span
+    margin = params.margin_days * NS_PER_DAY
+    for tr in tracks:
+        w = tr.window
+        if path_of(w) != "construction" or w is None or w.build_finish_ns is None:
+            continue
+        seen = [
+            (o.time_ns - o.reference_ns, o.reference_ns, o.time_ns)
+            for o in tr.observations.values()
+            if o.reference_ns and o.llr_change >= params.fit_min_llr
+        ]
+        if seen:
+            _, ref_ns, t_ns = min(seen)
+            finish = float(w.build_finish_ns)
+            start = finish if w.build_start_ns is None else float(min(w.build_start_ns, w.build_finish_ns))
+            rows.append((start, finish, float(ref_ns), float(t_ns), tr.span_ns[0] - margin, tr.span_ns[1] + margin))
+    if len(rows) < params.fit_min_elements:
+        return None
+    a, b, lo, hi, s0, s1 = (np.array(c) for c in zip(*rows, strict=True))
+    t = np.stack([lo, hi], axis=1)  # (N, 2)
+    flat = np.clip((t - s0[:, None]) / np.maximum(s1 - s0, 1.0)[:, None], 0.0, 1.0)
+    wt = params.schedule_weight
+    best, best_ll = None, -np.inf
+    for width in SLIP_GRID_DAYS:
+        f = wt * _window_cdf(t, a[:, None], b[:, None], float(width) * NS_PER_DAY) + (1.0 - wt) * flat
+        ll = float(np.sum(np.log(np.maximum(f[:, 1] - f[:, 0], 1e-12))))
+        if ll > best_ll:
+            best, best_ll = float(width), ll
+    return best
 
 
 @dataclass(frozen=True)
@@ -270,7 +342,7 @@ def estimate(
             lo = hi = None
         elif state != "built" or t_med > as_of_ns:
             hi = None
-        elif lo is not None and hi is not None:
+        elif lo is not None and hi is not None and not params.finish_at_median:
             finish = midpoint(lo, hi) if midpoint is not None else (lo + hi) // 2
         else:
             finish = t_med
