@@ -15,8 +15,8 @@ returns True while more is pending: it is called again as long as no message wai
 decode, or a handler that raises, becomes a :class:`~schemas.messages.NodeError` on
 ``constructaide/{site}/errors``; the node keeps running. So does a message :func:`schemas.validate.problems` refuses
 (NaN / infinite numbers, negative sizes, a rotation that is not one, a schedule with a cycle, ...).
-Readiness: after subscribing, the node declares the liveliness token
-``constructaide/{site}/@live/{node}/{instance}``.
+Readiness: after restoring its state and subscribing, the node declares the liveliness token
+``constructaide/{site}/@live/{node}/{instance}``, before it catches up on what it missed while down.
 """
 
 from __future__ import annotations
@@ -292,15 +292,18 @@ class RunningNode:
                     self._subs.append(self.bus.subscribe(k, self._callback(inp), fetch_latched=inp.latched))
                 finally:
                     self._fetching.latched = False
-        if self.ledger is not None:
-            self._send_outbox(self.ledger.outbox())
-            self._replay()
+        # Live once subscribed and restored: the catch-up below (what was published while the node was down) can
+        # take as long as handling it, and the live messages that come meanwhile are held and handled after it in
+        # publication order; a supervisor or a dashboard sees the node back at once, not after its backlog.
         instance = uuid.uuid4().hex[:8]
         if self.partition is not None:
             instance = f"w{self.partition.spec().replace('/', 'of')}-{instance}"
         self._token = self.bus.declare_token(
             keys.key(keys.LIVELINESS, site=self.site, node=self.spec.name, instance=instance)
         )
+        if self.ledger is not None:
+            self._send_outbox(self.ledger.outbox())
+            self._replay()
         return self
 
     def _callback(self, inp: Input) -> Callable[[str, bytes], None]:
