@@ -257,11 +257,16 @@ def run(sim: SimSite, workers: int, burst_days: int, paced_days: int, log_dir: P
 
 
 def soak(
-    n_frames: int, in_flight: int, log_dir: Path, seed: int = 1, node_sets: dict[str, list[str]] | None = None
+    n_frames: int,
+    in_flight: int,
+    log_dir: Path,
+    seed: int = 1,
+    node_sets: dict[str, list[str]] | None = None,
+    interval_secs: float = 60.0,
 ) -> list[dict]:
-    """One camera pushing ``n_frames`` frames 1 min apart (capture time), as fast as the pipeline finishes them
-    (at most ``in_flight`` unfinished); RSS of every node process at every tenth of the run. ``node_sets``: extra
-    config settings per node kind (``field=value``)."""
+    """One camera pushing ``n_frames`` frames ``interval_secs`` apart (capture time), as fast as the pipeline
+    finishes them (at most ``in_flight`` unfinished); RSS of every node process at every tenth of the run.
+    ``node_sets``: extra config settings per node kind (``field=value``)."""
     sim = simulate(1, 6, seed)
     base_frames = [day[0] for day in sim.days]
     imgs = [cv2.imdecode(np.frombuffer(p.data, np.uint8), cv2.IMREAD_COLOR) for p in base_frames]
@@ -298,7 +303,7 @@ def soak(
                     base_frames[k % len(imgs)],
                     photo_id=hashlib.sha256(data).hexdigest()[:16],
                     data=data,
-                    capture_time_ns=base_frames[0].capture_time_ns + k * 60_000_000_000,
+                    capture_time_ns=base_frames[0].capture_time_ns + k * int(interval_secs * 1e9),
                 )
             with tracker.cond:  # closed loop: at most in_flight frames unfinished
                 if not tracker.cond.wait_for(
@@ -328,10 +333,14 @@ def soak_main(args: argparse.Namespace) -> int:
             if kind not in KINDS or "=" not in setting:
                 raise SystemExit(f"--soak-set {item!r}: expected KIND:FIELD=VALUE with KIND one of {', '.join(KINDS)}")
             node_sets.setdefault(kind, []).append(setting)
-        samples = soak(args.soak_frames, 4, args.log_dir or Path(tmp), node_sets=node_sets)
+        samples = soak(
+            args.soak_frames, 4, args.log_dir or Path(tmp), node_sets=node_sets, interval_secs=args.soak_interval_secs
+        )
     kinds = [k for k in (*KINDS, "ingest") if k in samples[0]]
     rows = [
-        [s["frames"], f"{s['frames'] / 60:.1f} h", round(s["secs"])] + [round(s[k]) for k in kinds] for s in samples
+        [s["frames"], f"{s['frames'] * args.soak_interval_secs / 3600:.1f} h", round(s["secs"])]
+        + [round(s[k]) for k in kinds]
+        for s in samples
     ]
     body = table(["frames", "capture time covered", "wall s", *[f"{k} RSS MiB" for k in kinds]], rows)
     half = next(s for s in samples if s["frames"] >= samples[-1]["frames"] / 2)
@@ -344,11 +353,13 @@ def soak_main(args: argparse.Namespace) -> int:
     )
     print(body)
     print(summary)
+    hours = args.soak_frames * args.soak_interval_secs / 3600
     if not args.no_write:
         write_section(
-            f"scale soak ({args.soak_frames} frames, {args.soak_frames / 60:.1f}-hour equivalent)",
+            f"scale soak ({args.soak_frames} frames, {hours:.1f}-hour equivalent)",
             f"{code_version()}. One fixed camera (the small site's cam-north, 960x540, each frame moved by up to 2 px "
-            "and re-exposed so it is a new photo) pushing one frame per minute of capture time, accelerated: the next "
+            "and re-exposed so it is a new photo) pushing one frame every "
+            f"{args.soak_interval_secs:g} s of capture time, accelerated: the next "
             "frame goes out as soon as fewer than 4 are unfinished; register, occlude and render(state4d) in their "
             "own processes on the loopback bus; resident memory sampled every tenth of the run. The machine was "
             "shared with other jobs. Node settings beyond the defaults: "
@@ -374,6 +385,7 @@ def main() -> int:
     ap.add_argument(
         "--soak-frames", type=int, default=0, help="instead: one camera, this many frames 1 min apart (1440: 24 h)"
     )
+    ap.add_argument("--soak-interval-secs", type=float, default=60.0, help="soak: capture time between frames")
     ap.add_argument(
         "--soak-set",
         action="append",
