@@ -12,6 +12,7 @@ but no bus.
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import os
@@ -202,15 +203,25 @@ def recording_files(path: str | Path) -> list[tuple[Path, bool]]:
     return [(path, False)]
 
 
-def iter_messages(path: str | Path, *, allow_truncated: bool = False) -> Iterator[RecordedMessage]:
+def iter_messages(path: str | Path, *, allow_truncated: bool = False, dedupe: bool = True) -> Iterator[RecordedMessage]:
     """Every message of a recording in file (= receive) order (of a rotated set: file after file).
 
     A file whose data section is truncated or corrupt yields its complete part, then raises
     :class:`RecordingError` unless ``allow_truncated`` (a damaged summary section alone is fine); in a rotated
     set the files the index says were open (the recorder was killed) are read up to their last complete chunk.
+    With ``dedupe`` a message whose key and payload are byte for byte those of an earlier one is skipped: the
+    recorder records at least once (a message written to a chunk just before a kill comes again after the
+    restart), and the system handles a message once by that digest anyway.
     """
+    seen: set[bytes] = set()
     for file, open_ in recording_files(path):
-        yield from _iter_file(file, allow_truncated=allow_truncated or open_)
+        for rec in _iter_file(file, allow_truncated=allow_truncated or open_):
+            if dedupe:
+                dig = hashlib.blake2b(rec.key.encode() + b"\0" + rec.payload, digest_size=16).digest()
+                if dig in seen:
+                    continue
+                seen.add(dig)
+            yield rec
 
 
 def _iter_file(path: Path, *, allow_truncated: bool) -> Iterator[RecordedMessage]:
