@@ -12,6 +12,7 @@ import pytest
 from constructaide.runtime import BusConfig, open_bus, start_node
 from constructaide.runtime.history import Ledger, PublicationCache, digest
 from constructaide.runtime.local import LocalBus
+from constructaide.runtime.node import RunningNode
 from schemas import codec, keys
 from schemas.messages import Photo, Registration
 
@@ -220,3 +221,31 @@ def test_after_a_prune_a_redelivered_recent_photo_is_still_handled_once(tmp_path
         assert node.replayed == 1 and node.duplicates >= 1  # "down" handled; recent p4 re-delivered, skipped
     ids = [r.photo_id for _, r in regs.items]
     assert sorted(ids) == sorted([f"p{i}" for i in range(5)] + ["down"])  # each once: nothing lost, none twice
+
+
+def test_a_restarted_node_is_live_before_it_has_caught_up(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Liveliness comes once the node is restored and subscribed, before the catch-up on what it missed while
+    down (which can take as long as handling it); the backlog is then handled once and in order."""
+    bus = LocalBus()
+    site = "catch"
+    live = keys.pattern(keys.LIVELINESS, site=site, node="echo")
+    regs = bus.collect(keys.pattern(keys.REGISTRATION, site=site))
+    cfg = echo_node.Config(site=site)
+    with start_node(echo_node.SPEC, cfg, bus, state_dir=tmp_path):
+        bus.publish(*photo(site, "p0"))
+        regs.wait(1, timeout=10)
+    for i in range(1, 9):  # the node is down
+        bus.publish(*photo(site, f"p{i}"))
+    token_at_catch_up: list[bool] = []
+    replay = RunningNode._replay
+
+    def spy(self: RunningNode) -> None:
+        token_at_catch_up.append(bool(bus.live_tokens(live)))
+        replay(self)
+
+    monkeypatch.setattr(RunningNode, "_replay", spy)
+    with start_node(echo_node.SPEC, cfg, bus, queue_size=2, state_dir=tmp_path) as node:
+        regs.wait(9, timeout=30)
+        assert node.wait_idle(10) and node.replayed == 8
+    assert token_at_catch_up == [True]
+    assert [r.photo_id for _, r in regs.items] == [f"p{i}" for i in range(9)]
