@@ -4,6 +4,7 @@ structures the same size (counted, not RSS)."""
 from __future__ import annotations
 
 import hashlib
+from collections import Counter
 
 import cv2
 import msgspec
@@ -267,3 +268,31 @@ def test_workbench_state_keeps_a_bounded_number_of_photos() -> None:
     assert 20 <= len(st.photos) <= 22 and "p0199" in st.photos and "p0000" not in st.photos
     assert len(st.registrations) <= 44 and len(st.masks) <= 44
     assert all(p in st.photos for p in st.registrations)
+
+
+@pytest.mark.parametrize("regroup", [False, True])
+def test_occlude_does_not_redo_a_final_mask_every_time_its_group_grows(regroup: bool) -> None:
+    """The register node republishes a fixed-camera frame's viewpoint group whenever a later frame joins it (up to
+    ~30 neighbours each). Once a frame's mask is final (a later frame in its stack) and its stack full (max_views),
+    a growing group no longer recomputes it: the work per new frame stays constant instead of growing with the
+    group (``regroup_final_masks=True``: the old behaviour, every change recomputed)."""
+    emitted: list[OcclusionMask] = []
+    cfg = OccludeConfig(site=SITE, max_views=3, max_photos_per_camera=0, regroup_final_masks=regroup)
+    pipe = OcclusionPipeline(cfg, lambda m, _mask: emitted.append(m), site=SITE)
+    photos = [_photo(fr.image, "cam-a", k * MIN_NS) for k, fr in enumerate(dynamic_sequence(3, 10, h=135, w=240))]
+    for k, photo in enumerate(photos):
+        pipe.add_photo(photo)
+        pipe.add_registration(_registration(photo.photo_id, "cam-a"))
+        earlier = [q.photo_id for q in photos[:k]]
+        pipe.set_viewpoints(_group(photo.photo_id, earlier))
+        for j, q in enumerate(photos[:k]):  # each earlier frame's group now names the new one too
+            pipe.set_viewpoints(_group(q.photo_id, [p.photo_id for i, p in enumerate(photos[: k + 1]) if i != j]))
+        while pipe.idle():
+            pass
+    redone = Counter(m.photo_id for m in emitted if m.kind == "dynamic")
+    assert set(redone) == {p.photo_id for p in photos}  # every frame has its mask
+    first = redone[photos[0].photo_id]
+    if regroup:
+        assert first >= len(photos) - 1, redone  # recomputed with every later frame
+    else:
+        assert first <= cfg.max_views + 1, redone  # until its stack was full, then final

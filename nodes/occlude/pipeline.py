@@ -67,6 +67,10 @@ class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=Tr
     stack_selection: str = "spread"  # "spread": nearest earlier + later, then spread over the time span; "nearest"
     two_pass: bool = True  # stacks leave out the pixels of their neighbours' own dynamic masks (when known)
     refine_previous_frame: bool = True  # recompute a camera's previous newest frame once a later one arrives
+    # a photo's viewpoint group that grows recomputes its dynamic mask only while that mask is provisional (no later
+    # frame in its stack, or no stack) or its stack is not full (fewer than max_views candidates); True: whenever its
+    # candidates change (every new fixed-camera frame then recomputes up to its ~30 registered neighbours' masks)
+    regroup_final_masks: bool = False
     max_stored_photos: int = 2000  # photos kept for stacks and republishing; the oldest arrivals are dropped
     # ... and at most this many frames of one fixed camera (its earliest captures go first, but not the frame the
     # others borrow their static mask from, see static_borrow_below_points; 0: no per-camera bound),
@@ -285,8 +289,15 @@ class OcclusionPipeline:
         self._bound_unstored()
         touched = [msg.photo_id] + [p for p in groups if p in self.dynamic_no_stack]
         for pid in touched:
-            if pid in self.photos and self._stack_ids(pid) != self.dynamic_stack_ids.get(pid):
+            if pid in self.photos and self._stack_ids(pid) != self.dynamic_stack_ids.get(pid) and self._regroup(pid):
                 self._dynamic(pid)
+
+    def _regroup(self, photo_id: str) -> bool:
+        """Whether a change of ``photo_id``'s candidates recomputes its dynamic mask (``regroup_final_masks``)."""
+        if self.config.regroup_final_masks or photo_id not in self.dynamic_stack_ids:
+            return True
+        provisional = photo_id in self.dynamic_no_stack or not self.dynamic_had_later.get(photo_id, False)
+        return provisional or len(self.dynamic_stack_ids[photo_id]) < self.config.max_views
 
     @_flushing
     def add_registration(self, msg: Registration) -> None:
