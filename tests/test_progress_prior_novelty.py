@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_progress_fusion_evidence import box as _box
 
 from constructaide.camera import look_at
 from constructaide.schedule4d import ElementWindow
@@ -52,13 +53,6 @@ def test_an_element_standing_before_the_first_photo_inside_its_window() -> None:
     e = estimate(tr, post, 14 * D, params)
     assert e.state == "built" and e.finish_ns is not None and e.finish_ns <= 9 * D
     assert e.deviation == "on_time"
-
-
-def _box(lo: tuple[float, float, float], hi: tuple[float, float, float]) -> tuple[np.ndarray, np.ndarray]:
-    import trimesh
-
-    m = trimesh.creation.box(bounds=np.array([lo, hi]))
-    return np.asarray(m.vertices), np.asarray(m.faces, np.int32)
 
 
 @pytest.fixture(scope="module")
