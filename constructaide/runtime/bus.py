@@ -221,6 +221,9 @@ class BusConfig:
     chunk_buffer_bytes: int = field(default_factory=default_chunk_buffer_bytes)
     """Bytes of incomplete transfers a subscription holds (the oldest are dropped beyond); larger payloads are
     refused."""
+    latched_fetch_secs: float = 15.0
+    """How long a ``fetch_latched`` subscription waits for the latched values (a big model comes in parts, and a
+    loaded machine is slow to send them; the query ends as soon as every holder has answered)."""
     security: BusSecurity | None = None  # TLS / mTLS / ACL from the site TOML (constructaide.runtime.security)
 
     @classmethod
@@ -432,7 +435,9 @@ class ZenohBus(Bus):
         if fetch_latched:
             # no consolidation (it would keep one part per key); one latched payload per key, the last completed
             latest: dict[str, bytes] = {}
-            for reply in self.session.get(keyexpr, timeout=2.0, consolidation=self._z.ConsolidationMode.NONE):
+            for reply in self.session.get(
+                keyexpr, timeout=self.config.latched_fetch_secs, consolidation=self._z.ConsolidationMode.NONE
+            ):
                 if (s := reply.ok) is not None:
                     att = s.attachment.to_bytes() if s.attachment is not None else None
                     if (whole := receiver.unpack(str(s.key_expr), s.payload.to_bytes(), att)) is not None:
