@@ -52,7 +52,7 @@ def child(frames_n: int, every: int, cap: int | None) -> None:
     node = RegisterNode(cfg, NodeContext(bus, SITE, "register"))
     for a in sitedir.anchor_messages(SITE, site, by_rel):
         node.on_anchors(a, "")
-    t = time.perf_counter()
+    t, done = time.perf_counter(), 0
     for i, photo in enumerate(stream):
         node.on_photo(photo, "")
         if (i + 1) % every == 0 or i + 1 == len(stream):
@@ -67,10 +67,10 @@ def child(frames_n: int, every: int, cap: int | None) -> None:
                 "tracks": len(r.recon.track_obs),
                 "poses": len(r.poses),
                 "failed": sum(s == "failed" for s in latest.values()),
-                "secs_per_frame": (now - t) / (i + 1 - (i // every) * every if (i + 1) % every else every),
+                "secs_per_frame": (now - t) / (i + 1 - done),
             }
             print(json.dumps(sample), flush=True)
-            t = now
+            t, done = now, i + 1
 
 
 def run_variant(frames_n: int, every: int, cap: int | None) -> list[dict]:
