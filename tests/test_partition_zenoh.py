@@ -82,6 +82,8 @@ def run_register(
                 str(cfg),
                 "--log-dir",
                 str(tmp / f"logs{workers}"),
+                "--state-dir",  # each run starts empty (else the second takes the first's map over)
+                str(tmp / f"state{workers}"),
                 "--hub-port",
                 str(hub_port),
             ],
@@ -155,11 +157,15 @@ def test_two_register_workers_register_each_photo_once_as_one_worker_does(
         return out
 
     errs1, errs2 = errors(one), errors(two)
+    methods = [{r.photo_id: r.method or "failed" for _k, r in regs} for regs in (one, two)]
     report = {
-        rel_of[p]: [round(max(e[0] for e in errs[p]), 2) if p in errs else "failed" for errs in (errs1, errs2)]
+        rel_of[p]: [
+            f"{round(max(e[0] for e in errs[p]), 2)} {how.get(p)}" if p in errs else "failed"
+            for errs, how in zip((errs1, errs2), methods, strict=True)
+        ]
         for p in last1
     }
-    print("worst published rotation error (deg) per photo, 1 vs 2 workers:", json.dumps(report))
+    print("worst published rotation error (deg) and last method per photo, 1 vs 2 workers:", json.dumps(report))
     bad = [
         (rel_of[p], n + 1, round(rot, 2), round(pos, 2))
         for n, errs in enumerate((errs1, errs2))
@@ -169,4 +175,4 @@ def test_two_register_workers_register_each_photo_once_as_one_worker_does(
     ]
     assert not bad, f"wrong poses published as good (photo, workers, rotation deg, position m): {bad}"
     for p in registered2:
-        assert abs(errs2[p][-1][0] - errs1[p][-1][0]) < 0.25, (rel_of[p], errs1[p], errs2[p])
+        assert abs(errs2[p][-1][0] - errs1[p][-1][0]) < 0.25, (rel_of[p], report[rel_of[p]], errs1[p], errs2[p])

@@ -52,8 +52,10 @@ def test_one_anchor_registers_the_arc_and_fixes_its_scale(seed: int) -> None:
 
 
 def test_relative_pose_refuses_a_rotation_and_a_disagreeing_scale() -> None:
-    """A view from the anchor's own centre has no baseline to measure (one rotation explains the matches); clicks
-    whose model points contradict the two views' geometry (a scale that differs from click to click) are refused."""
+    """A view from the anchor's own centre has no baseline to measure (one rotation explains the matches), nor has
+    one turned and moved 0.57 m at 20 m (a rotation explains the matches to a pixel or so: lens errors would pick
+    the motion); clicks whose model points contradict the two views' geometry (a scale that differs from click to
+    click) are refused."""
     rng = np.random.default_rng(2)
     pts = scene_points(rng)
     desc = rng.normal(size=(len(pts), 128))
@@ -61,8 +63,11 @@ def test_relative_pose_refuses_a_rotation_and_a_disagreeing_scale() -> None:
     turned = T0.copy()
     turned[:3, :3] = T0[:3, :3] @ cam.rodrigues_to_matrix([0.0, np.radians(6.0), 0.0])
     moved = arc_cameras(3)[1]
+    knocked = turned.copy()  # turned by 6 deg and moved 0.57 m, 20 m from the scene: a knocked mast camera
+    knocked[:3, 3] += knocked[:3, :3] @ np.array([0.5, 0.2, 0.2])
     cfg = config.MapperConfig(focal_px=F)
-    for other, expect in ((turned, "one rotation explains"), (moved, "disagree (only")):
+    cases = ((turned, "one rotation explains"), (knocked, "too short a baseline"), (moved, "disagree (only"))
+    for other, expect in cases:
         recon = rc.Reconstruction()
         for name, T in (("a", T0), ("b", other)):
             rc.add_image(recon, name, make_features(rng, pts, desc, T)[0])

@@ -275,6 +275,35 @@ def _relative_motions(
     return out
 
 
+def _median_parallax_deg(R: np.ndarray, t: np.ndarray, x_a: np.ndarray, x_b: np.ndarray) -> float:
+    """Median ray angle (deg) at the points that normalised matches (M, 2) <-> (M, 2) triangulate under the
+    unit-baseline motion b_from_a = (R, t)."""
+    P1 = np.hstack([R, t[:, None]])
+    Xh = cv2.triangulatePoints(np.hstack([np.eye(3), np.zeros((3, 1))]), P1, x_a.T, x_b.T)
+    X = (Xh[:3] / Xh[3]).T
+    c1 = -R.T @ t
+    cosang = np.sum(X * (X - c1), axis=1) / (np.linalg.norm(X, axis=1) * np.linalg.norm(X - c1, axis=1))
+    return float(np.median(np.degrees(np.arccos(np.clip(cosang, -1, 1)))))
+
+
+def _rotation_residual_deg(x_a: np.ndarray, x_b: np.ndarray) -> np.ndarray:
+    """Angles (M,) in degrees between the rays of normalised matches (M, 2) <-> (M, 2) after the rotation that best
+    aligns them (Kabsch on the unit rays, refitted twice without the matches beyond 3x the median + 0.1 deg): what
+    no rotation of the camera explains: the least image motion a baseline must explain."""
+    a = np.c_[x_a, np.ones(len(x_a))]
+    b = np.c_[x_b, np.ones(len(x_b))]
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    keep = np.ones(len(a), bool)
+    ang = np.zeros(len(a))
+    for _ in range(3):
+        U, _s, Vt = np.linalg.svd(b[keep].T @ a[keep])
+        R = U @ np.diag([1.0, 1.0, float(np.linalg.det(U @ Vt))]) @ Vt
+        ang = np.degrees(np.arccos(np.clip(np.sum((a @ R.T) * b, axis=1), -1, 1)))
+        keep = ang <= 3 * np.median(ang) + 0.1
+    return ang
+
+
 def try_relative_pose(recon: Reconstruction, ref: int, idx: int, cfg: MapperConfig) -> bool:
     """Register image ``idx`` from its verified matches with registered image ``ref`` when too few of them reach
     triangulated tracks: the relative motion of the two cameras (:func:`_relative_motions`, ``ref``'s intrinsics,
@@ -316,6 +345,16 @@ def try_relative_pose(recon: Reconstruction, ref: int, idx: int, cfg: MapperConf
     motions = _relative_motions(x_r, x_u, thr, cfg.homography_max_rotation_deviation)
     if not motions:
         why = f"relative pose from {r.name}: one rotation explains the matches (the same viewpoint, no baseline)"
+    shown = float(np.median(_rotation_residual_deg(x_r, x_u))) * np.pi / 180 * intr_u.f_px
+    if motions and shown < cfg.bootstrap_min_translation_frac * im.width_px:
+        # A short baseline leaves the motion undetermined: a rotation and a translation trade off, and the lens
+        # model's small errors pick among motions degrees apart (a knocked mast camera, 0.56 m at 40 m: a motion
+        # 3 deg off, scaled by the clicks to 2 m, passed every other test).
+        im.message = (
+            f"relative pose from {r.name}: one rotation explains the matches to {shown:.1f} px (median): too "
+            "short a baseline to measure"
+        )
+        return False
     for R, t, inl in motions:
         if inl.sum() < cfg.bootstrap_min_matches // 2:
             continue
@@ -326,9 +365,7 @@ def try_relative_pose(recon: Reconstruction, ref: int, idx: int, cfg: MapperConf
         if front.sum() < cfg.bootstrap_min_matches // 2:
             continue
         X, sel = X[front], np.nonzero(inl)[0][front]
-        c1 = -R.T @ t
-        cosang = np.sum(X * (X - c1), axis=1) / (np.linalg.norm(X, axis=1) * np.linalg.norm(X - c1, axis=1))
-        parallax = float(np.median(np.degrees(np.arccos(np.clip(cosang, -1, 1)))))
+        parallax = _median_parallax_deg(R, t, x_r[sel], x_u[sel])
         if parallax < cfg.bootstrap_min_parallax_deg:
             why = f"relative pose from {r.name}: median parallax {parallax:.1f} deg too small"
             continue
