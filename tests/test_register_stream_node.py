@@ -193,3 +193,31 @@ def test_late_clicks_for_a_photo_whose_pixels_are_gone_check_its_registration() 
         bus.publish(topic, photos[1])
         fixed = regs.wait(5, timeout=60)[-1][1]
         assert fixed.photo_id == photos[1].photo_id and fixed.status == "anchor" and "replaces" in fixed.message
+
+
+def test_refused_up_front_clicks_leave_the_photo_waiting_for_new_clicks() -> None:
+    """Clicks that arrive before their photo and that the anchor solve refuses (six clicks, one of them a gross
+    mis-click: five left are too few) give a NodeError naming the photo; the photo is not lost: it waits and asks
+    for clicks, and corrected clicks then register it."""
+    scene = PlaneScene(0)
+    intr, T = mast_camera(W, H)
+    photo = make_photo(encode_jpeg(scene.render(intr, T)), "cam-a", 0)
+    px, pts = anchor_clicks(intr, T, noise_px=0.3, seed=4)
+    assert len(px) >= 6
+    bad = px[:6].copy()
+    bad[2] += (45.0, -30.0)  # a neighbouring corner
+    with LocalBus() as bus, start_node(SPEC, Config(site=SITE), bus) as node:
+        regs = bus.collect(keys.pattern(keys.REGISTRATION, site=SITE))
+        needs = bus.collect(keys.pattern(keys.NEEDS_ANCHOR, site=SITE))
+        errors = bus.collect(keys.key(keys.ERRORS, site=SITE))
+        bus.publish(keys.key(keys.ANCHORS, site=SITE, photo=photo.photo_id), clicks_msg(photo.photo_id, bad, pts[:6]))
+        bus.publish(keys.key(keys.PHOTO, site=SITE, camera="cam-a"), photo)
+        ((_, err),) = errors.wait(1, timeout=30)
+        assert isinstance(err, NodeError) and photo.photo_id in err.reason and "refused" in err.reason, err.reason
+        ((_, need),) = needs.wait(1, timeout=30)
+        assert isinstance(need, NeedsAnchor) and need.photo_id == photo.photo_id
+        assert node.wait_idle(30)
+        assert regs.items == []
+        bus.publish(keys.key(keys.ANCHORS, site=SITE, photo=photo.photo_id), clicks_msg(photo.photo_id, px, pts))
+        ((_, reg),) = regs.wait(1, timeout=60)
+        assert isinstance(reg, Registration) and reg.photo_id == photo.photo_id and reg.status == "anchor"

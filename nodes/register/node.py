@@ -93,9 +93,15 @@ class RegisterNode:
     def on_photo(self, msg: m.Photo, key: str) -> None:
         photo = photo_input(msg)
         if msg.photo_id in self.inbox.pending_anchors:
-            self._register_anchor(msg, self.inbox.pending_anchors.pop(msg.photo_id))
-            self._retry_pending()
-            return
+            try:
+                self._register_anchor(msg, self.inbox.pending_anchors.pop(msg.photo_id))
+            except ValueError as exc:
+                # Refused clicks (too few left after dropping mis-clicks, ...): said so, and the photo goes on as
+                # any other — registered from the map when it can be, else waiting (and asking) for new clicks.
+                self.ctx.error(keys.PHOTO, f"anchor clicks for {msg.photo_id} refused: {exc}", key)
+            else:
+                self._retry_pending()
+                return
         if not self.registrar.has_registrations() and not self.registrar.can_track(msg.camera_id):
             self._enqueue(msg)
             if self.inbox.first_ask(msg):
