@@ -382,13 +382,14 @@ class ZenohBus(Bus):
     def _serve_history(self, query: Any) -> None:
         ke = str(query.key_expr)[len(HISTORY_ROOT) + 1 :]
         since = int(query.parameters.get("since_ns") or 0)
-        for pub in self.cache.since(lambda k: _ke_match(ke, k), since):
-            # attachment: the publication time, then ";" and the part header when chunked
-            for head, part in Transfer(pub.payload, self.config.chunk_bytes).parts():
-                stamp = str(pub.time_ns).encode()
-                query.reply(
-                    f"{HISTORY_ROOT}/{pub.key}", part, attachment=stamp if head is None else stamp + b";" + head
-                )
+        with query:  # the final goes on exit, not when Python gets to free the query
+            for pub in self.cache.since(lambda k: _ke_match(ke, k), since):
+                # attachment: the publication time, then ";" and the part header when chunked
+                for head, part in Transfer(pub.payload, self.config.chunk_bytes).parts():
+                    stamp = str(pub.time_ns).encode()
+                    query.reply(
+                        f"{HISTORY_ROOT}/{pub.key}", part, attachment=stamp if head is None else stamp + b";" + head
+                    )
 
     def history(self, keyexpr: str, since_ns: int = 0, timeout: float = 10.0) -> list[Publication]:
         z = self._z
@@ -415,9 +416,10 @@ class ZenohBus(Bus):
         ke = str(query.key_expr)
         with self._latched_lock:
             items = [(k, v) for k, v in self._latched.items() if _ke_match(ke, k) or k == ke]
-        for k, transfer in items:
-            for head, part in transfer.parts():
-                query.reply(k, part, attachment=head)
+        with query:  # the final goes on exit, not when Python gets to free the query
+            for k, transfer in items:
+                for head, part in transfer.parts():
+                    query.reply(k, part, attachment=head)
 
     def subscribe(self, keyexpr: str, callback: Callback, *, fetch_latched: bool = False) -> Closeable:
         def deliver(key: str, payload: bytes) -> None:
