@@ -292,7 +292,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     print(body)
     if not args.no_write:
-        write_section("bigmodel", body, f"python bench/bigmodel.py --elements {args.elements} --runs {args.runs}")
+        name = "bigmodel" if args.elements == 50_000 else f"bigmodel {args.elements} elements"  # one section per size
+        write_section(name, body, f"python bench/bigmodel.py --elements {args.elements} --runs {args.runs}")
     return 0
 
 

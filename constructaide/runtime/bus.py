@@ -222,8 +222,9 @@ class BusConfig:
     """Bytes of incomplete transfers a subscription holds (the oldest are dropped beyond); larger payloads are
     refused."""
     latched_fetch_secs: float = 15.0
-    """How long a ``fetch_latched`` subscription waits for the latched values (a big model comes in parts, and a
-    loaded machine is slow to send them; the query ends as soon as every holder has answered)."""
+    """How long a ``fetch_latched`` subscription waits for the latched values at most (a big model comes in parts,
+    and a loaded machine is slow to send them). It ends earlier: for a concrete key as soon as one complete payload
+    arrived, for a key expression with wildcards as soon as every holder has answered."""
     security: BusSecurity | None = None  # TLS / mTLS / ACL from the site TOML (constructaide.runtime.security)
 
     @classmethod
@@ -381,13 +382,14 @@ class ZenohBus(Bus):
     def _serve_history(self, query: Any) -> None:
         ke = str(query.key_expr)[len(HISTORY_ROOT) + 1 :]
         since = int(query.parameters.get("since_ns") or 0)
-        for pub in self.cache.since(lambda k: _ke_match(ke, k), since):
-            # attachment: the publication time, then ";" and the part header when chunked
-            for head, part in Transfer(pub.payload, self.config.chunk_bytes).parts():
-                stamp = str(pub.time_ns).encode()
-                query.reply(
-                    f"{HISTORY_ROOT}/{pub.key}", part, attachment=stamp if head is None else stamp + b";" + head
-                )
+        with query:  # the final goes on exit, not when Python gets to free the query
+            for pub in self.cache.since(lambda k: _ke_match(ke, k), since):
+                # attachment: the publication time, then ";" and the part header when chunked
+                for head, part in Transfer(pub.payload, self.config.chunk_bytes).parts():
+                    stamp = str(pub.time_ns).encode()
+                    query.reply(
+                        f"{HISTORY_ROOT}/{pub.key}", part, attachment=stamp if head is None else stamp + b";" + head
+                    )
 
     def history(self, keyexpr: str, since_ns: int = 0, timeout: float = 10.0) -> list[Publication]:
         z = self._z
@@ -414,9 +416,10 @@ class ZenohBus(Bus):
         ke = str(query.key_expr)
         with self._latched_lock:
             items = [(k, v) for k, v in self._latched.items() if _ke_match(ke, k) or k == ke]
-        for k, transfer in items:
-            for head, part in transfer.parts():
-                query.reply(k, part, attachment=head)
+        with query:  # the final goes on exit, not when Python gets to free the query
+            for k, transfer in items:
+                for head, part in transfer.parts():
+                    query.reply(k, part, attachment=head)
 
     def subscribe(self, keyexpr: str, callback: Callback, *, fetch_latched: bool = False) -> Closeable:
         def deliver(key: str, payload: bytes) -> None:
@@ -433,18 +436,39 @@ class ZenohBus(Bus):
 
         sub = self.session.declare_subscriber(keyexpr, on_sample)
         if fetch_latched:
-            # no consolidation (it would keep one part per key); one latched payload per key, the last completed
-            latest: dict[str, bytes] = {}
-            for reply in self.session.get(
-                keyexpr, timeout=self.config.latched_fetch_secs, consolidation=self._z.ConsolidationMode.NONE
-            ):
-                if (s := reply.ok) is not None:
-                    att = s.attachment.to_bytes() if s.attachment is not None else None
-                    if (whole := receiver.unpack(str(s.key_expr), s.payload.to_bytes(), att)) is not None:
-                        latest[str(s.key_expr)] = whole
-            for k, whole in latest.items():
+            for k, whole in self._fetch_latched(keyexpr, receiver).items():
                 deliver(k, whole)
         return _Closer(sub.undeclare)
+
+    def _fetch_latched(self, keyexpr: str, receiver: Receiver) -> dict[str, bytes]:
+        """The latched payloads under ``keyexpr``, one per key: ``{key: whole payload}``.
+
+        zenoh ends a query when every matching queryable (every session holding a matching latched key) has sent
+        its final, or at ``latched_fetch_secs``. For a concrete key the fetch ends as soon as one complete payload
+        arrived (the first holder's): a second holder that is slow, frozen or gone without closing does not hold
+        a late joiner up. A key expression with wildcards waits for every holder (which keys exist is not known
+        before), keeping the last completed payload per key.
+        """
+        z = self._z
+        concrete = "*" not in keyexpr  # '*', '**', '$*'
+        token = z.CancellationToken() if concrete and hasattr(z, "CancellationToken") else None  # zenoh >= 1.7
+        kwargs: dict[str, Any] = {} if token is None else {"cancellation_token": token}
+        # no consolidation (it would keep one part per key)
+        replies = self.session.get(
+            keyexpr, timeout=self.config.latched_fetch_secs, consolidation=z.ConsolidationMode.NONE, **kwargs
+        )
+        latest: dict[str, bytes] = {}
+        for reply in replies:
+            if (s := reply.ok) is not None:
+                att = s.attachment.to_bytes() if s.attachment is not None else None
+                if (whole := receiver.unpack(str(s.key_expr), s.payload.to_bytes(), att)) is not None:
+                    latest[str(s.key_expr)] = whole
+                    if concrete:
+                        break
+        if token is not None:
+            token.cancel()  # the other holders' replies are dropped by zenoh
+        del replies  # without a token (zenoh < 1.7): later replies find the channel closed
+        return latest
 
     def declare_token(self, key: str) -> Closeable:
         token = self.session.liveliness().declare_token(key)
