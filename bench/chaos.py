@@ -10,7 +10,8 @@ occlude, render and a rotating recorder. At frame indices drawn from ``--seed`` 
 occlude, render and the recorder, each ``--kills-per-node`` times, one at a time (the next kill waits until the
 previous node is live again). After the stream it waits for every photo's registration and overlay, stops the
 nodes and checks the rotated recording (read through its index): every photo's registration, combined mask and
-overlay present. Time to recover = SIGKILL to the node's liveliness token back (back-off + start + state restore).
+overlay present. Time to recover = SIGKILL to the node's liveliness token back (back-off + start + state restore);
+first output again = SIGKILL to the first registration / mask / overlay the restarted node publishes.
 The last line reads ``frames N, kills K, photos lost L, duplicated D`` (lost: photos without a registration in
 the recording; duplicated: photos registered successfully more than once).
 """
@@ -81,7 +82,9 @@ class Watch:
         self.overlays: set[str] = set()
         self.live: dict[str, int] = Counter()
         self.back_at: dict[str, list[float]] = defaultdict(list)
+        self.out_at: dict[str, list[float]] = defaultdict(list)  # when each node kind published an output
         self.subs = [
+            bus.subscribe(keys.pattern(keys.OCCLUSION, site=SITE), self.on_mask),
             bus.subscribe(keys.pattern(keys.REGISTRATION, site=SITE), self.on_reg),
             bus.subscribe(keys.pattern(keys.OVERLAY, site=SITE), self.on_overlay),
             bus.watch_tokens(keys.pattern(keys.LIVELINESS, site=SITE), self.on_token),
@@ -91,11 +94,17 @@ class Watch:
         msg = codec.decode(payload, Registration)
         with self.cond:
             self.regs[msg.photo_id].append(msg.status)
+            self.out_at["register"].append(time.monotonic())
             self.cond.notify_all()
+
+    def on_mask(self, key: str, payload: bytes) -> None:
+        with self.cond:
+            self.out_at["occlude"].append(time.monotonic())
 
     def on_overlay(self, key: str, payload: bytes) -> None:
         with self.cond:
             self.overlays.add(key.rsplit("/", 1)[1])
+            self.out_at["render"].append(time.monotonic())
             self.cond.notify_all()
 
     def on_token(self, key: str, alive: bool) -> None:
@@ -113,6 +122,18 @@ class Watch:
     def close(self) -> None:
         for s in self.subs:
             s.close()
+
+
+def resume_secs(killed_at: list[tuple[str, float]], watch: Watch) -> dict[str, list[float]]:
+    """Per node kind: seconds from each SIGKILL to the first output the node published after its token was back
+    (its restart, state restore and the start of its catch-up); nodes without outputs (recorder) are left out."""
+    out: dict[str, list[float]] = defaultdict(list)
+    for node, t_kill in killed_at:
+        back = [t for t in watch.back_at[node] if t > t_kill]
+        after = [t for t in watch.out_at.get(node, []) if back and t > back[0]]
+        if after:
+            out[node].append(min(after) - t_kill)
+    return dict(out)
 
 
 def rss_mib(pid: int) -> float:
@@ -144,6 +165,7 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
     t0 = time.monotonic()
     recover: dict[str, list[float]] = defaultdict(list)
+    killed_at: list[tuple[str, float]] = []  # node, time of the SIGKILL
     kills: list[tuple[int, str, int]] = []
     rss: list[dict] = []  # resident memory of every node process every 100 frames
     with open_bus(BusConfig(listen=["tcp/127.0.0.1:0"], history_bytes=int(args.history_mb * 1e6))) as bus:
@@ -186,6 +208,7 @@ def run(args: argparse.Namespace, out: Path) -> dict:
                         seen = len(watch.back_at[node])
                     os.kill(proc.proc.pid, signal.SIGKILL)
                     pending_kill = (node, time.monotonic(), seen)
+                    killed_at.append((node, pending_kill[1]))
                     kills.append((i, node, proc.proc.pid))
                     next_kill += 1
                 bus.publish(keys.key(keys.PHOTO, site=SITE, camera=photo.camera_id), photo)
@@ -263,6 +286,7 @@ def run(args: argparse.Namespace, out: Path) -> dict:
         "repaired_files": sum(e.state == "repaired" for e in entries),
         "open_files": sum(e.state == "open" for e in entries),
         "recover_secs": {n: v for n, v in recover.items()},
+        "resume_secs": resume_secs(killed_at, watch),
         "stream_secs": t_pushed - t_stream,
         "registered_secs": t_registered - t_stream,
         "drawn_secs": t_drawn - t_stream,
@@ -292,11 +316,21 @@ def main() -> None:
         with tempfile.TemporaryDirectory(prefix="chaos-") as tmp:
             r = run(args, Path(tmp))
     rec = r["recover_secs"]
+    res = r["resume_secs"]
     rows = [
-        [n, r["kills_by_node"].get(n, 0), len(rec.get(n, [])), median(rec.get(n, [])), max(rec.get(n, [0.0]))]
+        [
+            n,
+            r["kills_by_node"].get(n, 0),
+            len(rec.get(n, [])),
+            median(rec.get(n, [])),
+            max(rec.get(n, [0.0])),
+            median(res[n]) if res.get(n) else "-",
+            max(res[n]) if res.get(n) else "-",
+        ]
         for n in VICTIMS
     ]
-    t1 = table(["node", "SIGKILLs", "recovered", "median recover s", "max recover s"], rows)
+    head = ["node", "SIGKILLs", "recovered", "median recover s", "max recover s"]
+    t1 = table(head + ["median first output again s", "max first output again s"], rows)
     t2 = table(
         ["figure", "value"],
         [
@@ -334,7 +368,9 @@ def main() -> None:
         body = (
             f"Code: {code_version()}. Seed {args.seed}; render modes {', '.join(args.modes)}; recorder rotation at "
             f"{args.max_file_mb:g} MB / 60 s. Recover = SIGKILL to the node's liveliness token back (supervisor "
-            "back-off 0.2 s doubling per crash within 60 s, process start, state restore).\n\n"
+            "back-off 0.2 s doubling per crash within 60 s, process start, state restore); first output again = "
+            "SIGKILL to the first registration / mask / overlay the restarted node publishes (the recorder has no "
+            "output).\n\n"
             f"{t1}\n\n{t2}\n\nResident memory of the node processes (a killed node's restarted process from its "
             f"restart on):\n\n{t3}\n\n`{last}`\n"
         )

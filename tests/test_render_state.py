@@ -78,3 +78,39 @@ def test_a_camera_moved_to_another_worker_keeps_its_photos(tmp_path: Path) -> No
             bus.publish(keys.key(keys.REGISTRATION, site="t", camera="cam-a", photo=later.photo_id), later_reg)
             drawn = got.wait(2, timeout=60)
             assert {ov.photo_id for _, ov in drawn} == {photo.photo_id, later.photo_id}
+
+
+def test_adopted_overlays_keep_their_model_revision() -> None:
+    """A fresh worker taking a camera over takes the revision its overlays were drawn with (the same model arriving
+    next redraws nothing: the hand-over test once saw a spurious redraw); a worker already drawing with another
+    revision draws the adopted photos again."""
+    from types import SimpleNamespace
+
+    from nodes.render import state
+
+    photo, reg = _photo_and_reg()
+    source = state.dump(
+        SimpleNamespace(
+            photos={photo.photo_id: photo},
+            registrations={photo.photo_id: reg},
+            masks={},
+            dirty={},
+            rendered={photo.photo_id},
+            _photo_bytes=len(photo.data),
+            drawn_revision="r1",
+        )
+    )
+
+    def worker(revision: str | None) -> SimpleNamespace:
+        w = SimpleNamespace(
+            photos={}, registrations={}, masks={}, dirty={}, rendered=set(), _photo_bytes=0, drawn_revision=revision
+        )
+        w._mark = lambda pid: w.dirty.__setitem__(pid, ("state4d",))
+        return w
+
+    fresh, other = worker(None), worker("r2")
+    for w in (fresh, other):
+        assert state.adopt_cameras(w, [source], lambda camera: True) == [photo.camera_id]
+        assert photo.photo_id in w.rendered and photo.photo_id in w.registrations
+    assert fresh.drawn_revision == "r1" and not fresh.dirty
+    assert other.drawn_revision == "r2" and list(other.dirty) == [photo.photo_id]

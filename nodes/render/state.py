@@ -30,13 +30,19 @@ def load_into(node: Any, blob: bytes) -> None:
 def adopt_cameras(node: Any, sources: list[bytes], owns_camera: Callable[[str], bool]) -> list[str]:
     """Take over the cameras this worker owns from other workers' ``render`` blobs: each cached photo of an owned
     camera that this worker does not hold, with its registration, mask and whether it is drawn or waits to be
-    (so a later mask redraws it and a photo the other worker had not drawn yet is drawn here). The cache bounds
-    apply afterwards. Returns the cameras taken."""
+    (so a later mask redraws it and a photo the other worker had not drawn yet is drawn here); a photo drawn with
+    another model revision than this worker's is drawn again. The cache bounds apply afterwards. Returns the
+    cameras taken."""
     taken: set[str] = set()
     for blob in sources:
         doc = pickle.loads(blob)  # noqa: S301 - the site's own state files (same state directory)
         if doc.get("version") != STATE_VERSION:
             continue
+        drawn_with = doc.get("drawn_revision")
+        if node.drawn_revision is None:
+            # A fresh worker takes the revision its adopted overlays were drawn with: the same model arriving
+            # next is then no reason to redraw them all.
+            node.drawn_revision = drawn_with
         for pid, photo in doc["photos"].items():
             camera = photo.camera_id
             if not camera or not owns_camera(camera) or pid in node.photos:
@@ -48,5 +54,7 @@ def adopt_cameras(node: Any, sources: list[bytes], owns_camera: Callable[[str], 
                     getattr(node, table)[pid] = doc[table][pid]
             if pid in doc["rendered"]:
                 node.rendered.add(pid)
+                if drawn_with != node.drawn_revision and pid in node.registrations:
+                    node._mark(pid)  # drawn with another model revision than this worker's: drawn again
             taken.add(camera)
     return sorted(taken)
