@@ -8,6 +8,7 @@ import os
 import threading
 
 import pytest
+import zenoh
 
 from constructaide.runtime import BusConfig, open_bus
 from constructaide.runtime.chunks import PartHeader, Transfer
@@ -79,7 +80,8 @@ def test_corrupt_or_incomplete_transfers_never_deliver(hub_port: int) -> None:
 
         def put(parts: list[tuple[bytes | None, bytes]]) -> None:
             for head, part in parts:
-                pub.session.put(KEY, part, attachment=head)
+                # BLOCK as the bus puts data: the default (drop) loses parts or the marker on a loaded machine
+                pub.session.put(KEY, part, attachment=head, congestion_control=zenoh.CongestionControl.BLOCK)
 
         corrupt = list(Transfer(payload, MIB).parts())
         h, p = corrupt[2]
