@@ -275,21 +275,10 @@ def _relative_motions(
     return out
 
 
-def _median_parallax_deg(R: np.ndarray, t: np.ndarray, x_a: np.ndarray, x_b: np.ndarray) -> float:
-    """Median ray angle (deg) at the points that normalised matches (M, 2) <-> (M, 2) triangulate under the
-    unit-baseline motion b_from_a = (R, t)."""
-    P1 = np.hstack([R, t[:, None]])
-    Xh = cv2.triangulatePoints(np.hstack([np.eye(3), np.zeros((3, 1))]), P1, x_a.T, x_b.T)
-    X = (Xh[:3] / Xh[3]).T
-    c1 = -R.T @ t
-    cosang = np.sum(X * (X - c1), axis=1) / (np.linalg.norm(X, axis=1) * np.linalg.norm(X - c1, axis=1))
-    return float(np.median(np.degrees(np.arccos(np.clip(cosang, -1, 1)))))
-
-
 def _rotation_residual_deg(x_a: np.ndarray, x_b: np.ndarray) -> np.ndarray:
     """Angles (M,) in degrees between the rays of normalised matches (M, 2) <-> (M, 2) after the rotation that best
     aligns them (Kabsch on the unit rays, refitted twice without the matches beyond 3x the median + 0.1 deg): what
-    no rotation of the camera explains: the least image motion a baseline must explain."""
+    no rotation of the camera explains, i.e. the least image motion a baseline must account for."""
     a = np.c_[x_a, np.ones(len(x_a))]
     b = np.c_[x_b, np.ones(len(x_b))]
     a /= np.linalg.norm(a, axis=1, keepdims=True)
@@ -365,7 +354,9 @@ def try_relative_pose(recon: Reconstruction, ref: int, idx: int, cfg: MapperConf
         if front.sum() < cfg.bootstrap_min_matches // 2:
             continue
         X, sel = X[front], np.nonzero(inl)[0][front]
-        parallax = _median_parallax_deg(R, t, x_r[sel], x_u[sel])
+        c1 = -R.T @ t
+        cosang = np.sum(X * (X - c1), axis=1) / (np.linalg.norm(X, axis=1) * np.linalg.norm(X - c1, axis=1))
+        parallax = float(np.median(np.degrees(np.arccos(np.clip(cosang, -1, 1)))))
         if parallax < cfg.bootstrap_min_parallax_deg:
             why = f"relative pose from {r.name}: median parallax {parallax:.1f} deg too small"
             continue
