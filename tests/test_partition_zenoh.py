@@ -12,6 +12,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -99,7 +100,10 @@ def run_register(
             for p in photos:
                 bus.publish(keys.key(keys.PHOTO, site=SITE, camera=p.camera_id), p)
             ids = {p.photo_id for p in photos}
-            regs.wait(len(ids), timeout=240)
+            # every photo's first registration (counting messages would stop early: a photo may fail, then register)
+            deadline = time.monotonic() + 240
+            while not ids <= {r.photo_id for _k, r in regs.items}:
+                regs.wait(len(regs.items) + 1, timeout=max(deadline - time.monotonic(), 0.1))
         finally:
             run.send_signal(signal.SIGINT)
             run.wait(120)
