@@ -62,7 +62,7 @@ def reason_group(message: str) -> str:
     return min(hits)[1] if hits else "other"
 
 
-def run(size: str, seed: int, fixed_only: bool, overrides: dict, cache: Path) -> dict:
+def run(size: str, seed: int, fixed_only: bool, overrides: dict, cache: Path, verbose: bool = False) -> dict:
     site_dir = ensure_site(size, seed, cache)
     meta = tomllib.loads((site_dir / "site.toml").read_text())
     site_model = load_site_model([site_dir / meta["paths"]["ifc"]], tz=meta["site"]["tz"])
@@ -98,6 +98,8 @@ def run(size: str, seed: int, fixed_only: bool, overrides: dict, cache: Path) ->
             reasons["no registration published (lost)"] += 1
         elif r.status == "failed":
             reasons[reason_group(r.message)] += 1
+            if verbose:
+                print(f"unregistered {rel_of[p.photo_id]}: {r.message}", file=sys.stderr)
         else:
             s = score(r, site_dir, rel_of[p.photo_id], truth)
             scores.append((s["reproj_bim_pct_width"], s["angle_deg"], rel_of[p.photo_id], r.method))
@@ -124,9 +126,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", default="{}", help="register node config overrides (JSON)")
     ap.add_argument("--cache", type=Path, default=ROOT / ".cache" / "synth")
     ap.add_argument("--no-write", action="store_true")
+    ap.add_argument("--verbose", action="store_true", help="print each unregistered photo's message")
     args = ap.parse_args(argv)
     overrides = json.loads(args.set)
-    results = [run(args.size, s, args.fixed_only, overrides, args.cache) for s in args.seed]
+    results = [run(args.size, s, args.fixed_only, overrides, args.cache, args.verbose) for s in args.seed]
     head = [
         "site",
         "photos",

@@ -137,8 +137,9 @@ def test_two_register_workers_register_each_photo_once_as_one_worker_does(
     registered2 = {p for p, r in last2.items() if r.status != "failed"}
     assert len(registered1) >= len(fixed) // 2, f"only {len(registered1)} of {len(fixed)} registered"
     # Frames taken after their camera was knocked (scoring from the site's truth: its pose differs from the
-    # camera's first frame's): without BIM depth (this test) a relative pose from another camera's frame can place
-    # them wrong in either run, a known open bug (#19) reported below as an expected failure.
+    # camera's first frame's): without BIM depth (this test) nothing registers them reliably; they ask for clicks,
+    # and no pose of theirs may be published off (a relative pose to another camera's frame once placed them 2.7 deg
+    # and 3 m off in CI; a fixed camera's frame is now placed relative to its own camera's frames only).
     truth = load_cameras(small_site)
     first = {}
     for p in fixed:
@@ -190,9 +191,6 @@ def test_two_register_workers_register_each_photo_once_as_one_worker_does(
         for rot, pos in es
         if not (rot < 1.5 and pos < 1.5)
     ]
-    rel_knocked = {rel_of[p] for p in knocked}
-    assert not [b for b in bad if b[0] not in rel_knocked], f"wrong poses published as good: {bad}"
+    assert not bad, f"wrong poses published as good (photo, workers, deg, m): {bad}"
     for p in (registered1 & registered2) - knocked:
         assert abs(errs2[p][-1][0] - errs1[p][-1][0]) < 0.25, (rel_of[p], report[rel_of[p]], errs1[p], errs2[p])
-    if bad:
-        pytest.xfail(f"knocked camera's frames published wrong without BIM depth (photo, workers, deg, m): {bad}")

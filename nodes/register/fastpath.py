@@ -202,6 +202,10 @@ class FastPath:
                 if rms6 < 0.7 * rms:
                     world_from_camera, intr, res, rms, inl2 = T6, intr6, res6, rms6, has3d
                     method = "fastpath-6dof"
+        if c.model == "auto" and method == "fastpath" and rms > 0.5 * c.max_rms_px and lookup is None:
+            # A rotation leaves more than a mount's jitter and no BIM depth can tell a moved centre: the full path
+            # (its own anchor's clicks carried into the frame fix all six degrees of freedom).
+            return None, f"camera centre may have moved: a rotation fits the tracked corners to {rms:.2f} px only"
         if len(inl2) < c.min_inliers or rms > c.max_rms_px:
             return None, (
                 f"camera bumped or moved: fast-path fit has {len(inl2)} inliers at RMS {rms:.2f} px "
@@ -217,7 +221,7 @@ class FastPath:
             self.init_track(photo, intr, world_from_camera)  # new centre: rays must start from it
         else:
             if rms > 0.5 * c.max_rms_px:
-                note += "; residual suggests the camera centre moved (no BIM depth to check)"
+                note += "; residual suggests the camera centre moved (BIM depth could not tell)"
             # Keep the inliers at their predicted positions, replenish when thin.
             keep_px, _ = cam.project_points(
                 intr, cam.invert_rigid(world_from_camera), st.center_in_world + st.rays_in_world[inl2]
