@@ -3,8 +3,9 @@
 A user clicks >= 4 pixels and the model points they show. The pose is solved by Levenberg-Marquardt on
 reprojection error (initialised by OpenCV PnP solvers), with the principal point at the image centre, square
 pixels and no distortion. The focal comes from a prior (EXIF / user) or a 50 degree horizontal field of view;
-with >= 6 non-coplanar clicks it is solved too. Every click gets a residual and a leave-one-out prediction
-error so a mis-click is flagged (``outlier_mask``). Degenerate input raises :class:`DegenerateAnchors`.
+with >= 6 non-coplanar clicks it is solved too. Gross mis-clicks are flagged (``outlier_mask``) first by
+consensus (RANSAC, then a robust fit with radial distortion: several mis-clicks do not mask each other), then one
+at a time by their leave-one-out prediction error. Degenerate input raises :class:`DegenerateAnchors`.
 
 Frames and units: pixels in the OpenCV convention ((0, 0) = centre of the top-left pixel), world points in
 model units, ``world_from_camera`` (4, 4) maps OpenCV camera coordinates to world.
@@ -25,7 +26,10 @@ DEFAULT_FOV_DEG = 50.0
 MIN_CLICKS = 4
 MIN_CLICKS_FOR_FOCAL = 6
 MIN_CLICKS_FOR_DISTORTION = 8
-DISTORTION_PRIOR_SIGMA = 0.1  # weak zero-mean prior on k1 (and k2), as their standard deviation
+DISTORTION_PRIOR_SIGMA = 0.1
+# Clicks further than this fraction of the width from the pinhole camera that most clicks agree on are gross
+# mis-clicks (a neighbouring corner, a slip): beyond what radial distortion puts between a pinhole and a lens.
+CONSENSUS_FRAC = 0.03  # weak zero-mean prior on k1 (and k2), as their standard deviation
 # Relative standard deviation of a focal prior (EXIF / user) when the focal is solved with it: EXIF 35 mm-equivalent
 # focals are whole millimetres (+-0.5 mm of 20-50 mm: a uniform error of sigma 0.6-1.4 %). Residuals are in pixels,
 # so the prior counts like one click coordinate with 1 px noise per FOCAL_PRIOR_SIGMA of relative focal error.
@@ -180,6 +184,76 @@ def _dlt_focal(pts: np.ndarray, px: np.ndarray, c: np.ndarray) -> float | None:
     return float(np.sqrt(np.mean(vals)))
 
 
+def _consensus_outliers(
+    px: np.ndarray,
+    pts: np.ndarray,
+    c: np.ndarray,
+    f0: float,
+    focal_known: bool,
+    thr_px: float,
+    floor_px: float,
+    width_px: int,
+    height_px: int,
+) -> tuple[np.ndarray, float] | None:
+    """Clicks (N,) that one camera does not explain, and the distance (px) beyond which a click is out: RANSAC over
+    PnP samples within ``thr_px`` at the focal ``f0`` (and, without a known focal, at 0.5-2x it) for a start, then
+    a robust fit of pose (, focal) and radial k1 to all clicks; a click further than max(``floor_px``, 4 sigmas of
+    the click noise) from it is out. Several gross mis-clicks mask each other in a leave-one-out test (each is
+    predicted by a solve the others bend); a robust fit is not bent by them. None (no decision) unless RANSAC agrees
+    on >= max(6, 0.6 N) clicks and as many stay in."""
+    n = len(px)
+    none = None
+    need = max(MIN_CLICKS_FOR_FOCAL, 0.6 * n)
+    if n < MIN_CLICKS_FOR_FOCAL + 1:
+        return none
+    best: tuple[np.ndarray, float, np.ndarray] | None = None
+    for scale in (1.0,) if focal_known else (1.0, 0.7, 1.4, 0.5, 2.0):
+        f = f0 * scale
+        K = np.array([[f, 0.0, c[0]], [0.0, f, c[1]], [0.0, 0.0, 1.0]])
+        try:
+            ok, rvec, tvec, inl = cv2.solvePnPRansac(
+                pts,
+                px,
+                K,
+                None,
+                iterationsCount=300,
+                reprojectionError=thr_px,
+                confidence=0.999,
+                flags=cv2.SOLVEPNP_SQPNP,
+            )
+        except cv2.error:
+            continue
+        if ok and inl is not None and (best is None or len(inl) > len(best[2])):
+            best = (np.r_[np.ravel(rvec), np.ravel(tvec)], f, inl.ravel())
+    if best is None or len(best[2]) < need:
+        return none
+    x0, f_r, _ = best
+    solve_f = not focal_known and not _is_planar(pts)
+
+    def res(x: np.ndarray) -> np.ndarray:
+        ff = float(np.exp(np.clip(x[6], -20.0, 20.0))) if solve_f else f_r
+        r = _distorted_residuals(x[:6], pts, px, c, ff, float(x[-1]), 0.0)
+        return np.r_[r, x[-1] / DISTORTION_PRIOR_SIGMA]
+
+    # A robust fit (Cauchy loss at the click noise floor) from the consensus pose, with radial k1 under its weak
+    # prior (a lens's distortion is not a mis-click): the mis-clicks barely pull it.
+    # Graduated: a wide Cauchy loss from the consensus pose, then a bounded (arctan) one at the noise floor, under
+    # which a mis-click's pull fades with the square of its distance.
+    x = np.r_[x0, [np.log(f_r)] if solve_f else [], 0.0]
+    for loss, scale in (("cauchy", thr_px), ("arctan", floor_px)):
+        x = least_squares(res, x, method="trf", loss=loss, f_scale=scale, x_scale="jac", max_nfev=200).x
+    r_px = np.linalg.norm(res(x)[:-1].reshape(-1, 2), axis=1)
+    # 4 sigmas of the clicks' noise per axis, from the median residual (Rayleigh: median = 1.1774 sigma), corrected
+    # for the parameters the fit spends on them.
+    p = 7 + int(solve_f)
+    sigma = float(np.median(r_px)) / 1.1774 * np.sqrt(2 * n / max(2 * n - p, 1))
+    threshold = max(floor_px, 4.0 * sigma)
+    out = r_px > threshold
+    if n - out.sum() < need:
+        return none
+    return out, threshold
+
+
 def _validate(pixels_px, points_in_world) -> tuple[np.ndarray, np.ndarray]:
     px = np.asarray(pixels_px, dtype=np.float64)
     pts = np.asarray(points_in_world, dtype=np.float64)
@@ -295,7 +369,7 @@ def solve_anchor(
     ``solve_distortion``: None = estimate radial k1 (and k2 with ``solve_k2``) after the pinhole solve when the
     inlier clicks constrain it (>= 8 non-coplanar clicks spread over the image; weak zero prior, sigma 0.1)
     and it lowers the squared error significantly (> 9 noise variances per parameter);
-    False = the paper's k1 = k2 = 0; True forces it. Mis-click detection runs on the pinhole model.
+    False = the paper's k1 = k2 = 0; True forces it. Leave-one-out mis-click detection runs on the pinhole model.
     Raises :class:`DegenerateAnchors` with a reason for unusable input.
     """
     px, pts = _validate(pixels_px, points_in_world)
@@ -305,13 +379,29 @@ def solve_anchor(
         raise DegenerateAnchors(f"focal prior must be a positive number, got {focal_px}")
     f0 = float(focal_px) if focal_px is not None else float(cam.focal_from_fov(width_px, DEFAULT_FOV_DEG))
     c = np.array([(width_px - 1) / 2.0, (height_px - 1) / 2.0])
-    can_solve_focal = len(px) >= MIN_CLICKS_FOR_FOCAL and not _is_planar(pts)
+    # Gross mis-clicks by consensus (RANSAC within CONSENSUS_FRAC of the width: a lens's distortion stays below it,
+    # then a robust fit with distortion); where it cannot decide, one at a time by leave-one-out below.
+    floor = min_outlier_px if min_outlier_px is not None else max(3.0, 0.005 * width_px)
+    decided = _consensus_outliers(
+        px,
+        pts,
+        c,
+        f0,
+        focal_px is not None and solve_focal is not True,
+        CONSENSUS_FRAC * width_px,
+        floor,
+        width_px,
+        height_px,
+    )
+    pre = decided[0] if decided is not None else np.zeros(len(px), bool)
+    px_s, pts_s = px[~pre], pts[~pre]
+    can_solve_focal = len(px_s) >= MIN_CLICKS_FOR_FOCAL and not _is_planar(pts_s)
     if solve_focal and not can_solve_focal:
         raise DegenerateAnchors(
             f"solving the focal needs >= {MIN_CLICKS_FOR_FOCAL} non-coplanar clicks, got {len(px)}"
             + (" coplanar" if _is_planar(pts) else "")
         )
-    params, f, cost = _solve(px, pts, c, f0, bool(solve_focal))
+    params, f, cost = _solve(px_s, pts_s, c, f0, bool(solve_focal))
     do_focal = bool(solve_focal)
     prior: tuple[float, float] | None = None
     prior_rejected = False
@@ -319,11 +409,11 @@ def solve_anchor(
         # Auto: without a prior always solve the focal. With a prior, focal and depth trade off for narrow fields
         # of view and clicks bunched on a distant building, so the prior is weighed against the clicks (MAP).
         # A prior the clicks contradict (a free solve halves the clicks' squared error) is dropped.
-        p_f, f_f, cost_f = _solve(px, pts, c, f0, True)
+        p_f, f_f, cost_f = _solve(px_s, pts_s, c, f0, True)
         if focal_px is not None and focal_prior_sigma is not None:
             prior = (f0, float(focal_prior_sigma))
-            p_m, f_m, _ = _solve(px, pts, c, f0, True, focal_prior=prior)
-            cost_m = 0.5 * float(np.sum(_residuals(p_m, pts, px, c, f_m) ** 2))
+            p_m, f_m, _ = _solve(px_s, pts_s, c, f0, True, focal_prior=prior)
+            cost_m = 0.5 * float(np.sum(_residuals(p_m, pts_s, px_s, c, f_m) ** 2))
             if cost_f < 0.5 * cost_m:
                 prior = None
                 prior_rejected = True
@@ -334,12 +424,12 @@ def solve_anchor(
             prior_rejected = focal_px is not None
             params, f, do_focal = p_f, f_f, True
     R = cam.rodrigues_to_matrix(params[:3])
-    z = pts @ R.T[:, 2] + params[5]
+    z = pts_s @ R.T[:, 2] + params[5]
     if np.any(z <= 0):
         raise DegenerateAnchors(
             f"{int(np.sum(z <= 0))} clicked model points would be behind the camera; check pixel/point pairing"
         )
-    res = _residuals(params, pts, px, c, f).reshape(-1, 2)
+    res = _residuals(params, pts_s, px_s, c, f).reshape(-1, 2)
     residuals = np.linalg.norm(res, axis=1)
     rms = float(np.sqrt(np.mean(residuals**2)))
     if rms > 0.1 * width_px:
@@ -350,12 +440,16 @@ def solve_anchor(
     # Mis-clicks: repeatedly leave out the click whose removal best explains the rest; flag it when the
     # others predict it far worse than they fit themselves. The pose is then solved without flagged clicks.
     n = len(px)
-    floor = min_outlier_px if min_outlier_px is not None else max(3.0, 0.005 * width_px)
     loo = np.full(n, np.nan)
-    outliers = np.zeros(n, dtype=bool)
-    threshold = floor
+    outliers = pre.copy()
+    if pre.any():  # predicted by the consensus solve without them
+        loo[pre] = np.linalg.norm(_residuals(params, pts[pre], px[pre], c, f).reshape(-1, 2), axis=1)
+    threshold = decided[1] if decided is not None else floor
     cur_params, cur_f = params, f
-    while n - outliers.sum() - 1 >= MIN_CLICKS + 1:
+    first = True
+    # Left to leave-one-out only when the consensus could not decide (few clicks): it tests on the pinhole model,
+    # where a distorted lens's corner clicks look like slips.
+    while decided is None and n - outliers.sum() - 1 >= MIN_CLICKS + 1:
         active = np.nonzero(~outliers)[0]
         loo_focal = do_focal and len(active) - 1 >= MIN_CLICKS_FOR_FOCAL
         best_i, best_rms, best_err = -1, np.inf, 0.0
@@ -363,11 +457,12 @@ def solve_anchor(
             keep = active[active != i]
             p_i, f_i, _ = _solve(px[keep], pts[keep], c, cur_f, loo_focal, init=cur_params, focal_prior=prior)
             err = float(np.linalg.norm(_residuals(p_i, pts[i : i + 1], px[i : i + 1], c, f_i)))
-            if not outliers.any():
+            if first:
                 loo[i] = err
             rms_i = _rms(_residuals(p_i, pts[keep], px[keep], c, f_i))
             if rms_i < best_rms:
                 best_i, best_rms, best_err = int(i), rms_i, err
+        first = False
         threshold = max(floor, 5.0 * best_rms)
         if best_err <= threshold:
             break
