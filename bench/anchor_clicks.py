@@ -98,9 +98,13 @@ class Tally:
             if not hit:
                 off = float(np.linalg.norm(px[k] - target[k]))
                 loo = sol.loo_errors_px[k]
+                err = (
+                    f"leave-one-out error {loo:.1f} px"
+                    if np.isfinite(loo)
+                    else f"residual {sol.residuals_px[k]:.1f} px under the consensus solve"
+                )
                 self.missed.append(
-                    f"{name}: {kind} mis-click {off:.1f} px off, leave-one-out error {loo:.1f} px, "
-                    f"threshold {sol.outlier_threshold_px:.1f} px"
+                    f"{name}: {kind} mis-click {off:.1f} px off, {err}, threshold {sol.outlier_threshold_px:.1f} px"
                 )
 
     def row(self, label: str) -> list[object]:
