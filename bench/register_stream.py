@@ -30,7 +30,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 from _datasets import load_synth, simulate_synth_clicks  # noqa: E402
-from _report import median, table, write_section  # noqa: E402
+from _report import code_version, median, table, write_section  # noqa: E402
 from PIL import Image  # noqa: E402
 
 from constructaide import camera as cam  # noqa: E402
@@ -189,6 +189,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="one camera, one timing run")
     ap.add_argument("--no-write", action="store_true", help="do not update BENCHMARKS.md")
     args = ap.parse_args(argv)
+    code = code_version()  # at the start: the code this run imported
     site, cams, anchors, tasks, meshes, ground = load_site()
     cameras = sorted(p.name for p in (site / "photos").iterdir() if p.is_dir() and p.name.startswith("cam-"))
     if args.quick:
@@ -340,7 +341,11 @@ def main(argv: list[str] | None = None) -> int:
     print(f"speed-up full/fast: {full_med / fast_med:.1f}x")
     if not args.no_write:
         n_cam = len(cameras)
-        body = f"""Fixed-camera frames of the synthetic site `small` (seed 0; {n_cam} cameras x 6 daily frames, 960x540,
+        body = f"""Code: {code}; `nodes.register.streaming.StreamingRegistrar` with `StreamConfig()` defaults and
+`nodes.register.bimdepth.MeshDepthLookup` (elements standing at the photo's time, the site's terrain height), what
+the register node runs for a streamed photo.
+
+Fixed-camera frames of the synthetic site `small` (seed 0; {n_cam} cameras x 6 daily frames, 960x540,
 one camera knocked mid-way). First frame per camera registered from the site's simulated anchor clicks; later frames
 registered one by one. Scoring against truth/ only (viewing-direction angle, camera-centre distance, mean
 reprojection error of 200 true 3D checkpoints per frame in % of the width: anywhere in the frame (ground, context,
