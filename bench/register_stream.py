@@ -7,8 +7,8 @@ camera: SIFT, matching, model points) is timed apart from the plain fast-path fr
 Per camera: the first frame is registered from the site's simulated anchor clicks (anchors.json); every later frame
 is registered on its own, (a) by a registrar with the fast path (camera id given) and (b) by a registrar forced onto
 the full path (camera id withheld: SIFT, matching against registered key images, PnP on BIM-depth points or
-homography transfer, local BA). When a frame is refused with an anchor request and anchors.json has clicks for it
-(the knocked camera), those clicks are supplied, as a user would.
+homography transfer, local BA). When a frame is refused with an anchor request and anchors.json has clicks for it,
+those clicks are supplied, as a user would; otherwise the frame counts as failed.
 
 System inputs: photos, anchors.json, model/building.glb, the IFC schedule (via the ingest loader) and the site's
 terrain height. Scoring only reads truth/ (true cameras and depth for checkpoints).
@@ -379,7 +379,9 @@ and the fast and full paths use the camera's solved k1/k2); tracking adds little
 bands).
 The knocked camera (cam-east, half-way through the period): with the camera id its first moved frame fails the
 fast path and is registered by PnP on the camera's own BIM-depth points, without clicks; without a camera id the
-full path matches it against the registered photos. Phone photos without clicks in anchors.json are tried on the
+full path matches it against the registered photos; a fixed-camera frame refused with an anchor request gets
+clicks only where the site's anchors.json has them (each camera's first frame), otherwise it counts as failed.
+Phone photos without clicks in anchors.json are tried on the
 full path first; when one is refused with an anchor request it is answered with a careful user's clicks simulated
 from truth (visible element corners, 1 px noise; `bench/_datasets.py`), as a person would. "registered without
 extra anchors" counts phone photos registered automatically before any request was answered.
