@@ -23,8 +23,10 @@ def machine() -> str:
                 break
     except OSError:
         pass
+    load = os.getloadavg()  # timings depend on it: the machine is shared with other jobs
     return (
         f"{os.cpu_count()} cores, {cpu}, Python {platform.python_version()}, {platform.system()} {platform.release()}"
+        f"; load average {load[0]:.1f} / {load[2]:.1f} (1 / 15 min) when the section was written"
     )
 
 
