@@ -539,6 +539,7 @@ def main(argv: list[str] | None = None) -> int:
         "--oracle-sizes", nargs="*", default=["small"], help="sizes that also get the ORACLE ablation (true cameras)"
     )
     ap.add_argument("--cache", type=Path, default=ROOT / ".cache" / "synth")
+    ap.add_argument("--section", default="occlusion", help="BENCHMARKS.md section to write (default: occlusion)")
     ap.add_argument("--no-write", action="store_true", help="do not touch BENCHMARKS.md")
     args = ap.parse_args(argv)
     code = code_version()  # at the start: the code this run imported
@@ -584,7 +585,7 @@ def main(argv: list[str] | None = None) -> int:
     text = "\n".join(body)
     print(text)
     if not args.no_write:
-        write_section("occlusion", text)
+        write_section(args.section, text)
     return 0
 
 
