@@ -15,7 +15,8 @@ would), and, labelled ORACLE (an ablation, never the product's figure), true cam
 Rows labelled ablation change one config field; baselines (OpenCV MOG2 on the pipeline's own aligned stacks; the
 paper's static heuristic alone on the same inputs) are computed here.
 
-    python bench/occlusion.py [--sizes small default] [--seeds 0 7] [--oracle-sizes small] [--no-write]
+    python bench/occlusion.py [--sizes small default] [--seeds 0 7] [--sites small:0 default:0]
+                              [--oracle-sizes small] [--no-write]
 """
 
 from __future__ import annotations
@@ -530,23 +531,30 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sizes", nargs="+", default=["small"], help="synthetic site sizes (ensure_site)")
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 7], help="synthetic site seeds (0: tuned on; 7: not)")
+    ap.add_argument(
+        "--sites", nargs="+", default=None, metavar="SIZE:SEED", help="size:seed pairs instead of --sizes x --seeds"
+    )
     ap.add_argument("--site-dir", type=Path, default=None, help="an existing site folder instead (size/seed unknown)")
     ap.add_argument(
         "--oracle-sizes", nargs="*", default=["small"], help="sizes that also get the ORACLE ablation (true cameras)"
     )
     ap.add_argument("--cache", type=Path, default=ROOT / ".cache" / "synth")
+    ap.add_argument("--section", default="occlusion", help="BENCHMARKS.md section to write (default: occlusion)")
     ap.add_argument("--no-write", action="store_true", help="do not touch BENCHMARKS.md")
     args = ap.parse_args(argv)
     code = code_version()  # at the start: the code this run imported
 
     from constructaide.synth import ensure_site
 
-    sites = (
-        [(args.site_dir, "?", -1)]
-        if args.site_dir is not None
-        else [(ensure_site(size, seed, args.cache), size, seed) for size in args.sizes for seed in args.seeds]
-    )
-    results = [bench_site(site, size, seed, oracle=size in args.oracle_sizes) for site, size, seed in sites]
+    if args.sites:
+        pairs = [(s.split(":")[0], int(s.split(":")[1])) for s in args.sites]
+    else:
+        pairs = [(size, seed) for size in args.sizes for seed in args.seeds]
+    results = []
+    for size, seed in [("?", -1)] if args.site_dir is not None else pairs:
+        site = args.site_dir if args.site_dir is not None else ensure_site(size, seed, args.cache)  # one at a time
+        results.append(bench_site(site, size, seed, oracle=size in args.oracle_sizes))
+        print("\n".join(results[-1].lines), flush=True)  # progress: a site's figures as soon as they are in
     body = [
         f"Code: {code}; `nodes.occlude.pipeline.OcclusionPipeline` with `Config()` defaults "
         f"(`{msgspec.json.encode(Config(site='bench')).decode()}`) unless a column names an ablation. "
@@ -577,7 +585,7 @@ def main(argv: list[str] | None = None) -> int:
     text = "\n".join(body)
     print(text)
     if not args.no_write:
-        write_section("occlusion", text)
+        write_section(args.section, text)
     return 0
 
 

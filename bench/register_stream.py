@@ -7,8 +7,8 @@ camera: SIFT, matching, model points) is timed apart from the plain fast-path fr
 Per camera: the first frame is registered from the site's simulated anchor clicks (anchors.json); every later frame
 is registered on its own, (a) by a registrar with the fast path (camera id given) and (b) by a registrar forced onto
 the full path (camera id withheld: SIFT, matching against registered key images, PnP on BIM-depth points or
-homography transfer, local BA). When a frame is refused with an anchor request and anchors.json has clicks for it
-(the knocked camera), those clicks are supplied, as a user would.
+homography transfer, local BA). When a frame is refused with an anchor request and anchors.json has clicks for it,
+those clicks are supplied, as a user would; otherwise the frame counts as failed.
 
 System inputs: photos, anchors.json, model/building.glb, the IFC schedule (via the ingest loader) and the site's
 terrain height. Scoring only reads truth/ (true cameras and depth for checkpoints).
@@ -30,7 +30,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 from _datasets import load_synth, simulate_synth_clicks  # noqa: E402
-from _report import median, table, write_section  # noqa: E402
+from _report import code_version, median, table, write_section  # noqa: E402
 from PIL import Image  # noqa: E402
 
 from constructaide import camera as cam  # noqa: E402
@@ -189,6 +189,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="one camera, one timing run")
     ap.add_argument("--no-write", action="store_true", help="do not update BENCHMARKS.md")
     args = ap.parse_args(argv)
+    code = code_version()  # at the start: the code this run imported
     site, cams, anchors, tasks, meshes, ground = load_site()
     cameras = sorted(p.name for p in (site / "photos").iterdir() if p.is_dir() and p.name.startswith("cam-"))
     if args.quick:
@@ -340,7 +341,11 @@ def main(argv: list[str] | None = None) -> int:
     print(f"speed-up full/fast: {full_med / fast_med:.1f}x")
     if not args.no_write:
         n_cam = len(cameras)
-        body = f"""Fixed-camera frames of the synthetic site `small` (seed 0; {n_cam} cameras x 6 daily frames, 960x540,
+        body = f"""Code: {code}; `nodes.register.streaming.StreamingRegistrar` with `StreamConfig()` defaults and
+`nodes.register.bimdepth.MeshDepthLookup` (elements standing at the photo's time, the site's terrain height), what
+the register node runs for a streamed photo.
+
+Fixed-camera frames of the synthetic site `small` (seed 0; {n_cam} cameras x 6 daily frames, 960x540,
 one camera knocked mid-way). First frame per camera registered from the site's simulated anchor clicks; later frames
 registered one by one. Scoring against truth/ only (viewing-direction angle, camera-centre distance, mean
 reprojection error of 200 true 3D checkpoints per frame in % of the width: anywhere in the frame (ground, context,
@@ -374,7 +379,9 @@ and the fast and full paths use the camera's solved k1/k2); tracking adds little
 bands).
 The knocked camera (cam-east, half-way through the period): with the camera id its first moved frame fails the
 fast path and is registered by PnP on the camera's own BIM-depth points, without clicks; without a camera id the
-full path matches it against the registered photos. Phone photos without clicks in anchors.json are tried on the
+full path matches it against the registered photos; a fixed-camera frame refused with an anchor request gets
+clicks only where the site's anchors.json has them (each camera's first frame), otherwise it counts as failed.
+Phone photos without clicks in anchors.json are tried on the
 full path first; when one is refused with an anchor request it is answered with a careful user's clicks simulated
 from truth (visible element corners, 1 px noise; `bench/_datasets.py`), as a person would. "registered without
 extra anchors" counts phone photos registered automatically before any request was answered.
