@@ -129,20 +129,24 @@ class Posterior:
         f_lo, f_hi = cdf(lo), cdf(hi)
         span = np.maximum(f_hi - f_lo, 1e-300)
 
-        def below(x: float) -> float:
-            f_x = cdf(np.array([x]))[0]
-            frac = np.where(hi <= x, 1.0, np.where(lo >= x, 0.0, np.clip((f_x - f_lo) / span, 0.0, 1.0)))
-            return float(np.sum(self.prob * frac))
+        def below(x: NDArray[np.float64]) -> NDArray[np.float64]:
+            """P(change before each of the times ``x`` (K,))."""
+            f_x = cdf(x)[None, :]
+            xx = x[None, :]
+            frac = np.where(
+                hi[:, None] <= xx,
+                1.0,
+                np.where(lo[:, None] >= xx, 0.0, np.clip((f_x - f_lo[:, None]) / span[:, None], 0.0, 1.0)),
+            )
+            return np.asarray(self.prob @ frac, np.float64)
 
         g = self.grid.astype(np.float64)
         a = float(g[0]) - 400 * NS_PER_DAY if len(g) else -400.0 * NS_PER_DAY
         b = float(g[-1]) + 400 * NS_PER_DAY if len(g) else 400.0 * NS_PER_DAY
-        for _ in range(64):
-            mid = 0.5 * (a + b)
-            if below(mid) < 0.5:
-                a = mid
-            else:
-                b = mid
+        while b - a > 1e9:  # bracket the median to a second: 64 sub-intervals per round
+            xs = np.linspace(a, b, 65)
+            k = int(np.clip(np.searchsorted(below(xs), 0.5, side="left"), 1, 64))
+            a, b = float(xs[k - 1]), float(xs[k])
         t = int(0.5 * (a + b))
         i = int(np.searchsorted(self.grid, t, side="left"))  # interval (grid[i-1], grid[i]] holds t
         mass = float(self.prob[self.changes[:, which] == i].sum())
