@@ -81,6 +81,10 @@ class EngineParams:
     what stands behind them)."""
     peel_probability: float = 0.5
     """... those below this P(present) at the photo's time."""
+    unchanged_discount: bool = True
+    """A fixed camera's look of an element (appearance, outline) counts only as much as its pixels changed since
+    the camera's reference plate (the change cue's ramp from ``change_noise`` to ``change_hit``): unchanged pixels
+    repeat what an earlier frame already said (the same background, the same light), they are not new evidence."""
 
     evidence: EvidenceParams = field(default_factory=EvidenceParams)
     fusion: FusionParams = field(default_factory=FusionParams)
@@ -155,6 +159,8 @@ class ProgressEngine:
         self.as_of_ns = 0
         self.tz = "UTC"
         self.annotations: list[Annotation] = []
+        self._estimates: dict[tuple[str, int], ElementEstimate] | None = None
+        """Estimates memoised while one update message is built (the belief does not change meanwhile)."""
         self.fusion = self.params.fusion
         """The fusion parameters in use: ``params.fusion`` with the slip learnt from the photos (see
         :meth:`refit_slip`)."""
@@ -273,14 +279,20 @@ class ProgressEngine:
         return post
 
     def estimate(self, gid: str, as_of_ns: int | None = None) -> ElementEstimate:
+        t = self.as_of_ns if as_of_ns is None else as_of_ns
+        if self._estimates is not None and (gid, t) in self._estimates:
+            return self._estimates[(gid, t)]
         hours = self.params.work_hours
-        return estimate(
+        est = estimate(
             self.tracks[gid],
             self.posterior(gid),
-            self.as_of_ns if as_of_ns is None else as_of_ns,
+            t,
             self.fusion,
             midpoint=lambda lo, hi: working_midpoint(lo, hi, self.tz, hours),
         )
+        if self._estimates is not None:
+            self._estimates[(gid, t)] = est
+        return est
 
     def refit_slip(self, tolerance: float = 0.1) -> bool:
         """Learn the schedule's slip scale from the elements seen appearing so far (:func:`fit_slip_days`); a change
@@ -490,7 +502,11 @@ class ProgressEngine:
             if c.status != "seen":
                 continue
             gid = self.global_ids[c.index - 1]
-            llr_state = c.llr_points + c.llr_appearance
+            look = c.llr_appearance + c.llr_edge
+            if self.params.unchanged_discount and c.reference_ns:
+                ev = self.params.evidence
+                look *= float(np.clip((c.changed_fraction - ev.change_noise) / (ev.change_hit - ev.change_noise), 0, 1))
+            llr_state = c.llr_points + look
             if llr_state == 0.0 and c.reference_ns == 0:
                 continue
             self.tracks[gid].add(
@@ -659,6 +675,13 @@ class ProgressEngine:
     def update_message(self, touched: list[str], photo_id: str = "") -> ProgressUpdate:
         gids = list(dict.fromkeys(touched))
         task_ids = dict.fromkeys(tid for g in gids for tid in self.element_tasks.get(g, ()))
+        self._estimates = {}
+        try:
+            return self._update_message(gids, task_ids, photo_id)
+        finally:
+            self._estimates = None
+
+    def _update_message(self, gids: list[str], task_ids: dict[str, None], photo_id: str) -> ProgressUpdate:
         return ProgressUpdate(
             site=self.model.site if self.model is not None else "",
             as_of_ns=self.as_of_ns,
