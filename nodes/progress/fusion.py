@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import cached_property
 from itertools import combinations_with_replacement
 from typing import Literal
 
@@ -91,14 +92,26 @@ class Posterior:
         g = np.concatenate([[-np.inf], self.grid.astype(np.float64), [np.inf]])
         return g[i], g[i + 1]
 
+    @cached_property
+    def _interval_cdfs(
+        self,
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """(lo, hi, prior CDF at lo, prior CDF at hi), each (H, k): the hypotheses' change intervals (computed once
+        per posterior; the queries below only evaluate the CDF at their own times)."""
+        lo, hi = self._bounds(self.changes)
+        f_lo, f_hi = np.zeros(lo.shape), np.zeros(hi.shape)
+        for col, cdf in enumerate(self.cdfs):
+            f_lo[:, col], f_hi[:, col] = cdf(lo[:, col]), cdf(hi[:, col])
+        return lo, hi, f_lo, f_hi
+
     def present_at(self, t_ns: int) -> float:
         """P(the element stands at ``t_ns``); a change in the interval holding ``t`` is before ``t`` with its prior
         odds (evidence is the same anywhere inside an interval)."""
-        lo, hi = self._bounds(self.changes)
+        lo, hi, f_los, f_his = self._interval_cdfs
         frac = np.full(self.changes.shape, 0.5)
         t = np.array([float(t_ns)])
         for col, cdf in enumerate(self.cdfs):
-            f_lo, f_hi, f_t = cdf(lo[:, col]), cdf(hi[:, col]), cdf(t)[0]
+            f_lo, f_hi, f_t = f_los[:, col], f_his[:, col], cdf(t)[0]
             span = f_hi - f_lo
             frac[:, col] = np.where(span > 1e-12, np.clip((f_t - f_lo) / np.maximum(span, 1e-12), 0.0, 1.0), 0.5)
         done = np.where(hi <= t_ns, 1.0, np.where(lo >= t_ns, 0.0, frac))
@@ -124,9 +137,9 @@ class Posterior:
         as the evidence is the same anywhere there) and the grid interval holding it: (after_ns, by_ns, median_ns,
         probability of that interval); ``None`` = unbounded. Unlike the most probable interval it does not favour
         the wide open intervals before the first and after the last observation over the fine ones between."""
-        lo, hi = self._bounds(self.changes[:, which])
+        los, his, f_los, f_his = self._interval_cdfs
+        lo, hi, f_lo, f_hi = los[:, which], his[:, which], f_los[:, which], f_his[:, which]
         cdf = self.cdfs[which]
-        f_lo, f_hi = cdf(lo), cdf(hi)
         span = np.maximum(f_hi - f_lo, 1e-300)
 
         def below(x: NDArray[np.float64]) -> NDArray[np.float64]:
