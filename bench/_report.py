@@ -29,12 +29,17 @@ def machine() -> str:
 
 
 def code_version() -> str:
-    """``git <short commit>`` of the checkout the bench runs from, ``+ uncommitted changes`` when dirty."""
+    """``git <short commit>`` of the checkout the bench runs from, ``+ uncommitted changes`` when dirty (BENCHMARKS.md
+    itself, which an earlier bench run of the same session rewrote, does not count)."""
     import subprocess
 
     try:
         rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True)
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True)
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no", "--", ".", ":(exclude)BENCHMARKS.md"],
+            cwd=ROOT,
+            capture_output=True,
+        )
     except OSError:
         return "git commit unknown"
     if rev.returncode != 0:
