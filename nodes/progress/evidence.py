@@ -4,7 +4,7 @@ Inputs are arrays at one working size (H, W): the photo in CIE Lab (``lab``, flo
 occlusion mask (``occluded``, bool), the model :class:`~nodes.progress.modelview.Layers` at the photo's registered
 pose (built = what the fusion believes stood just before, candidates = elements the schedule window allows), and,
 for fixed cameras, the camera's reference plate (the last unoccluded look of every pixel in earlier frames, warped
-onto this photo). Three cues, each a log-likelihood ratio (natural log) per element:
+onto this photo). Four cues, each a log-likelihood ratio (natural log) per element:
 
 * ``change``: the fraction of the element's exclusive pixels (it is the only candidate in front of the believed
   built surface there) whose look changed against the reference plate; evidence that the element *appeared*
@@ -13,7 +13,9 @@ onto this photo). Three cues, each a log-likelihood ratio (natural log) per elem
   the viewing ray (absent: the camera saw through it);
 * ``appearance``: the colours of the element's pixels under a model of its material (learnt from this photo's
   believed-built elements of that material and from confident detections elsewhere) against a model of what would
-  show if it were absent (the believed-built surface behind it, or the background).
+  show if it were absent (the believed-built surface behind it, or the background);
+* ``edge`` (candidates only): the share of a candidate's outline, where the same thing would show on both sides
+  were it absent, that has an edge across it stronger than the texture just outside.
 
 Elements whose region is mostly covered by the occlusion mask are ``occluded``; too few pixels, ``unknown``.
 """
