@@ -85,6 +85,12 @@ class EngineParams:
     """A fixed camera's look of an element (appearance, outline) counts only as much as its pixels changed since
     the camera's reference plate (the change cue's ramp from ``change_noise`` to ``change_hit``): unchanged pixels
     repeat what an earlier frame already said (the same background, the same light), they are not new evidence."""
+    repeated_no_edge_once: bool = True
+    """An element too thin for the change cue (no interior pixels: no changed fraction to discount by) seen without
+    an outline by a fixed camera that has a reference plate: the missing outline is not counted (the camera's frame
+    without a plate said it once). Repeated in every daily frame, the weak negative outline LLR otherwise added up to
+    'not built' for thin elements standing since before the first photo. A found outline still counts (the only
+    state evidence such elements have when they appear)."""
 
     evidence: EvidenceParams = field(default_factory=EvidenceParams)
     fusion: FusionParams = field(default_factory=FusionParams)
@@ -432,7 +438,7 @@ class ProgressEngine:
             new = [c for c in cues if c.index not in seen or (seen[c.index].status != "seen" and c.status == "seen")]
             for c in new:
                 seen[c.index] = c
-            touched += self._observe(photo_id, t, [c for c in new if c.status == "seen"])
+            touched += self._observe(photo_id, t, [c for c in new if c.status == "seen"], reference is not None)
             if k == self.params.peel_passes:
                 break
             # read again without what this photo now shows absent: what stands behind those shows through
@@ -496,13 +502,17 @@ class ProgressEngine:
                 out[b] = ("unknown", vis, 1.0 - vis / px)
         return out
 
-    def _observe(self, photo_id: str, t: int, cues: list[ElementCue]) -> list[str]:
+    def _observe(self, photo_id: str, t: int, cues: list[ElementCue], has_plate: bool = False) -> list[str]:
+        """Adds a photo's seen cues to the tracks; ``has_plate``: a fixed camera's photo with a reference plate."""
         touched = []
         for c in cues:
             if c.status != "seen":
                 continue
             gid = self.global_ids[c.index - 1]
-            look = c.llr_appearance + c.llr_edge
+            edge = c.llr_edge
+            if self.params.repeated_no_edge_once and has_plate and not c.reference_ns:
+                edge = max(edge, 0.0)
+            look = c.llr_appearance + edge
             if self.params.unchanged_discount and c.reference_ns:
                 ev = self.params.evidence
                 look *= float(np.clip((c.changed_fraction - ev.change_noise) / (ev.change_hit - ev.change_noise), 0, 1))
