@@ -1,4 +1,4 @@
-"""A fixed camera's repeated missing outline of an element too thin for the change cue counts once."""
+"""Option (off by default): a fixed camera's repeated missing outline of an element without a change cue counts once."""
 
 from __future__ import annotations
 

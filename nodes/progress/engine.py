@@ -85,12 +85,13 @@ class EngineParams:
     """A fixed camera's look of an element (appearance, outline) counts only as much as its pixels changed since
     the camera's reference plate (the change cue's ramp from ``change_noise`` to ``change_hit``): unchanged pixels
     repeat what an earlier frame already said (the same background, the same light), they are not new evidence."""
-    repeated_no_edge_once: bool = True
-    """An element too thin for the change cue (no interior pixels: no changed fraction to discount by) seen without
-    an outline by a fixed camera that has a reference plate: the missing outline is not counted (the camera's frame
-    without a plate said it once). Repeated in every daily frame, the weak negative outline LLR otherwise added up to
-    'not built' for thin elements standing since before the first photo. A found outline still counts (the only
-    state evidence such elements have when they appear)."""
+    repeated_no_edge_once: bool = False
+    """An element without a change cue (no interior pixels the plate covers: thin, or visible only in a strip beside
+    an occlusion mask, where the plate is eroded) seen without an outline by a fixed camera that has a reference
+    plate: the missing outline is not counted (the camera's frame without a plate said it once); a found outline
+    still is. Off: it keeps standing elements from being read 'not built' by the repeated weak negative outline LLR,
+    but the same repeats are what place a late element's appearance, and finish dates moved early (see BENCHMARKS
+    progress notes)."""
 
     evidence: EvidenceParams = field(default_factory=EvidenceParams)
     fusion: FusionParams = field(default_factory=FusionParams)
