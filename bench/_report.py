@@ -31,7 +31,8 @@ def machine() -> str:
 
 
 def code_version() -> str:
-    """``git <short commit>`` of the checkout the bench runs from, ``+ uncommitted changes`` when dirty."""
+    """``git <short commit>`` of the checkout the bench runs from, ``+ uncommitted changes`` when dirty (BENCHMARKS.md
+    itself, which an earlier bench run of the same session rewrote, does not count)."""
     import subprocess
 
     try:

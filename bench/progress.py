@@ -49,7 +49,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from _report import table, write_section  # noqa: E402
+from _report import code_version, table, write_section  # noqa: E402
 from pipeline import run_demo  # noqa: E402
 
 from constructaide.bimgeom import glb_to_meshes  # noqa: E402
@@ -383,8 +383,9 @@ def main(argv: list[str] | None = None) -> int:
     text, blob = report(res, label)
     print(text)
     results = ROOT / ".cache" / "bench-progress.json"
+    results.parent.mkdir(parents=True, exist_ok=True)
     store = json.loads(results.read_text()) if results.exists() else {}
-    store[label] = {**json.loads(blob), "ran": ran}
+    store[label] = {**json.loads(blob), "ran": f"{ran}, code {code_version()}"}
     results.write_text(json.dumps(store, indent=1))
     if not args.no_write:
         runs = [store[k] for k in sorted(store)]

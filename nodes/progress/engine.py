@@ -81,6 +81,17 @@ class EngineParams:
     what stands behind them)."""
     peel_probability: float = 0.5
     """... those below this P(present) at the photo's time."""
+    unchanged_discount: bool = True
+    """A fixed camera's look of an element (appearance, outline) counts only as much as its pixels changed since
+    the camera's reference plate (the change cue's ramp from ``change_noise`` to ``change_hit``): unchanged pixels
+    repeat what an earlier frame already said (the same background, the same light), they are not new evidence."""
+    repeated_no_edge_once: bool = False
+    """An element without a change cue (no interior pixels the plate covers: thin, or visible only in a strip beside
+    an occlusion mask, where the plate is eroded) seen without an outline by a fixed camera that has a reference
+    plate: the missing outline is not counted (the camera's frame without a plate said it once); a found outline
+    still is. Off: it keeps standing elements from being read 'not built' by the repeated weak negative outline LLR,
+    but the same repeats are what place a late element's appearance, and finish dates moved early (see BENCHMARKS
+    progress notes)."""
 
     evidence: EvidenceParams = field(default_factory=EvidenceParams)
     fusion: FusionParams = field(default_factory=FusionParams)
@@ -155,6 +166,8 @@ class ProgressEngine:
         self.as_of_ns = 0
         self.tz = "UTC"
         self.annotations: list[Annotation] = []
+        self._estimates: dict[tuple[str, int], ElementEstimate] | None = None
+        """Estimates memoised while one update message is built (the belief does not change meanwhile)."""
         self.fusion = self.params.fusion
         """The fusion parameters in use: ``params.fusion`` with the slip learnt from the photos (see
         :meth:`refit_slip`)."""
@@ -273,14 +286,20 @@ class ProgressEngine:
         return post
 
     def estimate(self, gid: str, as_of_ns: int | None = None) -> ElementEstimate:
+        t = self.as_of_ns if as_of_ns is None else as_of_ns
+        if self._estimates is not None and (gid, t) in self._estimates:
+            return self._estimates[(gid, t)]
         hours = self.params.work_hours
-        return estimate(
+        est = estimate(
             self.tracks[gid],
             self.posterior(gid),
-            self.as_of_ns if as_of_ns is None else as_of_ns,
+            t,
             self.fusion,
             midpoint=lambda lo, hi: working_midpoint(lo, hi, self.tz, hours),
         )
+        if self._estimates is not None:
+            self._estimates[(gid, t)] = est
+        return est
 
     def refit_slip(self, tolerance: float = 0.1) -> bool:
         """Learn the schedule's slip scale from the elements seen appearing so far (:func:`fit_slip_days`); a change
@@ -420,7 +439,7 @@ class ProgressEngine:
             new = [c for c in cues if c.index not in seen or (seen[c.index].status != "seen" and c.status == "seen")]
             for c in new:
                 seen[c.index] = c
-            touched += self._observe(photo_id, t, [c for c in new if c.status == "seen"])
+            touched += self._observe(photo_id, t, [c for c in new if c.status == "seen"], reference is not None)
             if k == self.params.peel_passes:
                 break
             # read again without what this photo now shows absent: what stands behind those shows through
@@ -484,13 +503,21 @@ class ProgressEngine:
                 out[b] = ("unknown", vis, 1.0 - vis / px)
         return out
 
-    def _observe(self, photo_id: str, t: int, cues: list[ElementCue]) -> list[str]:
+    def _observe(self, photo_id: str, t: int, cues: list[ElementCue], has_plate: bool = False) -> list[str]:
+        """Adds a photo's seen cues to the tracks; ``has_plate``: a fixed camera's photo with a reference plate."""
         touched = []
         for c in cues:
             if c.status != "seen":
                 continue
             gid = self.global_ids[c.index - 1]
-            llr_state = c.llr_points + c.llr_appearance
+            edge = c.llr_edge
+            if self.params.repeated_no_edge_once and has_plate and not c.reference_ns:
+                edge = max(edge, 0.0)
+            look = c.llr_appearance + edge
+            if self.params.unchanged_discount and c.reference_ns:
+                ev = self.params.evidence
+                look *= float(np.clip((c.changed_fraction - ev.change_noise) / (ev.change_hit - ev.change_noise), 0, 1))
+            llr_state = c.llr_points + look
             if llr_state == 0.0 and c.reference_ns == 0:
                 continue
             self.tracks[gid].add(
@@ -659,6 +686,13 @@ class ProgressEngine:
     def update_message(self, touched: list[str], photo_id: str = "") -> ProgressUpdate:
         gids = list(dict.fromkeys(touched))
         task_ids = dict.fromkeys(tid for g in gids for tid in self.element_tasks.get(g, ()))
+        self._estimates = {}
+        try:
+            return self._update_message(gids, task_ids, photo_id)
+        finally:
+            self._estimates = None
+
+    def _update_message(self, gids: list[str], task_ids: dict[str, None], photo_id: str) -> ProgressUpdate:
         return ProgressUpdate(
             site=self.model.site if self.model is not None else "",
             as_of_ns=self.as_of_ns,

@@ -4,7 +4,7 @@ Inputs are arrays at one working size (H, W): the photo in CIE Lab (``lab``, flo
 occlusion mask (``occluded``, bool), the model :class:`~nodes.progress.modelview.Layers` at the photo's registered
 pose (built = what the fusion believes stood just before, candidates = elements the schedule window allows), and,
 for fixed cameras, the camera's reference plate (the last unoccluded look of every pixel in earlier frames, warped
-onto this photo). Three cues, each a log-likelihood ratio (natural log) per element:
+onto this photo). Four cues, each a log-likelihood ratio (natural log) per element:
 
 * ``change``: the fraction of the element's exclusive pixels (it is the only candidate in front of the believed
   built surface there) whose look changed against the reference plate; evidence that the element *appeared*
@@ -13,7 +13,9 @@ onto this photo). Three cues, each a log-likelihood ratio (natural log) per elem
   the viewing ray (absent: the camera saw through it);
 * ``appearance``: the colours of the element's pixels under a model of its material (learnt from this photo's
   believed-built elements of that material and from confident detections elsewhere) against a model of what would
-  show if it were absent (the believed-built surface behind it, or the background).
+  show if it were absent (the believed-built surface behind it, or the background);
+* ``edge`` (candidates only): the share of a candidate's outline, where the same thing would show on both sides
+  were it absent, that has an edge across it stronger than the texture just outside.
 
 Elements whose region is mostly covered by the occlusion mask are ``occluded``; too few pixels, ``unknown``.
 """
@@ -64,6 +66,25 @@ class EvidenceParams:
     """A point within ``margin_m + margin_rel * depth`` of a surface lies on it."""
     point_llr: float = 0.7
     """LLR per (verified) point, saturating at ``max_llr``."""
+    edge: bool = True
+    edge_gap_px: int = 2
+    """The silhouette cue compares pixels this far inside (minus one) and outside a candidate's outline ..."""
+    edge_control_px: int = 3
+    """... and, as the control, the outside pixel with one this much further out."""
+    edge_min_contrast: float = 4.0
+    """Colour difference (Lab units) across the outline for an edge."""
+    edge_control_ratio: float = 1.5
+    """... that also exceeds the control's difference this many times (texture of what shows around it)."""
+    edge_slope: float = 5.0
+    """LLR per unit of the outline's edge fraction ..."""
+    edge_neutral: float = 0.45
+    """... neutral at this fraction."""
+    edge_full_samples: int = 60
+    """Outline samples for the full edge LLR (fewer scale it down)."""
+    edge_max_llr: float = 2.0
+    edge_negative_scale: float = 0.25
+    """Share of a negative edge LLR kept: a standing element that looks like what surrounds it (a slab on a slab of
+    the same concrete) shows no edge either."""
     appearance: bool = True
     appearance_scale: float = 1.5
     """LLR per unit of mean per-pixel log ratio."""
@@ -101,6 +122,9 @@ class ElementCue:
     points_behind: float = 0.0
     llr_points: float = 0.0
     llr_appearance: float = 0.0
+    edge_samples: int = 0
+    edge_fraction: float = float("nan")
+    llr_edge: float = 0.0
     status: str = "seen"  # seen | occluded | unknown
 
 
@@ -206,6 +230,8 @@ def photo_evidence(
         _change_cue(lab, free, layers, reference, params, cues, n, present)
     if points is not None and len(points[0]):
         _points_cue(layers, points, params, cues, n)
+    if params.edge:
+        _edge_cue(lab, free, layers, params, cues)
     if params.appearance:
         _appearance_cue(lab, free, layers, material_of, params, cues, materials, confirmed)
     return [cues[i] for i in sorted(cues)]
@@ -381,3 +407,64 @@ def _appearance_cue(
         if p.appearance_full_pixels > 0:
             llr *= min(1.0, len(ys) / p.appearance_full_pixels)
         cue.llr_appearance = llr
+
+
+def _edge_cue(lab: F32, free: BoolA, layers: Layers, p: EvidenceParams, cues: dict[int, ElementCue]) -> None:
+    """Silhouette evidence of candidates: along the stretches of a candidate's outline where, were it absent, the
+    same thing would show on both sides (what stands behind it inside = what shows outside), an edge across the
+    outline (a colour difference above ``edge_min_contrast`` and ``edge_control_ratio`` times the difference
+    between two outside pixels the same distance apart) says it stands; its fraction of the outline samples gives
+    ``edge_slope * (fraction - edge_neutral)``, clipped, scaled down below ``edge_full_samples``."""
+    front = layers.ids_front.astype(np.int64)
+    built = layers.ids_built.astype(np.int64)
+    second = layers.ids_second.astype(np.int64)
+    owner = np.where(front > 0, front, built)
+    alt = np.where(second > 0, second, built)  # what shows where the front candidate is absent
+    img = cv2.GaussianBlur(lab, (0, 0), 0.8)
+    h, w = owner.shape
+    g, c = p.edge_gap_px, p.edge_control_px
+    ids_l, hit_l = [], []
+    ys0, xs0 = np.nonzero(front > 0)
+    for dy, dx in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+        far = g + c
+        ok = (ys0 - (g - 1) * dy >= 0) & (ys0 - (g - 1) * dy < h) & (xs0 - (g - 1) * dx >= 0) & (xs0 - (g - 1) * dx < w)
+        ok &= (ys0 + far * dy >= 0) & (ys0 + far * dy < h) & (xs0 + far * dx >= 0) & (xs0 + far * dx < w)
+        ys, xs = ys0[ok], xs0[ok]
+        i = owner[ys, xs]
+        o = owner[ys + dy, xs + dx]
+        sel = o != i
+        ys, xs, i, o = ys[sel], xs[sel], i[sel], o[sel]
+        ya, xa = ys - (g - 1) * dy, xs - (g - 1) * dx
+        yb, xb = ys + g * dy, xs + g * dx
+        yc, xc = ys + far * dy, xs + far * dx
+        sel = (
+            (owner[ya, xa] == i)
+            & (owner[yb, xb] == o)
+            & (owner[yc, xc] == o)
+            & (alt[ys, xs] == o)
+            & free[ya, xa]
+            & free[yb, xb]
+            & free[yc, xc]
+        )
+        i = i[sel]
+        va, vb, vc = img[ya[sel], xa[sel]], img[yb[sel], xb[sel]], img[yc[sel], xc[sel]]
+        across = np.linalg.norm(va - vb, axis=1)
+        control = np.linalg.norm(vb - vc, axis=1)
+        ids_l.append(i)
+        hit_l.append((across >= p.edge_min_contrast) & (across >= p.edge_control_ratio * control))
+    if not ids_l:
+        return
+    ids = np.concatenate(ids_l)
+    hits = np.concatenate(hit_l).astype(np.float64)
+    n = max(max(cues, default=0), int(ids.max(initial=0))) + 1
+    cnt = np.bincount(ids, minlength=n)
+    hit = np.bincount(ids, weights=hits, minlength=n)
+    for k, cue in cues.items():
+        if cue.status != "seen" or cnt[k] < p.min_pixels // 2:
+            continue
+        f = hit[k] / cnt[k]
+        cue.edge_samples = int(cnt[k])
+        cue.edge_fraction = float(f)
+        weight = min(1.0, cnt[k] / p.edge_full_samples)
+        llr = float(np.clip(p.edge_slope * (f - p.edge_neutral), -p.edge_max_llr, p.edge_max_llr) * weight)
+        cue.llr_edge = llr * p.edge_negative_scale if llr < 0.0 else llr

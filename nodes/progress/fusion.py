@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import cached_property
 from itertools import combinations_with_replacement
 from typing import Literal
 
@@ -91,14 +92,26 @@ class Posterior:
         g = np.concatenate([[-np.inf], self.grid.astype(np.float64), [np.inf]])
         return g[i], g[i + 1]
 
+    @cached_property
+    def _interval_cdfs(
+        self,
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """(lo, hi, prior CDF at lo, prior CDF at hi), each (H, k): the hypotheses' change intervals (computed once
+        per posterior; the queries below only evaluate the CDF at their own times)."""
+        lo, hi = self._bounds(self.changes)
+        f_lo, f_hi = np.zeros(lo.shape), np.zeros(hi.shape)
+        for col, cdf in enumerate(self.cdfs):
+            f_lo[:, col], f_hi[:, col] = cdf(lo[:, col]), cdf(hi[:, col])
+        return lo, hi, f_lo, f_hi
+
     def present_at(self, t_ns: int) -> float:
         """P(the element stands at ``t_ns``); a change in the interval holding ``t`` is before ``t`` with its prior
         odds (evidence is the same anywhere inside an interval)."""
-        lo, hi = self._bounds(self.changes)
+        lo, hi, f_los, f_his = self._interval_cdfs
         frac = np.full(self.changes.shape, 0.5)
         t = np.array([float(t_ns)])
         for col, cdf in enumerate(self.cdfs):
-            f_lo, f_hi, f_t = cdf(lo[:, col]), cdf(hi[:, col]), cdf(t)[0]
+            f_lo, f_hi, f_t = f_los[:, col], f_his[:, col], cdf(t)[0]
             span = f_hi - f_lo
             frac[:, col] = np.where(span > 1e-12, np.clip((f_t - f_lo) / np.maximum(span, 1e-12), 0.0, 1.0), 0.5)
         done = np.where(hi <= t_ns, 1.0, np.where(lo >= t_ns, 0.0, frac))
@@ -124,25 +137,29 @@ class Posterior:
         as the evidence is the same anywhere there) and the grid interval holding it: (after_ns, by_ns, median_ns,
         probability of that interval); ``None`` = unbounded. Unlike the most probable interval it does not favour
         the wide open intervals before the first and after the last observation over the fine ones between."""
-        lo, hi = self._bounds(self.changes[:, which])
+        los, his, f_los, f_his = self._interval_cdfs
+        lo, hi, f_lo, f_hi = los[:, which], his[:, which], f_los[:, which], f_his[:, which]
         cdf = self.cdfs[which]
-        f_lo, f_hi = cdf(lo), cdf(hi)
         span = np.maximum(f_hi - f_lo, 1e-300)
 
-        def below(x: float) -> float:
-            f_x = cdf(np.array([x]))[0]
-            frac = np.where(hi <= x, 1.0, np.where(lo >= x, 0.0, np.clip((f_x - f_lo) / span, 0.0, 1.0)))
-            return float(np.sum(self.prob * frac))
+        def below(x: NDArray[np.float64]) -> NDArray[np.float64]:
+            """P(change before each of the times ``x`` (K,))."""
+            f_x = cdf(x)[None, :]
+            xx = x[None, :]
+            frac = np.where(
+                hi[:, None] <= xx,
+                1.0,
+                np.where(lo[:, None] >= xx, 0.0, np.clip((f_x - f_lo[:, None]) / span[:, None], 0.0, 1.0)),
+            )
+            return np.asarray(self.prob @ frac, np.float64)
 
         g = self.grid.astype(np.float64)
         a = float(g[0]) - 400 * NS_PER_DAY if len(g) else -400.0 * NS_PER_DAY
         b = float(g[-1]) + 400 * NS_PER_DAY if len(g) else 400.0 * NS_PER_DAY
-        for _ in range(64):
-            mid = 0.5 * (a + b)
-            if below(mid) < 0.5:
-                a = mid
-            else:
-                b = mid
+        while b - a > 1e9:  # bracket the median to a second: 64 sub-intervals per round
+            xs = np.linspace(a, b, 65)
+            k = int(np.clip(np.searchsorted(below(xs), 0.5, side="left"), 1, 64))
+            a, b = float(xs[k - 1]), float(xs[k])
         t = int(0.5 * (a + b))
         i = int(np.searchsorted(self.grid, t, side="left"))  # interval (grid[i-1], grid[i]] holds t
         mass = float(self.prob[self.changes[:, which] == i].sum())
