@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_progress_fusion_evidence import INTR, H, W, box
 
 from constructaide.camera import look_at
 from constructaide.schedule4d import ElementWindow
@@ -11,18 +12,8 @@ from nodes.progress.engine import ProgressEngine
 from nodes.progress.evidence import ElementCue, EvidenceParams, photo_evidence, to_lab
 from nodes.progress.fusion import NS_PER_DAY, ElementTrack
 from nodes.progress.modelview import LayerRenderer
-from schemas.messages import Intrinsics
 
 D = NS_PER_DAY
-W, H = 160, 120
-INTR = Intrinsics(width_px=W, height_px=H, f_px=140.0, cx_px=79.5, cy_px=59.5)
-
-
-def box(lo: tuple[float, float, float], hi: tuple[float, float, float]) -> tuple[np.ndarray, np.ndarray]:
-    import trimesh
-
-    m = trimesh.creation.box(bounds=np.array([lo, hi]))
-    return np.asarray(m.vertices), np.asarray(m.faces, np.int32)
 
 
 @pytest.fixture(scope="module")
