@@ -67,3 +67,23 @@ def test_wildcard_fetch_gathers_every_holders_keys(hub_port: int) -> None:
             got.close()
         for t in tokens:
             t.close()
+
+
+def test_a_session_that_just_joined_finds_the_latched_value(hub_port: int) -> None:
+    """A late joiner asks right after it opened, before it has reached the holder (found through the hub): the fetch
+    waits until routing knows a matching holder instead of asking the hub alone and ending empty (it came back
+    empty in 2 of 10 such joins before)."""
+    payload = os.urandom(1000)
+    with open_bus(BusConfig(hub_port=hub_port)) as holder:
+        holder.publish(KEY, payload, latched=True)
+        for _ in range(10):
+            with open_bus(BusConfig(hub_port=hub_port)) as late:
+                assert late.collect(KEY, decode=False, fetch_latched=True).items == [(KEY, payload)]
+
+
+def test_nothing_latched_returns_empty(hub_port: int) -> None:
+    """With no holder at all the fetch gives up after ``latched_discovery_secs`` and returns nothing (then live
+    values flow)."""
+    quick = BusConfig(hub_port=hub_port, latched_discovery_secs=0.3)
+    with open_bus(BusConfig(hub_port=hub_port)), open_bus(quick) as b:
+        assert b.collect("constructaide/zl/none/here", decode=False, fetch_latched=True).items == []

@@ -225,6 +225,9 @@ class BusConfig:
     """How long a ``fetch_latched`` subscription waits for the latched values at most (a big model comes in parts,
     and a loaded machine is slow to send them). It ends earlier: for a concrete key as soon as one complete payload
     arrived, for a key expression with wildcards as soon as every holder has answered."""
+    latched_discovery_secs: float = 2.0
+    """How long a ``fetch_latched`` subscription waits for a session holding a matching latched value to become
+    reachable before it asks (nothing latched yet: it waits this long, then goes on with live values)."""
     security: BusSecurity | None = None  # TLS / mTLS / ACL from the site TOML (constructaide.runtime.security)
 
     @classmethod
@@ -440,6 +443,31 @@ class ZenohBus(Bus):
                 deliver(k, whole)
         return _Closer(sub.undeclare)
 
+    def _wait_for_queryable(self, keyexpr: str, secs: float) -> bool:
+        """Wait up to ``secs`` until routing knows a queryable matching ``keyexpr`` (True when it does). A session
+        that has just joined reaches the other peers a moment after it opened (they are found through the hub): a
+        query sent before goes to the hub alone and ends empty (a late joiner missed the latched BIM model in 2 of
+        10 tries, 2026-12-04)."""
+        if secs <= 0 or not hasattr(self.session, "declare_querier"):  # zenoh >= 1.2
+            return True
+        querier: Any = self.session.declare_querier(keyexpr)
+        try:
+            if querier.matching_status.matching:
+                return True
+            found = threading.Event()
+
+            def on_status(status: Any) -> None:
+                if status.matching:
+                    found.set()
+
+            listener = querier.declare_matching_listener(on_status)
+            try:
+                return bool(querier.matching_status.matching) or found.wait(secs)
+            finally:
+                listener.undeclare()
+        finally:
+            querier.undeclare()
+
     def _fetch_latched(self, keyexpr: str, receiver: Receiver) -> dict[str, bytes]:
         """The latched payloads under ``keyexpr``, one per key: ``{key: whole payload}``.
 
@@ -450,6 +478,7 @@ class ZenohBus(Bus):
         before), keeping the last completed payload per key.
         """
         z = self._z
+        self._wait_for_queryable(keyexpr, self.config.latched_discovery_secs)
         concrete = "*" not in keyexpr  # '*', '**', '$*'
         token = z.CancellationToken() if concrete and hasattr(z, "CancellationToken") else None  # zenoh >= 1.7
         kwargs: dict[str, Any] = {} if token is None else {"cancellation_token": token}
