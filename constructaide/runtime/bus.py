@@ -225,9 +225,8 @@ class BusConfig:
     """How long a ``fetch_latched`` subscription waits for the latched values at most (a big model comes in parts,
     and a loaded machine is slow to send them). It ends earlier: for a concrete key as soon as one complete payload
     arrived, for a key expression with wildcards as soon as every holder has answered."""
-    latched_discovery_secs: float = 2.0
-    """How long a ``fetch_latched`` subscription waits for a session holding a matching latched value to become
-    reachable before it asks (nothing latched yet: it waits this long, then goes on with live values)."""
+    mesh_join_secs: float = 3.0
+    """How long a peer joining the embedded hub waits at open to reach the other peers the hub knows."""
     security: BusSecurity | None = None  # TLS / mTLS / ACL from the site TOML (constructaide.runtime.security)
 
     @classmethod
@@ -286,8 +285,9 @@ class BusConfig:
         if self.mode == "client":
             # Wait for a router that is still starting instead of failing at once.
             c.insert_json5("connect/timeout_ms", json.dumps(self.client_connect_timeout_ms))
-        if any(_port_of(e) == 0 for e in listen):
-            c.insert_json5("adminspace/enabled", "true")  # the port the system picked is read back from it
+        if any(_port_of(e) == 0 for e in listen) or (self.embedded and as_hub):
+            # Read back: the port the system picked; the hub's peers, for a joining peer to reach them all.
+            c.insert_json5("adminspace/enabled", "true")
         for k, v in (self.security.json5() if self.security else {}).items():
             c.insert_json5(k, json.dumps(v))
         for k, v in self.extra_json5.items():
@@ -351,12 +351,40 @@ class ZenohBus(Bus):
                 raise UserError(f"cannot open the zenoh session ({self.config.mode}): {e}") from None
             self.session = zenoh.open(self.config.zenoh_config(as_hub=False))  # the hub port is taken: join it
             self.is_hub = False
+        if self.config.embedded and not self.is_hub:
+            self._join_mesh(self.config.mesh_join_secs)
         self._latched: dict[str, Transfer] = {}
         self._latched_lock = threading.Lock()
         self._queryables: dict[str, Any] = {}
         self.cache = PublicationCache(self.config.history_bytes)
         if self.cache.max_bytes > 0:
             self._queryables[HISTORY_ROOT] = self.session.declare_queryable(f"{HISTORY_ROOT}/**", self._serve_history)
+
+    def _join_mesh(self, secs: float) -> bool:
+        """Wait up to ``secs`` until this peer has reached every peer the hub knows (True when it has). A peer opens
+        connected to the hub alone and finds the others through it a moment later; a query sent before (a restarted
+        node's catch-up on the history, a latched fetch) reached the hub alone and missed the other peers'
+        publications (7 of 20 such joins, 2026-12-04). The hub's admin space (``@/<hub>/peer``) lists them."""
+        import json as _json
+
+        own = str(self.session.info.zid())
+        want: set[str] = set()
+        try:
+            for reply in self.session.get("@/*/peer", timeout=min(secs, 1.0)):
+                if reply.ok is not None:
+                    doc = _json.loads(reply.ok.payload.to_bytes())
+                    want |= {str(x.get("peer")) for x in doc.get("sessions", []) if x.get("peer")}
+        except Exception:  # an admin space this zenoh does not serve: nothing to wait for
+            return True
+        want.discard(own)
+        deadline = time.monotonic() + secs
+        while True:
+            missing = want - {str(z) for z in self.session.info.peers_zid()}
+            if not missing or time.monotonic() >= deadline:
+                if missing:
+                    log.warning("%d peer(s) the hub knows not reached in %.1f s", len(missing), secs)
+                return not missing
+            time.sleep(0.01)  # zenoh has no event for a new transport in its Python API
 
     def publish(self, key: str, msg: Message | bytes, *, preview: bool = False, latched: bool = False) -> None:
         z = self._z
@@ -443,31 +471,6 @@ class ZenohBus(Bus):
                 deliver(k, whole)
         return _Closer(sub.undeclare)
 
-    def _wait_for_queryable(self, keyexpr: str, secs: float) -> bool:
-        """Wait up to ``secs`` until routing knows a queryable matching ``keyexpr`` (True when it does). A session
-        that has just joined reaches the other peers a moment after it opened (they are found through the hub): a
-        query sent before goes to the hub alone and ends empty (a late joiner missed the latched BIM model in 2 of
-        10 tries, 2026-12-04)."""
-        if secs <= 0 or not hasattr(self.session, "declare_querier"):  # zenoh >= 1.2
-            return True
-        querier: Any = self.session.declare_querier(keyexpr)
-        try:
-            if querier.matching_status.matching:
-                return True
-            found = threading.Event()
-
-            def on_status(status: Any) -> None:
-                if status.matching:
-                    found.set()
-
-            listener = querier.declare_matching_listener(on_status)
-            try:
-                return bool(querier.matching_status.matching) or found.wait(secs)
-            finally:
-                listener.undeclare()
-        finally:
-            querier.undeclare()
-
     def _fetch_latched(self, keyexpr: str, receiver: Receiver) -> dict[str, bytes]:
         """The latched payloads under ``keyexpr``, one per key: ``{key: whole payload}``.
 
@@ -478,7 +481,6 @@ class ZenohBus(Bus):
         before), keeping the last completed payload per key.
         """
         z = self._z
-        self._wait_for_queryable(keyexpr, self.config.latched_discovery_secs)
         concrete = "*" not in keyexpr  # '*', '**', '$*'
         token = z.CancellationToken() if concrete and hasattr(z, "CancellationToken") else None  # zenoh >= 1.7
         kwargs: dict[str, Any] = {} if token is None else {"cancellation_token": token}
