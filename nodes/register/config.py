@@ -194,9 +194,12 @@ class MapperConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     bootstrap_max_scale_spread: float = 0.05
     bootstrap_min_scale_agreement: float = 0.4
     # Triangulated points among the matches needed to take the baseline's length from them (fewer: the clicks, or
-    # no registration): a handful of points, some of them on tracks chained across cameras by repeated texture,
-    # scaled a knocked camera's baseline 4x too long and published its pose 3 deg off.
-    bootstrap_min_scale_points: int = 12
+    # no registration); for a fixed camera's frame placed relative to its own camera's frame (nearly one
+    # viewpoint: a knocked camera, whose handful of points on tracks chained across cameras by repeated texture
+    # scaled its baseline 4x too long, 3 deg off), bootstrap_min_scale_points_own_camera. 12 for all (2026-12-03)
+    # left templeSparseRing at 13/16 with one anchor.
+    bootstrap_min_scale_points: int = 5
+    bootstrap_min_scale_points_own_camera: int = 12
     # Standard deviation (px, relative to a user's click) of clicks carried into a bootstrapped photo by local
     # homographies of the matches around them: they hold the baseline's length, not the pose.
     carried_click_sigma_px: float = 5.0

@@ -389,7 +389,9 @@ def try_relative_pose(recon: Reconstruction, ref: int, idx: int, cfg: MapperConf
             k = np.nonzero(known)[0]
             known[k] = ~(recon.point_from_model[tr[k]] & ~recon.point_confirmed[tr[k]])
         source = np.zeros(0, np.int64)  # the clicks the ratios come from (none for track points)
-        if known.sum() >= cfg.bootstrap_min_scale_points:
+        own_camera = im.camera_id is not None and r.camera_id == im.camera_id
+        min_points = cfg.bootstrap_min_scale_points_own_camera if own_camera else cfg.bootstrap_min_scale_points
+        if known.sum() >= min_points:
             ratios = (recon.points[tr[known]] @ T_r[:3, :3].T + T_r[:3, 3])[:, 2] / X[known, 2]
             how = f"{int(known.sum())} triangulated points"
         elif clicks is not None:
