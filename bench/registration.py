@@ -757,6 +757,9 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="comma-separated parts of variant labels to run (default: 'default'; 'all' for the ablations)",
     )
+    ap.add_argument(
+        "--section", default=None, help="BENCHMARKS.md section for a non-standard run (default: the 'selected' one)"
+    )
     ap.add_argument("--no-write", action="store_true")
     args = ap.parse_args(argv)
     if args.runs is not None and args.runs < 1:
@@ -846,7 +849,9 @@ def main(argv: list[str] | None = None) -> int:
             # Selected draws / sets / variants go to their own section; the standard table stays as measured.
             draws = f"{args.first_draw}-{args.first_draw + runs - 1}"
             note = f"Same protocol as the 'registration' section (its notes apply); click draws {draws}."
-            write_section(rows, [note], cmd, runs, title="registration (selected draws, sets or variants)")
+            write_section(
+                rows, [note], cmd, runs, title=args.section or "registration (selected draws, sets or variants)"
+            )
     return 0
 
 
