@@ -377,8 +377,7 @@ def main() -> None:
         write_section(
             f"Chaos ({r['frames']} frames)",
             body,
-            command=f"nice -n 10 python bench/chaos.py --frames {args.frames} --seed {args.seed} "
-            f"--kills-per-node {args.kills_per_node}",
+            command="python " + " ".join(sys.argv),
         )
     print(last)
 

@@ -57,6 +57,8 @@ SITE = "scale"
 KINDS = ("register", "occlude", "render")
 MAX_SHIFT_PX = 12
 
+START_LOAD = os.getloadavg()[0]  # 1-minute load average when the bench started
+
 
 @dataclass
 class SimSite:
@@ -361,14 +363,14 @@ def soak_main(args: argparse.Namespace) -> int:
             "and re-exposed so it is a new photo) pushing one frame every "
             f"{args.soak_interval_secs:g} s of capture time, accelerated: the next "
             "frame goes out as soon as fewer than 4 are unfinished; register, occlude and render(state4d) in their "
-            "own processes on the loopback bus; resident memory sampled every tenth of the run. The machine was "
-            "shared with other jobs. Node settings beyond the defaults: "
+            "own processes on the loopback bus; resident memory sampled every tenth of the run. "
+            f"Load average (1 min) at the start: {START_LOAD:.1f}. Node settings beyond the defaults: "
             + (", ".join(args.soak_set) if args.soak_set else "none")
             + ".\n\n"
             + body
             + "\n\n"
             + summary,
-            command="nice -n 10 python " + " ".join(sys.argv),
+            command="python " + " ".join(sys.argv),
         )
     print(f"soak: {samples[-1]['frames']} frames, " + ", ".join(f"{k} {v:+.0f} MiB" for k, v in growth.items()))
     return 0
@@ -462,10 +464,10 @@ def main() -> int:
             "scale",
             f"{code_version()}. {len(sim.cameras)} simulated fixed cameras (small site's 3 cameras, each copy shifted "
             f"and re-exposed, anchored by the moved clicks); burst {args.burst_days} days, paced {args.paced_days} "
-            "days at half the burst throughput. One run per worker count (no median: the run takes minutes); the "
-            "2-core machine was shared with the lead and other helpers' jobs during the run, so the figures are "
-            "lower bounds and the ratio is noisy.\n\n" + body + "\n\n" + summary,
-            command="nice -n 10 python " + " ".join(sys.argv),
+            "days at half the burst throughput. One run per worker count (no median: the run takes minutes). Load "
+            f"average (1 min) at the start: {START_LOAD:.1f} (the bench's own node processes raise it while it runs; "
+            "other jobs on the machine lower the figures).\n\n" + body + "\n\n" + summary,
+            command="python " + " ".join(sys.argv),
         )
     print(
         f"cameras {len(sim.cameras)}, 1 worker {f1:.2f} frames/s, 2 workers {f2:.2f} frames/s, ratio {ratio:.2f}, "
