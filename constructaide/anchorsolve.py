@@ -26,10 +26,10 @@ DEFAULT_FOV_DEG = 50.0
 MIN_CLICKS = 4
 MIN_CLICKS_FOR_FOCAL = 6
 MIN_CLICKS_FOR_DISTORTION = 8
-DISTORTION_PRIOR_SIGMA = 0.1
+DISTORTION_PRIOR_SIGMA = 0.1  # weak zero-mean prior on k1 (and k2), as their standard deviation
 # Clicks further than this fraction of the width from the pinhole camera that most clicks agree on are gross
 # mis-clicks (a neighbouring corner, a slip): beyond what radial distortion puts between a pinhole and a lens.
-CONSENSUS_FRAC = 0.03  # weak zero-mean prior on k1 (and k2), as their standard deviation
+CONSENSUS_FRAC = 0.03
 # Relative standard deviation of a focal prior (EXIF / user) when the focal is solved with it: EXIF 35 mm-equivalent
 # focals are whole millimetres (+-0.5 mm of 20-50 mm: a uniform error of sigma 0.6-1.4 %). Residuals are in pixels,
 # so the prior counts like one click coordinate with 1 px noise per FOCAL_PRIOR_SIGMA of relative focal error.
@@ -192,8 +192,6 @@ def _consensus_outliers(
     focal_known: bool,
     thr_px: float,
     floor_px: float,
-    width_px: int,
-    height_px: int,
 ) -> tuple[np.ndarray, float] | None:
     """Clicks (N,) that one camera does not explain, and the distance (px) beyond which a click is out: RANSAC over
     PnP samples within ``thr_px`` at the focal ``f0`` (and, without a known focal, at 0.5-2x it) for a start, then
@@ -202,10 +200,9 @@ def _consensus_outliers(
     predicted by a solve the others bend); a robust fit is not bent by them. None (no decision) unless RANSAC agrees
     on >= max(6, 0.6 N) clicks and as many stay in."""
     n = len(px)
-    none = None
     need = max(MIN_CLICKS_FOR_FOCAL, 0.6 * n)
     if n < MIN_CLICKS_FOR_FOCAL + 1:
-        return none
+        return None
     best: tuple[np.ndarray, float, np.ndarray] | None = None
     for scale in (1.0,) if focal_known else (1.0, 0.7, 1.4, 0.5, 2.0):
         f = f0 * scale
@@ -226,7 +223,7 @@ def _consensus_outliers(
         if ok and inl is not None and (best is None or len(inl) > len(best[2])):
             best = (np.r_[np.ravel(rvec), np.ravel(tvec)], f, inl.ravel())
     if best is None or len(best[2]) < need:
-        return none
+        return None
     x0, f_r, _ = best
     solve_f = not focal_known and not _is_planar(pts)
 
@@ -250,7 +247,7 @@ def _consensus_outliers(
     threshold = max(floor_px, 4.0 * sigma)
     out = r_px > threshold
     if n - out.sum() < need:
-        return none
+        return None
     return out, threshold
 
 
@@ -390,8 +387,6 @@ def solve_anchor(
         focal_px is not None and solve_focal is not True,
         CONSENSUS_FRAC * width_px,
         floor,
-        width_px,
-        height_px,
     )
     pre = decided[0] if decided is not None else np.zeros(len(px), bool)
     px_s, pts_s = px[~pre], pts[~pre]

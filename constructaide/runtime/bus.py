@@ -365,14 +365,12 @@ class ZenohBus(Bus):
         connected to the hub alone and finds the others through it a moment later; a query sent before (a restarted
         node's catch-up on the history, a latched fetch) reached the hub alone and missed the other peers'
         publications (7 of 20 such joins, 2026-12-04). The hub's admin space (``@/<hub>/peer``) lists them."""
-        import json as _json
-
         own = str(self.session.info.zid())
         want: set[str] = set()
         try:
             for reply in self.session.get("@/*/peer", timeout=min(secs, 1.0)):
                 if reply.ok is not None:
-                    doc = _json.loads(reply.ok.payload.to_bytes())
+                    doc = json.loads(reply.ok.payload.to_bytes())
                     want |= {str(x.get("peer")) for x in doc.get("sessions", []) if x.get("peer")}
         except Exception:  # an admin space this zenoh does not serve: nothing to wait for
             return True
