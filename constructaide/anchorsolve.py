@@ -13,6 +13,7 @@ model units, ``world_from_camera`` (4, 4) maps OpenCV camera coordinates to worl
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, field
 
 import cv2
@@ -34,6 +35,12 @@ CONSENSUS_FRAC = 0.03
 # focals are whole millimetres (+-0.5 mm of 20-50 mm: a uniform error of sigma 0.6-1.4 %). Residuals are in pixels,
 # so the prior counts like one click coordinate with 1 px noise per FOCAL_PRIOR_SIGMA of relative focal error.
 FOCAL_PRIOR_SIGMA = 0.015
+# Another camera fitting the clicks within max(AMBIGUOUS_RMS_PX, AMBIGUOUS_RMS_RATIO x the solution's RMS) and turned
+# more than AMBIGUOUS_TURN_DEG from it makes the clicks ambiguous (see AnchorSolution.ambiguous).
+AMBIGUOUS_RMS_PX = 3.0
+AMBIGUOUS_RMS_RATIO = 2.0
+AMBIGUOUS_TURN_DEG = 15.0
+FEW_CLICKS = 6  # up to this many clicks, every three-click (P3P) solution starts a solve too
 
 
 class DegenerateAnchors(ValueError):
@@ -60,6 +67,9 @@ class AnchorSolution:
     distortion_solved: bool = False
     # A focal prior was given but the clicks contradict it (a free focal halves the squared error): solved freely.
     focal_prior_rejected: bool = False
+    # Other cameras (world_from_camera (4, 4), f_px) that fit the inlier clicks about as well and look elsewhere
+    # (few clicks on one facade: the mirrored pose of a planar target): the clicks alone cannot tell them apart.
+    ambiguous: list[tuple[np.ndarray, float]] = field(default_factory=list)
 
 
 def _residuals(params: np.ndarray, pts: np.ndarray, px: np.ndarray, c: np.ndarray, f_fixed: float | None) -> np.ndarray:
@@ -139,6 +149,18 @@ def _pnp_inits(pts: np.ndarray, px: np.ndarray, K: np.ndarray, planar: bool) -> 
     if planar:
         methods.insert(0, cv2.SOLVEPNP_IPPE)
     out = []
+    if len(pts) <= FEW_CLICKS:
+        # Few clicks may pin a camera only up to the discrete solutions of three of them (two clicks on one spot,
+        # a short row): start from every such solution, so that the ambiguity shows (AnchorSolution.ambiguous).
+        for sub in itertools.combinations(range(len(pts)), 3):
+            k = list(sub)
+            try:
+                _, rvecs, tvecs = cv2.solveP3P(pts[k], px[k], K, None, flags=cv2.SOLVEPNP_AP3P)
+            except cv2.error:
+                continue
+            for r, t in zip(rvecs, tvecs, strict=False):
+                if np.all(np.isfinite(r)) and np.all(np.isfinite(t)):
+                    out.append(np.concatenate([np.ravel(r), np.ravel(t)]).astype(np.float64))
     for method in methods:
         try:
             ok, rvecs, tvecs, _ = cv2.solvePnPGeneric(pts, px, K, None, flags=method)
@@ -295,9 +317,11 @@ def _solve(
     solve_focal: bool,
     init: np.ndarray | None = None,
     focal_prior: tuple[float, float] | None = None,
+    collect: list[tuple[np.ndarray, float]] | None = None,
 ) -> tuple[np.ndarray, float, float]:
     """Best (rvec|tvec, f_px, cost) over several initialisations; with ``solve_focal`` and ``focal_prior``
-    (f_px, relative sigma) the focal is the maximum a posteriori estimate (the cost includes the prior term)."""
+    (f_px, relative sigma) the focal is the maximum a posteriori estimate (the cost includes the prior term).
+    ``collect`` receives every initialisation's optimum (rvec|tvec, f_px)."""
 
     def res_focal(x: np.ndarray) -> np.ndarray:
         return np.concatenate([_residuals(x, pts, px, c, None), _focal_prior_residual(float(x[6]), focal_prior)])
@@ -319,6 +343,8 @@ def _solve(
         else:
             sol = least_squares(_residuals, p0, method="lm", args=(pts, px, c, f_init), x_scale="jac", max_nfev=400)
             f = f_init
+        if collect is not None:
+            collect.append((sol.x[:6].copy(), f))
         if best is None or sol.cost < best[2]:
             best = (sol.x[:6].copy(), f, float(sol.cost))
 
@@ -396,7 +422,8 @@ def solve_anchor(
             f"solving the focal needs >= {MIN_CLICKS_FOR_FOCAL} non-coplanar clicks, got {len(px)}"
             + (" coplanar" if _is_planar(pts) else "")
         )
-    params, f, cost = _solve(px_s, pts_s, c, f0, bool(solve_focal))
+    starts: list[tuple[np.ndarray, float]] = []  # every local optimum the solves reached (for the ambiguity test)
+    params, f, cost = _solve(px_s, pts_s, c, f0, bool(solve_focal), collect=starts)
     do_focal = bool(solve_focal)
     prior: tuple[float, float] | None = None
     prior_rejected = False
@@ -404,10 +431,10 @@ def solve_anchor(
         # Auto: without a prior always solve the focal. With a prior, focal and depth trade off for narrow fields
         # of view and clicks bunched on a distant building, so the prior is weighed against the clicks (MAP).
         # A prior the clicks contradict (a free solve halves the clicks' squared error) is dropped.
-        p_f, f_f, cost_f = _solve(px_s, pts_s, c, f0, True)
+        p_f, f_f, cost_f = _solve(px_s, pts_s, c, f0, True, collect=starts)
         if focal_px is not None and focal_prior_sigma is not None:
             prior = (f0, float(focal_prior_sigma))
-            p_m, f_m, _ = _solve(px_s, pts_s, c, f0, True, focal_prior=prior)
+            p_m, f_m, _ = _solve(px_s, pts_s, c, f0, True, focal_prior=prior, collect=starts)
             cost_m = 0.5 * float(np.sum(_residuals(p_m, pts_s, px_s, c, f_m) ** 2))
             if cost_f < 0.5 * cost_m:
                 prior = None
@@ -498,6 +525,7 @@ def solve_anchor(
             do_dist = False
 
     camera_from_world = cam.rigid(R, params[3:6])
+    ambiguous = _ambiguous_poses(starts, pts[keep], px[keep], c, R, rms)
     return AnchorSolution(
         intrinsics=cam.centered_intrinsics(width_px, height_px, f, k1, k2),
         world_from_camera=cam.invert_rigid(camera_from_world),
@@ -509,4 +537,25 @@ def solve_anchor(
         outlier_threshold_px=threshold,
         distortion_solved=do_dist,
         focal_prior_rejected=prior_rejected,
+        ambiguous=ambiguous,
     )
+
+
+def _ambiguous_poses(
+    starts: list[tuple[np.ndarray, float]], pts: np.ndarray, px: np.ndarray, c: np.ndarray, R: np.ndarray, rms: float
+) -> list[tuple[np.ndarray, float]]:
+    """Local optima among ``starts`` (rvec|tvec, f) that fit the clicks ``px`` (N, 2) of ``pts`` (N, 3) within
+    ``max(AMBIGUOUS_RMS_PX, AMBIGUOUS_RMS_RATIO * rms)`` (pinhole), with every point in front, and whose rotation is
+    more than ``AMBIGUOUS_TURN_DEG`` from the solution's ``R``: (world_from_camera, f_px), one per direction."""
+    out: list[tuple[np.ndarray, float]] = []
+    limit = max(AMBIGUOUS_RMS_PX, AMBIGUOUS_RMS_RATIO * rms)
+    for x, f in starts:
+        R_alt = cam.rodrigues_to_matrix(x[:3])
+        if cam.rotation_angle_deg(R_alt, R) <= AMBIGUOUS_TURN_DEG:
+            continue
+        if np.any(pts @ R_alt.T[:, 2] + x[5] <= 0) or _rms(_residuals(x, pts, px, c, f)) > limit:
+            continue
+        if any(cam.rotation_angle_deg(R_alt, o[0][:3, :3].T) <= AMBIGUOUS_TURN_DEG for o in out):
+            continue
+        out.append((cam.invert_rigid(cam.rigid(R_alt, x[3:6])), f))
+    return out

@@ -285,6 +285,23 @@ def test_anchors_contract_solves_and_publishes(client, published) -> None:
     assert len(published) == n0 + 1
 
 
+def test_live_solve_says_when_the_clicks_also_fit_another_camera(client) -> None:
+    """Three distinct corners (a fourth on one of them) fit the true camera and, for most triples, a mirrored one: the
+    live solve says so and asks for spread clicks; nine spread corners do not."""
+    c = _corners()
+    notes = []
+    for i, j, k in [(0, 3, 5), (0, 9, 17), (3, 12, 21), (5, 6, 18), (9, 17, 21), (0, 12, 18)]:
+        pts = np.array([c[i], c[j], c[k], c[j] + [0.0, 0.0, 0.01]])
+        body = {"points": [{"pixel": list(_project(CAM_B, p)), "world": list(p)} for p in pts]}
+        r = client.post("/api/photos/p5/solve", json=body)
+        if r.status_code == 200:
+            notes.append(r.json()["note"])
+    assert any("also fit a camera" in n and "add clicks" in n for n in notes), notes
+    pts = c[[0, 3, 5, 6, 9, 12, 17, 18, 21]]
+    body = {"points": [{"pixel": list(_project(CAM_B, p)), "world": list(p)} for p in pts]}
+    assert "also fit" not in client.post("/api/photos/p5/solve", json=body).json()["note"]
+
+
 def test_review_mode_publishes_nothing() -> None:
     w = Workbench(S, publish=None)
     _feed(w)

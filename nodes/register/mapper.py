@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 
@@ -53,6 +55,8 @@ def register_anchor(recon: Reconstruction, idx: int, clicks: Clicks, cfg: Mapper
             f"{n_out} of {len(px)} clicks look mis-placed and {len(px) - n_out} are not enough to be sure of the "
             f"camera (at least {cfg.min_anchor_inliers}); please check or add clicks"
         )
+    if sol.ambiguous:
+        sol = disambiguate_anchor(recon, idx, sol, px, world, cfg)
     im.intrinsics, im.world_from_camera = sol.intrinsics, sol.world_from_camera
     im.status, im.method, im.anchor = "anchor", "anchor", sol
     im.solved_focal_px = sol.intrinsics.f_px if sol.focal_solved else None
@@ -63,6 +67,35 @@ def register_anchor(recon: Reconstruction, idx: int, clicks: Clicks, cfg: Mapper
     im.rms_px = sol.rms_px
     im.message = f"{len(px)} clicks, rms {sol.rms_px:.2f} px" + (f", {n_out} flagged as mis-clicks" if n_out else "")
     return sol
+
+
+def disambiguate_anchor(
+    recon: Reconstruction, idx: int, sol: AnchorSolution, px: np.ndarray, world: np.ndarray, cfg: MapperConfig
+) -> AnchorSolution:
+    """The one of the cameras the clicks of image ``idx`` cannot tell apart (``sol`` and ``sol.ambiguous``, e.g.
+    three distinct clicked points and their mirrored solution) that the photo's GPS agrees with, when GPS refuses
+    the others (:func:`gps_check` against the registered photos). Raises DegenerateAnchors (a request for more
+    clicks, saying why) when GPS cannot decide."""
+    im = recon.images[idx]
+    cands = [(sol.world_from_camera, sol.intrinsics.f_px), *sol.ambiguous]
+    why = [gps_check(recon, idx, T, cfg) for T, _ in cands]
+    agree = [k for k, w in enumerate(why) if not w]
+    if len(agree) == 1 and any(why):
+        k = agree[0]
+        if k == 0:
+            return sol
+        T, f = cands[k]
+        intr = cam.centered_intrinsics(im.width_px, im.height_px, f)
+        proj, _ = cam.project_points(intr, cam.invert_rigid(T), world)
+        res = np.linalg.norm(proj - px, axis=1)
+        rms = float(np.sqrt(np.mean(res[~sol.outlier_mask] ** 2)))
+        return replace(sol, intrinsics=intr, world_from_camera=T, residuals_px=res, rms_px=rms, ambiguous=[])
+    turn = max(cam.rotation_angle_deg(T[:3, :3], sol.world_from_camera[:3, :3]) for T, _ in sol.ambiguous)
+    gps = "GPS cannot decide" if not any(why) else "GPS agrees with none of them" if not agree else "nor can GPS"
+    raise DegenerateAnchors(
+        f"the {len(px)} clicks fit {len(cands)} cameras up to {turn:.0f} deg apart ({gps}); please add clicks "
+        "spread over the photo, on points at different depths"
+    )
 
 
 def inherited_intrinsics(src: ImageState, im: ImageState, cfg: MapperConfig) -> Intrinsics:

@@ -143,6 +143,12 @@ export class AnchorView {
     else if (sol) {
       const flagged = sol.misclick.filter(Boolean).length;
       info.innerHTML = `solved from ${n} clicks: RMS ${sol.rms_px.toFixed(2)} px, focal ${sol.intrinsics.f_px.toFixed(0)} px${sol.focal_solved ? " (solved)" : ""}${flagged ? `<br><b>${flagged} probable mis-click(s)</b> (red): remove or redo them` : ""}`;
+      if (sol.note) {
+        const note = document.createElement("div");
+        note.className = "solve-note";
+        note.textContent = sol.note; // e.g. the clicks also fit a camera turned elsewhere
+        info.append(note);
+      }
     } else info.textContent = this.solveError || `${n} of at least 4 pairs`;
     $("#anchor-submit").disabled = !sol || !!this.submittedPending;
   }
