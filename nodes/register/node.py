@@ -161,6 +161,11 @@ class RegisterNode:
             )
         except ValueError as e:
             self.ctx.log.warning("no depth lookup: %s", e)
+            return
+        if old is None:  # the first model: photos registered before it get their model points now
+            added = self.registrar.add_model_points_to_map()
+            if added:
+                self.ctx.log.info("BIM depth now available: %d model points for the map images before it", added)
 
     def _check_late_clicks(self, clicks: m.AnchorClicks) -> None:
         """Clicks for a photo registered meanwhile whose pixels are no longer kept (a request answered after the

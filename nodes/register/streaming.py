@@ -495,6 +495,21 @@ class StreamingRegistrar:
         r = self.recon
         return {i for i in r.registered_indices() if r.images[i].method.startswith("fastpath")}
 
+    def add_model_points_to_map(self) -> int:
+        """Model points (BIM depth) for the map images :meth:`_grow` gives them to — anchors and fixed cameras'
+        fast-path key frames — that registered while no depth lookup was set (the BIM model came after them, or
+        its depth renderer was still starting): call when a lookup appears. Features with a triangulated track
+        keep it. Returns how many points were added."""
+        if self.depth_lookup is None:
+            return 0
+        r, added = self.recon, 0
+        for idx in r.registered_indices():
+            im = r.images[idx]
+            if im.status == "anchor" or im.method.startswith("fastpath"):
+                pts = self._lookup(im.pose, im.camera, im.features.keypoints_px, im.capture_time_ns)
+                added += mapper.add_model_points(r, idx, pts)
+        return added
+
     def _lookup(self, world_from_camera: np.ndarray, intr: Intrinsics, px: np.ndarray, t_ns: int) -> np.ndarray:
         if self.depth_lookup is None:
             return np.full((len(px), 3), np.nan)
