@@ -71,6 +71,12 @@ class AnchorSolution:
     # (few clicks on one facade: the mirrored pose of a planar target): the clicks alone cannot tell them apart.
     ambiguous: list[tuple[np.ndarray, float]] = field(default_factory=list)
 
+    @property
+    def ambiguous_turn_deg(self) -> float:
+        """Largest rotation (deg) between this camera and one of ``ambiguous`` (0 when none)."""
+        R = self.world_from_camera[:3, :3]
+        return max((cam.rotation_angle_deg(T[:3, :3], R) for T, _ in self.ambiguous), default=0.0)
+
 
 def _residuals(params: np.ndarray, pts: np.ndarray, px: np.ndarray, c: np.ndarray, f_fixed: float | None) -> np.ndarray:
     R = cam.rodrigues_to_matrix(params[:3])

@@ -90,11 +90,10 @@ def disambiguate_anchor(
         res = np.linalg.norm(proj - px, axis=1)
         rms = float(np.sqrt(np.mean(res[~sol.outlier_mask] ** 2)))
         return replace(sol, intrinsics=intr, world_from_camera=T, residuals_px=res, rms_px=rms, ambiguous=[])
-    turn = max(cam.rotation_angle_deg(T[:3, :3], sol.world_from_camera[:3, :3]) for T, _ in sol.ambiguous)
     gps = "GPS cannot decide" if not any(why) else "GPS agrees with none of them" if not agree else "nor can GPS"
     raise DegenerateAnchors(
-        f"the {len(px)} clicks fit {len(cands)} cameras up to {turn:.0f} deg apart ({gps}); please add clicks "
-        "spread over the photo, on points at different depths"
+        f"the {len(px)} clicks fit {len(cands)} cameras up to {sol.ambiguous_turn_deg:.0f} deg apart ({gps}); "
+        "please add clicks spread over the photo, on points at different depths"
     )
 
 

@@ -414,9 +414,8 @@ class StreamingRegistrar:
         records. Returns photo ids whose viewpoint group changed."""
         r, cfg, c = self.recon, self.mcfg, self.config
         im = r.images[idx]
-        if (im.status == "anchor" or trusted) and self.depth_lookup is not None:
-            pts = self._lookup(im.pose, im.camera, im.features.keypoints_px, im.capture_time_ns)
-            mapper.add_model_points(r, idx, pts)
+        if im.status == "anchor" or trusted:
+            self._add_model_points(idx)
         mapper.prune_observations(r, idx, cfg)
         tracks = image_tracks(r, [idx])
         triangulate_tracks(r, cfg, only=tracks)
@@ -500,15 +499,20 @@ class StreamingRegistrar:
         fast-path key frames — that registered while no depth lookup was set (the BIM model came after them, or
         its depth renderer was still starting): call when a lookup appears. Features with a triangulated track
         keep it. Returns how many points were added."""
+        r = self.recon
+        return sum(
+            self._add_model_points(i)
+            for i in r.registered_indices()
+            if r.images[i].status == "anchor" or r.images[i].method.startswith("fastpath")
+        )
+
+    def _add_model_points(self, idx: int) -> int:
+        """BIM-depth model points for registered map image ``idx``'s features without a point (0 without a lookup)."""
         if self.depth_lookup is None:
             return 0
-        r, added = self.recon, 0
-        for idx in r.registered_indices():
-            im = r.images[idx]
-            if im.status == "anchor" or im.method.startswith("fastpath"):
-                pts = self._lookup(im.pose, im.camera, im.features.keypoints_px, im.capture_time_ns)
-                added += mapper.add_model_points(r, idx, pts)
-        return added
+        im = self.recon.images[idx]
+        pts = self._lookup(im.pose, im.camera, im.features.keypoints_px, im.capture_time_ns)
+        return mapper.add_model_points(self.recon, idx, pts)
 
     def _lookup(self, world_from_camera: np.ndarray, intr: Intrinsics, px: np.ndarray, t_ns: int) -> np.ndarray:
         if self.depth_lookup is None:

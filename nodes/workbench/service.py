@@ -448,16 +448,11 @@ class Workbench:
             sol, residuals, misclick = found
             note = f"solved without click {int(np.argmax(misclick)) + 1}: with it, {e}"
         if sol.ambiguous:
-            turn = max(cam.rotation_angle_deg(T[:3, :3], sol.world_from_camera[:3, :3]) for T, _ in sol.ambiguous)
-            note = "; ".join(
-                x
-                for x in (
-                    note,
-                    f"these clicks also fit a camera {turn:.0f} deg turned from this one: add clicks spread over the "
-                    "photo, on points at different depths",
-                )
-                if x
+            warn = (
+                f"these clicks also fit a camera {sol.ambiguous_turn_deg:.0f} deg turned from this one: add clicks "
+                "spread over the photo, on points at different depths"
             )
+            note = f"{note}; {warn}" if note else warn
         return {
             "photo_id": photo_id,
             "residuals_px": [round(float(r), 3) for r in residuals],
