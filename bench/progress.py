@@ -1,6 +1,6 @@
 """Automatic progress from the photos, scored against the synthetic site's truth, beside "the schedule says".
 
-    python bench/progress.py [--size small] [--seed 0] [--recording demo.mcap] [--no-write]
+    python bench/progress.py [--size small] [--seed 0] [--recording demo.mcap] [--no-write] [--set JSON]
 
 Runs `constructaide demo --size SIZE --seed SEED --answer-anchor-requests` (the streaming pipeline; registrations,
 masks and sparse points as the nodes published them), then `constructaide progress --recording` (the progress
@@ -367,6 +367,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cache", type=Path, default=ROOT / ".cache" / "synth")
     ap.add_argument("--keep", type=Path, help="keep the progress outputs (CSV) in this folder")
     ap.add_argument("--no-write", action="store_true")
+    ap.add_argument(
+        "--set",
+        metavar="JSON",
+        help="engine parameter overrides (`constructaide progress --set`): a variant, printed only (nothing stored)",
+    )
     args = ap.parse_args(argv)
     site = ensure_site(args.size, args.seed, args.cache)
     label = f"{args.size} seed {args.seed}"
@@ -378,10 +383,13 @@ def main(argv: list[str] | None = None) -> int:
             recording, ran = args.recording, f"the recording `{args.recording.name}`"
         out = args.keep or Path(tmp) / "progress"
         cmd = [sys.executable, "-m", "constructaide.app.cli", "progress", "--recording", str(recording)]
-        subprocess.run([*cmd, "--out", str(out), "--quiet"], cwd=ROOT, check=True)
+        over = ["--set", args.set] if args.set else []
+        subprocess.run([*cmd, "--out", str(out), "--quiet", *over], cwd=ROOT, check=True)
         res = score(site, recording, out)
-    text, blob = report(res, label)
+    text, blob = report(res, label + (f", variant {args.set}" if args.set else ""))
     print(text)
+    if args.set:
+        return 0
     results = ROOT / ".cache" / "bench-progress.json"
     results.parent.mkdir(parents=True, exist_ok=True)
     store = json.loads(results.read_text()) if results.exists() else {}

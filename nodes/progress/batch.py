@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import datetime as dt
 import json
 import sys
@@ -25,11 +26,14 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TypeVar
 from zoneinfo import ZoneInfo
 
 from constructaide.errors import UserError
 from constructaide.recording import RecordingError, decoded_messages
 from nodes.progress.engine import EngineParams, ProgressEngine
+from nodes.progress.evidence import EvidenceParams
+from nodes.progress.fusion import FusionParams
 from schemas.messages import (
     Annotation,
     BimModel,
@@ -40,6 +44,8 @@ from schemas.messages import (
     Registration,
     SparseCloud,
 )
+
+T = TypeVar("T")
 
 OBSERVATION_COLUMNS = ("photo_id", "filename", "camera_id", "capture_time", "global_id", "state", "confidence")
 ELEMENT_COLUMNS = (
@@ -131,6 +137,54 @@ def run_engine(inputs: RecordedInputs, params: EngineParams | None = None, progr
     return engine
 
 
+def engine_params_from_json(text: str, **fields: object) -> EngineParams:
+    """EngineParams from a JSON object of overrides (its fields; ``evidence`` / ``fusion`` objects for the nested
+    parameters) on top of ``fields``. Raises UserError naming an unknown or mistyped field."""
+    try:
+        over = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise UserError(f"--set is not JSON: {e}") from e
+    if not isinstance(over, dict):
+        raise UserError("--set must be a JSON object")
+    over = {**fields, **over}
+    nested = {}
+    for key, cls in (("evidence", EvidenceParams), ("fusion", FusionParams)):
+        sub = over.pop(key, {})
+        if not isinstance(sub, dict):
+            raise UserError(f"--set: {key} must be an object")
+        nested[key] = _make(cls, sub, f"{key}.")
+    return _make(EngineParams, {**over, **nested}, "")
+
+
+def _make(cls: type[T], kwargs: dict, prefix: str) -> T:
+    names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    unknown = sorted(set(kwargs) - names)
+    if unknown:
+        raise UserError(f"--set: unknown parameter {prefix}{unknown[0]} (known: {', '.join(sorted(names))})")
+    base = cls()
+    out = {k: tuple(v) if isinstance(v, list) else v for k, v in kwargs.items()}
+    for k, v in out.items():
+        default = getattr(base, k)
+        if not _compatible(default, v):
+            like = "a number or null" if default is None else f"like {default!r}"
+            raise UserError(f"--set: {prefix}{k} must be {like}, got {v!r}")
+    return cls(**out)
+
+
+def _compatible(default: object, v: object) -> bool:
+    """Whether override ``v`` (decoded JSON) fits a parameter whose default is ``default`` (None: optional number)."""
+    number = isinstance(v, int | float) and not isinstance(v, bool)
+    if isinstance(default, bool):
+        return isinstance(v, bool)
+    if isinstance(default, int):
+        return isinstance(v, int) and not isinstance(v, bool)
+    if isinstance(default, float):
+        return number
+    if default is None:
+        return v is None or number
+    return isinstance(v, type(default))
+
+
 def iso(t_ns: int | None, tz: str) -> str:
     """ISO 8601 with the zone's offset (seconds), empty for None."""
     if t_ns is None:
@@ -188,11 +242,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--recording", type=Path, required=True, help="MCAP recording of a pipeline run")
     ap.add_argument("--out", type=Path, required=True, help="folder for observations.csv and elements.csv")
     ap.add_argument("--working-width", type=int, default=EngineParams().working_width_px)
+    ap.add_argument(
+        "--set",
+        default="{}",
+        metavar="JSON",
+        help='engine parameter overrides for experiments, e.g. \'{"support_floor": 0.05, "fusion": '
+        '{"built_probability": 0.8}}\' (EngineParams fields; "evidence" / "fusion" hold their own)',
+    )
     ap.add_argument("-q", "--quiet", action="store_true")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     inputs = read_inputs(args.recording)
-    engine = run_engine(inputs, EngineParams(working_width_px=args.working_width), progress=not args.quiet)
+    params = engine_params_from_json(args.set, working_width_px=args.working_width)
+    engine = run_engine(inputs, params, progress=not args.quiet)
     args.out.mkdir(parents=True, exist_ok=True)
     obs = observation_rows(engine)
     els = element_rows(engine)
@@ -209,6 +271,7 @@ def main(argv: list[str] | None = None) -> int:
         "deviation_counts": {d: sum(r["deviation"] == d for r in els) for d in DEVIATIONS},
         "evidence_ms_per_photo": times,
         "working_width_px": args.working_width,
+        "engine_overrides": json.loads(args.set),
         "schedule_slip_days": round(engine.fusion.schedule_width_days, 3),
         "wall_secs": round(time.perf_counter() - t0, 1),
     }

@@ -31,12 +31,14 @@ from nodes.progress.fusion import (
     FusionParams,
     Observation,
     Posterior,
+    coupled,
     estimate,
     fit_slip_days,
     working_midpoint,
 )
 from nodes.progress.modelview import LayerRenderer, Layers, Mesh
 from nodes.progress.plates import ReferencePlate, same_segment
+from nodes.progress.support import dependants_of, mesh_boxes, support_graph
 from schemas.messages import (
     SPARSE_POINT_FROM_MODEL,
     SPARSE_POINT_VERIFIED,
@@ -85,6 +87,14 @@ class EngineParams:
     """A fixed camera's look of an element (appearance, outline) counts only as much as its pixels changed since
     the camera's reference plate (the change cue's ramp from ``change_noise`` to ``change_hit``): unchanged pixels
     repeat what an earlier frame already said (the same background, the same light), they are not new evidence."""
+    support_floor: float | None = None
+    """An element's appearance is weighed by whether what carries it stands (:func:`~nodes.progress.fusion.coupled`,
+    the graph from :func:`~nodes.progress.support.support_graph`) with this floor; None (default): not. Off: on the
+    synthetic sites it helped one seed and cost another (BENCHMARKS 'progress notes', support coupling)."""
+    dependant_floor: float | None = None
+    """... and by whether what it carries does not stand yet, with this floor; None (default): not."""
+    support_mean: bool = True
+    """... over the mean of the neighbours' probabilities (else their product)."""
     repeated_no_edge_once: bool = False
     """An element without a change cue (no interior pixels the plate covers: thin, or visible only in a strip beside
     an occlusion mask, where the plate is eroded) seen without an outline by a fixed camera that has a reference
@@ -155,6 +165,11 @@ class ProgressEngine:
         self.element_tasks: dict[str, tuple[str, ...]] = {}
         self.tracks: dict[str, ElementTrack] = {}
         self.posteriors: dict[str, Posterior] = {}
+        """Posterior per element with its supports' and dependants' beliefs (what the engine uses)."""
+        self._own: dict[str, Posterior] = {}
+        """Posterior per element from its own evidence and schedule only."""
+        self.supports: dict[str, tuple[str, ...]] = {}
+        self.dependants: dict[str, tuple[str, ...]] = {}
         self.photos: dict[str, Photo] = {}
         self.registrations: dict[str, Registration] = {}
         self.masks: dict[str, dict[str, OcclusionMask]] = {}
@@ -227,12 +242,15 @@ class ProgressEngine:
             if g in old:
                 tr.observations = old[g].observations
             self.tracks[g] = tr
-        self.posteriors = {}
+        self.posteriors, self._own = {}, {}
         meshes = {
             e.global_id: self.meshes[e.geometry_ref or e.global_id]
             for e in els
             if (e.geometry_ref or e.global_id) in self.meshes
         }
+        coupling = self.params.support_floor is not None or self.params.dependant_floor is not None
+        self.supports = support_graph(mesh_boxes(meshes), self.windows) if coupling else {}
+        self.dependants = dependants_of(self.supports)
         if self.renderer is None:
             self.renderer = LayerRenderer()
         self.renderer.set_model(self.global_ids, meshes)
@@ -266,7 +284,7 @@ class ProgressEngine:
             if tr is None:
                 continue
             tr.add(Observation(photo_id=f"annotation:{ann.annotation_id}", time_ns=t, llr_state=sign * ANNOTATION_LLR))
-            self.posteriors.pop(gid, None)
+            self._forget(gid)
             touched.append(gid)
         self.annotations.append(ann)
         return touched
@@ -279,11 +297,36 @@ class ProgressEngine:
 
     # -- fusion state ---------------------------------------------------------------------------------
 
+    def own_posterior(self, gid: str) -> Posterior:
+        """An element's posterior from its own evidence and schedule."""
+        post = self._own.get(gid)
+        if post is None:
+            post = self._own[gid] = self.tracks[gid].posterior(self.fusion)
+        return post
+
     def posterior(self, gid: str) -> Posterior:
+        """An element's posterior with what carries it and what it carries (``params.support_floor``)."""
         post = self.posteriors.get(gid)
         if post is None:
-            post = self.posteriors[gid] = self.tracks[gid].posterior(self.fusion)
+            post = self.own_posterior(gid)
+            up, down = self.params.support_floor, self.params.dependant_floor
+            if up is not None or down is not None:
+                post = coupled(
+                    post,
+                    [self.own_posterior(s) for s in self.supports.get(gid, ())] if up is not None else [],
+                    [self.own_posterior(d) for d in self.dependants.get(gid, ())] if down is not None else [],
+                    up,
+                    down,
+                    self.params.support_mean,
+                )
+            self.posteriors[gid] = post
         return post
+
+    def _forget(self, gid: str) -> None:
+        """Drop the cached posteriors that depend on ``gid``'s evidence."""
+        self._own.pop(gid, None)
+        for g in (gid, *self.supports.get(gid, ()), *self.dependants.get(gid, ())):
+            self.posteriors.pop(g, None)
 
     def estimate(self, gid: str, as_of_ns: int | None = None) -> ElementEstimate:
         t = self.as_of_ns if as_of_ns is None else as_of_ns
@@ -312,7 +355,7 @@ class ProgressEngine:
         if abs(width - self.fusion.schedule_width_days) <= tolerance * self.fusion.schedule_width_days:
             return False
         self.fusion = replace(base, schedule_width_days=width)
-        self.posteriors = {}
+        self.posteriors, self._own = {}, {}
         return True
 
     def _present(self, t_ns: int) -> NDArray[np.float64]:
@@ -410,7 +453,7 @@ class ProgressEngine:
         # drop this photo's earlier evidence (a re-run after a newer mask) before taking the belief
         for tr in self.tracks.values():
             if tr.observations.pop(photo_id, None) is not None:
-                self.posteriors.pop(tr.global_id, None)
+                self._forget(tr.global_id)
         present = self._present(t - 1)
         built = present >= self.params.sure_probability
         built[0] = False
@@ -523,7 +566,7 @@ class ProgressEngine:
             self.tracks[gid].add(
                 Observation(photo_id, t, llr_state=llr_state, llr_change=c.llr_change, reference_ns=c.reference_ns)
             )
-            self.posteriors.pop(gid, None)
+            self._forget(gid)
             touched.append(gid)
         return touched
 

@@ -107,21 +107,25 @@ class Posterior:
     def present_at(self, t_ns: int) -> float:
         """P(the element stands at ``t_ns``); a change in the interval holding ``t`` is before ``t`` with its prior
         odds (evidence is the same anywhere inside an interval)."""
+        return float(self.present_curve(np.array([float(t_ns)]))[0])
+
+    def present_curve(self, t_ns: ArrayLike) -> NDArray[np.float64]:
+        """:meth:`present_at` at each of the times ``t_ns`` (K,) ns (+-inf allowed) -> (K,)."""
+        t = np.asarray(t_ns, np.float64).reshape(-1)
         lo, hi, f_los, f_his = self._interval_cdfs
-        frac = np.full(self.changes.shape, 0.5)
-        t = np.array([float(t_ns)])
+        frac = np.full((*self.changes.shape, len(t)), 0.5)
         for col, cdf in enumerate(self.cdfs):
-            f_lo, f_hi, f_t = f_los[:, col], f_his[:, col], cdf(t)[0]
+            f_lo, f_hi, f_t = f_los[:, col, None], f_his[:, col, None], cdf(t)[None, :]
             span = f_hi - f_lo
             frac[:, col] = np.where(span > 1e-12, np.clip((f_t - f_lo) / np.maximum(span, 1e-12), 0.0, 1.0), 0.5)
-        done = np.where(hi <= t_ns, 1.0, np.where(lo >= t_ns, 0.0, frac))
-        n_changes = done.sum(axis=1)
-        start_present = self.path == "demolition"
+        done = np.where(hi[:, :, None] <= t, 1.0, np.where(lo[:, :, None] >= t, 0.0, frac))
         if self.path == "temporary":
             present = np.clip(done[:, 0] - done[:, 1], 0.0, 1.0)
+        elif self.path == "demolition":
+            present = 1.0 - done.sum(axis=1)
         else:
-            present = 1.0 - n_changes if start_present else n_changes
-        return float(np.sum(self.prob * present))
+            present = done.sum(axis=1)
+        return np.asarray(self.prob @ present, np.float64)
 
     def change_interval(self, which: int = 0) -> tuple[int | None, int | None, float]:
         """Most probable interval of change ``which``: (after_ns, by_ns, probability); ``None`` = unbounded."""
@@ -431,3 +435,38 @@ def working_midpoint(lo_ns: int, hi_ns: int, tz: str, hours: tuple[float, float]
             return int(math.floor((s.timestamp() + left) * 1e9))
         left -= d
     return hi_ns
+
+
+def coupled(
+    post: Posterior,
+    supports: list[Posterior],
+    dependants: list[Posterior],
+    floor: float | None,
+    dependant_floor: float | None = None,
+    mean: bool = True,
+) -> Posterior:
+    """``post`` of a constructed element weighed by what carries it and what it carries (:mod:`support`): a
+    hypothesis placing its appearance in ``(lo, hi]`` needs its supports standing at ``hi`` and the elements it
+    carries not yet standing at ``lo``. The supports' factor is ``floor + (1 - floor) * p`` with ``p`` the mean
+    (``mean``) or product over them of their own posteriors' probability (the graph is read off boxes and the
+    neighbours' beliefs may be wrong: a soft constraint), the dependants' likewise with ``dependant_floor``; a
+    floor of None leaves that side out. Other paths are returned unchanged."""
+    if post.path != "construction" or not len(post.prob):
+        return post
+    if not (supports and floor is not None) and not (dependants and dependant_floor is not None):
+        return post
+    lo, hi = post._bounds(post.changes[:, 0])
+    weight = np.ones(len(post.prob))
+    for side, at, flip, fl in ((supports, hi, False, floor), (dependants, lo, True, dependant_floor)):
+        if not side or fl is None:
+            continue
+        ps = np.array([q.present_curve(at) for q in side])  # (n, H)
+        if flip:
+            ps = 1.0 - ps
+        p = ps.mean(axis=0) if mean else ps.prod(axis=0)
+        weight *= fl + (1.0 - fl) * np.clip(p, 0.0, 1.0)
+    prob = post.prob * weight
+    total = prob.sum()
+    if not total > 0:
+        return post
+    return Posterior(path=post.path, grid=post.grid, changes=post.changes, prob=prob / total, cdfs=post.cdfs)

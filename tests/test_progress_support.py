@@ -1,0 +1,145 @@
+"""What rests on what: the support graph from boxes and schedule, and the fusion's support coupling."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from constructaide.schedule4d import ElementWindow
+from nodes.progress.fusion import NS_PER_DAY, ElementTrack, FusionParams, Observation, coupled, estimate
+from nodes.progress.support import dependants_of, support_graph
+
+D = NS_PER_DAY
+SPAN = (0, 20 * D)
+
+
+def box(lo: tuple[float, float, float], hi: tuple[float, float, float]) -> tuple[np.ndarray, np.ndarray]:
+    return np.array(lo, float), np.array(hi, float)
+
+
+def w(start_day: float, finish_day: float) -> ElementWindow:
+    return ElementWindow(build_start_ns=int(start_day * D), build_finish_ns=int(finish_day * D))
+
+
+def test_support_graph_from_boxes_and_schedule() -> None:
+    boxes = {
+        "slab": box((-6, -6, -0.3), (6, 6, 0.0)),
+        "col_a": box((-6, -0.2, 0.0), (-5.6, 0.2, 3.0)),
+        "col_b": box((5.6, -0.2, 0.0), (6, 0.2, 3.0)),
+        "beam": box((-5.6, -0.15, 2.5), (5.6, 0.15, 3.0)),  # framed into the columns' sides at their top
+        "wall": box((-5.6, 2.0, 0.0), (5.6, 2.2, 2.4)),  # on the slab, beside nothing else
+        "late_wall": box((-5.6, 3.0, 0.0), (5.6, 3.2, 2.4)),  # on the slab but planned before it: no edge
+        "far": box((20, 20, 0.0), (21, 21, 3.0)),  # touches nothing
+    }
+    windows = {
+        "slab": w(1, 2),
+        "col_a": w(3, 4),
+        "col_b": w(3, 4),
+        "beam": w(5, 6),
+        "wall": w(5, 7),
+        "late_wall": w(0, 1),
+        "far": w(3, 4),
+    }
+    g = support_graph(boxes, windows)
+    assert set(g["beam"]) == {"col_a", "col_b"}  # not the slab: the beam does not touch it
+    assert g["col_a"] == ("slab",) and g["col_b"] == ("slab",) and g["wall"] == ("slab",)
+    assert "late_wall" not in g and "far" not in g and "slab" not in g
+    assert set(dependants_of(g)["slab"]) == {"col_a", "col_b", "wall"}
+    # an element of the same task (same window) as the one under it is not ordered by the plan: no edge
+    same = dict(windows, beam=w(3, 4))
+    assert "beam" not in support_graph(boxes, same)
+    # removed (temporary) elements carry nothing in the graph
+    temp = dict(windows, slab=ElementWindow(build_finish_ns=2 * D, remove_start_ns=9 * D, remove_finish_ns=10 * D))
+    assert "col_a" not in support_graph(boxes, temp)
+
+
+def daily(change_day: int, days: range, strength: float) -> list[Observation]:
+    return [
+        Observation(f"p{d}", d * D, llr_change=strength if d == change_day else -strength, reference_ns=(d - 1) * D)
+        for d in days
+    ]
+
+
+def track(window: ElementWindow, obs: list[Observation]) -> ElementTrack:
+    tr = ElementTrack("e", window, SPAN)
+    for o in obs:
+        tr.add(o)
+    return tr
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_an_element_is_not_believed_up_before_what_carries_it(seed: int) -> None:
+    """A beam with moderate evidence of appearing early (a change through what stood behind it) is moved after its
+    columns, which were seen clearly appearing later; alone it stays early."""
+    rng = np.random.default_rng(seed)
+    params = FusionParams(fit_slip=False)
+    days = range(1, 16)
+    early = int(rng.integers(3, 6))
+    cols = [track(w(8, 9), daily(int(rng.integers(9, 11)), days, 6.0)) for _ in range(2)]
+    # one false change (what stood behind it appeared), then looks that neither prove nor deny it
+    beam = track(
+        w(9, 11),
+        [Observation("c", early * D, llr_change=4.0, reference_ns=(early - 1) * D)]
+        + [Observation(f"p{d}", d * D, llr_state=0.2) for d in days if d > early],
+    )
+    own = beam.posterior(params)
+    both = coupled(own, [c.posterior(params) for c in cols], [], 0.05, 0.05)
+    t_cols = max(c.posterior(params).median_change(0)[2] for c in cols)
+    assert own.median_change(0)[2] <= early * D  # alone: up on the day of the false change
+    assert both.median_change(0)[2] >= t_cols - D / 2  # coupled: not before its columns
+    assert estimate(beam, both, 15 * D, params).deviation == "on_time"
+    # the other way: a slab whose own looks weakly say absent, under columns seen standing, is believed standing
+    slab = track(w(1, 2), [Observation(f"q{d}", d * D, llr_state=-0.3) for d in days])
+    carried = [track(w(3, 4), [Observation(f"q{d}", d * D, llr_state=3.0) for d in days]) for _ in range(3)]
+    alone = slab.posterior(params)
+    held = coupled(alone, [], [c.posterior(params) for c in carried], 0.05, 0.05)
+    assert alone.present_at(15 * D) < 0.3 and held.present_at(15 * D) > 0.5
+    # no neighbours, or a path other than construction: unchanged
+    assert coupled(own, [], [], 0.05) is own
+    demolished = track(ElementWindow(remove_start_ns=8 * D, remove_finish_ns=9 * D), daily(9, days, 3.0))
+    post = demolished.posterior(params)
+    assert coupled(post, [cols[0].posterior(params)], [], 0.05) is post
+
+
+def test_present_curve_matches_present_at() -> None:
+    rng = np.random.default_rng(4)
+    obs = [
+        Observation(
+            f"p{k}",
+            int(t),
+            llr_state=float(rng.normal(0, 2)),
+            llr_change=float(rng.normal(0, 2)),
+            reference_ns=int(t) - D,
+        )
+        for k, t in enumerate(np.sort(rng.uniform(2 * D, 18 * D, 10)))
+    ]
+    for window in (w(8, 9), ElementWindow(build_finish_ns=4 * D, remove_start_ns=14 * D, remove_finish_ns=15 * D)):
+        post = track(window, obs).posterior(FusionParams())
+        ts = np.linspace(-D, 21 * D, 40)
+        assert post.present_curve(ts) == pytest.approx([post.present_at(int(t)) for t in ts])
+    assert post.present_curve([-np.inf, np.inf]) == pytest.approx([post.present_at(-(2**62)), post.present_at(2**62)])
+
+
+def test_engine_overrides_from_the_command_line() -> None:
+    """`constructaide progress --set JSON`: experiments such as the support coupling run on the shipping engine."""
+    from constructaide.errors import UserError
+    from nodes.progress.batch import engine_params_from_json
+
+    p = engine_params_from_json('{"support_floor": 0.05, "fusion": {"built_probability": 0.8}}', working_width_px=320)
+    assert (p.support_floor, p.dependant_floor, p.fusion.built_probability, p.working_width_px) == (
+        0.05,
+        None,
+        0.8,
+        320,
+    )
+    assert engine_params_from_json('{"work_hours": [6, 15]}').work_hours == (6, 15)
+    for bad, says in (
+        ('{"nope": 1}', "unknown parameter nope"),
+        ('{"fusion": {"x": 1}}', "unknown parameter fusion.x"),
+        ('{"support_floor": "a"}', "support_floor must be a number or null"),
+        ('{"unchanged_discount": 1}', "unchanged_discount must be like True"),
+        ("[1]", "must be a JSON object"),
+        ("{", "not JSON"),
+    ):
+        with pytest.raises(UserError, match=says):
+            engine_params_from_json(bad)
