@@ -101,23 +101,23 @@ def test_an_element_is_not_believed_up_before_what_carries_it(seed: int) -> None
     assert coupled(post, [cols[0].posterior(params)], [], 0.05) is post
 
 
-def test_present_curve_matches_present_at() -> None:
-    rng = np.random.default_rng(4)
-    obs = [
-        Observation(
-            f"p{k}",
-            int(t),
-            llr_state=float(rng.normal(0, 2)),
-            llr_change=float(rng.normal(0, 2)),
-            reference_ns=int(t) - D,
-        )
-        for k, t in enumerate(np.sort(rng.uniform(2 * D, 18 * D, 10)))
-    ]
-    for window in (w(8, 9), ElementWindow(build_finish_ns=4 * D, remove_start_ns=14 * D, remove_finish_ns=15 * D)):
-        post = track(window, obs).posterior(FusionParams())
-        ts = np.linspace(-D, 21 * D, 40)
-        assert post.present_curve(ts) == pytest.approx([post.present_at(int(t)) for t in ts])
-    assert post.present_curve([-np.inf, np.inf]) == pytest.approx([post.present_at(-(2**62)), post.present_at(2**62)])
+def test_present_curve_is_the_hypotheses_mass_changed_by_each_time() -> None:
+    """At the grid's own times no interpolation is involved: P(standing at t) is the mass of the hypotheses whose
+    change interval ends by t (construction), or has its appearance and not yet its removal (temporary)."""
+    obs = daily(7, range(1, 16), 2.0) + [Observation("s", 9 * D + 1, llr_state=1.0)]
+    post = track(w(8, 9), obs).posterior(FusionParams())
+    g = np.concatenate([post.grid.astype(float), [np.inf]])
+    ends = g[post.changes[:, 0]]
+    ts = post.grid.astype(float)
+    expected = [post.prob[ends <= t].sum() for t in ts]
+    assert post.present_curve(ts) == pytest.approx(expected)
+    assert post.present_curve([-np.inf, np.inf]) == pytest.approx([0.0, 1.0])
+    assert [post.present_at(int(t)) for t in ts] == pytest.approx(expected)
+    temp = track(ElementWindow(build_finish_ns=4 * D, remove_start_ns=14 * D, remove_finish_ns=15 * D), obs)
+    tp = temp.posterior(FusionParams())
+    up, down = g[tp.changes[:, 0]], g[tp.changes[:, 1]]
+    expected = [tp.prob[(up <= t) & (down > t)].sum() for t in ts]
+    assert tp.present_curve(ts) == pytest.approx(expected)
 
 
 def test_engine_overrides_from_the_command_line() -> None:
