@@ -143,3 +143,18 @@ def test_engine_overrides_from_the_command_line() -> None:
     ):
         with pytest.raises(UserError, match=says):
             engine_params_from_json(bad)
+
+
+def test_a_visits_looks_count_once() -> None:
+    """Five photos of one phone visit that each read an element +1.2 say as much as one photo; grouped, they cannot
+    outweigh one clear reading of another day on their own."""
+    params = FusionParams(fit_slip=False)
+    absent = Observation("fixed", 12 * D, llr_state=-2.0)
+    visit = [Observation(f"v{k}", 5 * D + k * 600 * 10**9, llr_state=1.2) for k in range(5)]
+    grouped = [Observation(o.photo_id, o.time_ns, llr_state=o.llr_state, group="visit:day5") for o in visit]
+    apart = track(w(14, 15), [absent, *visit]).posterior(params)
+    once = track(w(14, 15), [absent, *grouped]).posterior(params)
+    single = track(w(14, 15), [absent, visit[0]]).posterior(params)
+    assert apart.present_at(6 * D) > 0.7  # five independent looks win against the plan and the later reading
+    assert once.present_at(6 * D) == pytest.approx(single.present_at(6 * D), rel=0.01)  # grid differs a little
+    assert once.present_at(6 * D) < 0.3

@@ -11,6 +11,7 @@ only those tracks (:mod:`nodes.progress.fusion`). Call from one thread (the rend
 
 from __future__ import annotations
 
+import datetime as dt
 import time
 from dataclasses import dataclass, field, replace
 
@@ -87,6 +88,8 @@ class EngineParams:
     """A fixed camera's look of an element (appearance, outline) counts only as much as its pixels changed since
     the camera's reference plate (the change cue's ramp from ``change_noise`` to ``change_hit``): unchanged pixels
     repeat what an earlier frame already said (the same background, the same light), they are not new evidence."""
+    visit_looks_once: bool = False
+    """The looks (state evidence) of one phone visit's photos of an element (same local day) count as one look."""
     support_floor: float | None = None
     """An element's appearance is weighed by whether what carries it stands (:func:`~nodes.progress.fusion.coupled`,
     the graph from :func:`~nodes.progress.support.support_graph`) with this floor; None (default): not. Off: on the
@@ -564,11 +567,27 @@ class ProgressEngine:
             if llr_state == 0.0 and c.reference_ns == 0:
                 continue
             self.tracks[gid].add(
-                Observation(photo_id, t, llr_state=llr_state, llr_change=c.llr_change, reference_ns=c.reference_ns)
+                Observation(
+                    photo_id,
+                    t,
+                    llr_state=llr_state,
+                    llr_change=c.llr_change,
+                    reference_ns=c.reference_ns,
+                    group=self._visit(photo_id, t),
+                )
             )
             self._forget(gid)
             touched.append(gid)
         return touched
+
+    def _visit(self, photo_id: str, t_ns: int) -> str:
+        """Group of a photo's observations (``params.visit_looks_once``): a phone visit = its local day; "" else."""
+        photo = self.photos.get(photo_id)
+        if not self.params.visit_looks_once or photo is None or photo.camera_id:
+            return ""
+        from zoneinfo import ZoneInfo
+
+        return "visit:" + dt.datetime.fromtimestamp(t_ns / 1e9, ZoneInfo(self.tz)).date().isoformat()
 
     def _confirmed(self, t_ns: int) -> NDArray[np.float64]:
         """(n + 1,) 1.0 for elements seen appearing (a strong transition) and standing at ``t_ns``: their pixels

@@ -73,6 +73,9 @@ class Observation:
     llr_change: float = 0.0
     reference_ns: int = 0
     """Start of the transition interval; 0 = no transition evidence."""
+    group: str = ""
+    """Observations of one group (the photos of one phone visit) are one look: their ``llr_state`` counts divided by
+    the group's size (the same light, the same clip, minutes apart: not independent evidence)."""
 
 
 @dataclass(frozen=True)
@@ -238,6 +241,10 @@ class ElementTrack:
         lo_b, hi_b = g[changes], g[changes + 1]
         cdfs = self._prior_cdfs(path, params)
         logp = np.zeros(len(changes))
+        sizes: dict[str, int] = {}
+        for o in obs:
+            if o.group:
+                sizes[o.group] = sizes.get(o.group, 0) + 1
         for col, cdf in enumerate(cdfs):
             f = cdf(g)
             logp += np.log(np.maximum(f[changes[:, col] + 1] - f[changes[:, col]], 1e-12))
@@ -249,7 +256,8 @@ class ElementTrack:
                 present = done == 0
             else:
                 present = done == 1
-            logp = logp + np.where(present, 0.5, -0.5) * o.llr_state
+            share = 1.0 / sizes[o.group] if o.group else 1.0
+            logp = logp + np.where(present, 0.5, -0.5) * (o.llr_state * share)
             if o.reference_ns:
                 inside = ((lo_b >= o.reference_ns) & (hi_b <= o.time_ns)).any(axis=1)
                 logp = logp + np.where(inside, o.llr_change, 0.0)
