@@ -57,6 +57,9 @@ class EvidenceParams:
     change_slope: float = 12.0
     """LLR per unit of changed fraction."""
     interior_px: int = 2
+    thin_interior_px: int = -1
+    """Interior radius for elements with too few pixels at ``interior_px`` (-1, the default: none, they get no
+    change cue). 1 helped both default-site recordings and cost three small seeds (BENCHMARKS progress notes)."""
     """The change cue uses pixels at least this far inside an element's region."""
     change_full_pixels: int = 60
     """Pixels for the full change LLR (fewer scale it down)."""
@@ -264,6 +267,12 @@ def _change_cue(
     behind = np.where(front > 0, second, 0)
     # the change score looks at a neighbourhood: pixels near another element's region would see that one change
     sel = valid & (owner > 0) & interior(owner, p.interior_px)
+    if 0 <= p.thin_interior_px < p.interior_px:
+        # elements too thin for interior pixels (a slab seen edge-on, a beam) are read on a narrower interior
+        n_in = np.bincount(owner[sel], minlength=n)[:n]
+        thin = n_in < p.min_pixels // 2
+        thin[0] = False
+        sel |= valid & thin[np.minimum(owner, n - 1)] & (owner < n) & interior(owner, p.thin_interior_px)
     ids, beh, chg, times = owner[sel], behind[sel], changed[sel], ref_time[sel]
     excl = beh == 0
     n_excl = np.bincount(ids[excl], minlength=n)[:n]
