@@ -14,6 +14,7 @@ from __future__ import annotations
 import datetime as dt
 import time
 from dataclasses import dataclass, field, replace
+from zoneinfo import ZoneInfo
 
 import cv2
 import numpy as np
@@ -552,6 +553,7 @@ class ProgressEngine:
     def _observe(self, photo_id: str, t: int, cues: list[ElementCue], has_plate: bool = False) -> list[str]:
         """Adds a photo's seen cues to the tracks; ``has_plate``: a fixed camera's photo with a reference plate."""
         touched = []
+        group = self._visit(photo_id, t)
         for c in cues:
             if c.status != "seen":
                 continue
@@ -573,7 +575,7 @@ class ProgressEngine:
                     llr_state=llr_state,
                     llr_change=c.llr_change,
                     reference_ns=c.reference_ns,
-                    group=self._visit(photo_id, t),
+                    group=group,
                 )
             )
             self._forget(gid)
@@ -585,8 +587,6 @@ class ProgressEngine:
         photo = self.photos.get(photo_id)
         if not self.params.visit_looks_once or photo is None or photo.camera_id:
             return ""
-        from zoneinfo import ZoneInfo
-
         return "visit:" + dt.datetime.fromtimestamp(t_ns / 1e9, ZoneInfo(self.tz)).date().isoformat()
 
     def _confirmed(self, t_ns: int) -> NDArray[np.float64]:
