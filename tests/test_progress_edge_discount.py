@@ -88,10 +88,10 @@ def test_edge_cue_skips_the_masked_part_of_the_outline(scene, seed: int) -> None
     assert edge_cues(scene, img, every)[1].llr_edge == 0.0
 
 
-def _engine(discount: bool) -> ProgressEngine:
+def _engine(discount: bool, floor: float = 0.0) -> ProgressEngine:
     from nodes.progress.engine import EngineParams
 
-    eng = ProgressEngine(EngineParams(unchanged_discount=discount))
+    eng = ProgressEngine(EngineParams(unchanged_discount=discount, unchanged_floor=floor))
     eng.global_ids, eng.index_of = ["a"], {"a": 1}
     eng.tracks = {"a": ElementTrack("a", ElementWindow(build_start_ns=15 * D, build_finish_ns=16 * D), (0, 30 * D))}
     return eng
@@ -122,3 +122,9 @@ def test_a_fixed_cameras_unchanged_look_counts_once(changed: float) -> None:
     cue.llr_appearance, cue.llr_edge, cue.llr_change = 1.0, 1.0, 4.0
     eng._observe("p2", 2 * D, [cue])
     assert eng.tracks["a"].observations["p2"].llr_state == pytest.approx(2.0)
+    # with a floor (the shipped 0.25: another day's light is partly a new look) an unchanged repeat keeps that share
+    eng = _engine(True, floor=0.25)
+    cue = ElementCue(1, 400, 400, 0.0, changed_fraction=changed, reference_ns=D)
+    cue.llr_appearance, cue.llr_edge, cue.llr_change = 1.0, 1.0, -3.0
+    eng._observe("p2", 2 * D, [cue])
+    assert eng.tracks["a"].observations["p2"].llr_state == pytest.approx(0.5)

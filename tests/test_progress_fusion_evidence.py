@@ -263,3 +263,101 @@ def test_finish_is_the_posterior_median_not_the_widest_interval() -> None:
     assert e.finish_ns is not None and 10 * D + 9 * H <= e.finish_ns <= 10 * D + 14 * H
     assert e.last_absent_ns is not None and e.first_present_ns is not None
     assert e.last_absent_ns < e.finish_ns <= e.first_present_ns
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_change_cue_discounts_a_built_element_behind_that_appeared_since_the_plate(seed: int) -> None:
+    """A candidate beam in front of a wall believed built: the beam's pixels changed since the plate. If the wall
+    appeared after the plate's frame, that change may be the wall's; if it stood then, it is the beam's."""
+    r = LayerRenderer()
+    r.set_model(
+        ["beam", "wall"],
+        {"beam": box((-1.5, -0.2, 0.9), (1.5, 0.2, 1.6)), "wall": box((-3.0, 1.5, 0.0), (3.0, 1.8, 3.0))},
+    )
+    T = look_at((0.0, -8.0, 1.2), (0.0, 0.0, 1.0))
+    rng = np.random.default_rng(seed)
+    layers = r.render(INTR, T, np.array([False, False, True]), np.array([False, True, False]))
+    beam, wall = layers.ids_all == 1, layers.ids_all == 2
+    assert beam.sum() > 300 and wall.sum() > 300
+    grass = textured(rng, (H, W), (90, 140, 80))
+    bricks = textured(rng, (H, W), (160, 70, 50))
+    present = np.array([0.0, 0.3, 1.0])
+    params = EvidenceParams(built_behind=True, neighbour_px=-1)
+    ones, zeros = np.ones((H, W), bool), np.zeros((H, W), np.int64)
+
+    def beam_llr(before: np.ndarray, after: np.ndarray, wall_then: float, p: EvidenceParams) -> float:
+        ref = (to_lab(before), ones, zeros)
+        cues = photo_evidence(
+            to_lab(after),
+            np.zeros((H, W), bool),
+            layers,
+            ["", "steel", "brick"],
+            p,
+            reference=ref,
+            present=present,
+            stood_at=lambda idx, t: np.full(len(idx), wall_then),
+        )
+        return next(c for c in cues if c.index == 1).llr_change
+
+    # the wall went up since the plate, the beam did not: the beam's pixels show bricks where there was grass
+    wall_up = np.where((beam | wall)[..., None], bricks, grass)
+    unaware = beam_llr(grass, wall_up, 0.0, EvidenceParams(built_behind=False, neighbour_px=-1))
+    assert unaware > 3.0, "without the built element's history the wall's appearance reads as the beam's"
+    assert beam_llr(grass, wall_up, 0.0, params) < 0.5 * unaware, "discounted: the wall may have changed them"
+    # the wall stood already; the beam appeared in front of it: full evidence
+    steel = textured(rng, (H, W), (70, 90, 160))
+    walled = np.where(wall[..., None] | beam[..., None], bricks, grass)
+    beam_up = np.where(beam[..., None], steel, walled)
+    assert beam_llr(walled, beam_up, 1.0, params) > 3.0
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_thin_elements_get_a_change_cue_and_a_neighbours_change_is_not_theirs(seed: int) -> None:
+    """A slab seen nearly edge-on (3-4 px tall at this size) gets no change cue on a 2 px interior, one on a 1 px
+    interior when it appears; when it stays absent but the wall right beside it goes up and the photo's registration
+    is 3 px off (the wall's new pixels spill onto the slab's), the neighbour discount keeps that change from
+    reading as the slab's."""
+    r = LayerRenderer()
+    r.set_model(
+        ["slab", "wall"],
+        {"slab": box((-3.0, -0.2, 1.7), (3.0, 2.0, 1.85)), "wall": box((-3.0, -0.2, 0.0), (3.0, 0.0, 1.7))},
+    )
+    T = look_at((0.0, -8.0, 1.8), (0.0, 0.0, 1.8))
+    rng = np.random.default_rng(seed)
+    layers = r.render(INTR, T, np.zeros(3, bool), np.array([False, True, True]))
+    slab, wall = layers.ids_all == 1, layers.ids_all == 2
+    rows = np.nonzero(slab.any(1))[0]
+    assert 2 <= len(rows) <= 5 and wall.sum() > 1000, "a thin strip above a wall"
+    sky = textured(rng, (H, W), (150, 180, 220), amp=6.0)
+    concrete = textured(rng, (H, W), (120, 120, 125))
+    bricks = textured(rng, (H, W), (160, 70, 50))
+    ones, zeros = np.ones((H, W), bool), np.zeros((H, W), np.int64)
+    present = np.array([0.0, 0.2, 0.2])
+    off = EvidenceParams(thin_interior_px=-1, neighbour_px=-1)
+    on = EvidenceParams(neighbour_px=-1)
+    shipped = EvidenceParams()
+
+    def cue(before: np.ndarray, after: np.ndarray, p: EvidenceParams) -> tuple[float, float]:
+        cues = photo_evidence(
+            to_lab(after),
+            np.zeros((H, W), bool),
+            layers,
+            ["", "concrete", "brick"],
+            p,
+            reference=(to_lab(before), ones, zeros),
+            present=present,
+        )
+        c = {c.index: c for c in cues}
+        return c[1].llr_change, c[2].llr_change
+
+    # the slab appears, the wall does not
+    slab_up = np.where(slab[..., None], concrete, sky)
+    assert cue(sky, slab_up, off)[0] == 0.0, "2 px interior: too thin for a change cue"
+    assert cue(sky, slab_up, on)[0] > 3.0
+    assert cue(sky, slab_up, shipped)[0] > 3.0, "the wall beside it did not change: no discount"
+    # the wall appears, the slab does not, and the photo sits 3 px lower than the model says
+    grown = np.roll(wall, -3, axis=0) | wall
+    wall_up = np.where(grown[..., None], bricks, sky)
+    naive, wall_llr = cue(sky, wall_up, on)
+    assert wall_llr > 3.0 and naive > 1.0, "without the discount the wall's spill reads as the slab's"
+    assert cue(sky, wall_up, shipped)[0] < 0.5 * naive

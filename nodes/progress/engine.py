@@ -89,6 +89,8 @@ class EngineParams:
     """A fixed camera's look of an element (appearance, outline) counts only as much as its pixels changed since
     the camera's reference plate (the change cue's ramp from ``change_noise`` to ``change_hit``): unchanged pixels
     repeat what an earlier frame already said (the same background, the same light), they are not new evidence."""
+    unchanged_floor: float = 0.25
+    """... but at least this share (another day's light is partly a new look; 0: none)."""
     visit_looks_once: bool = False
     """The looks (state evidence) of one phone visit's photos of an element (same local day) count as one look."""
     support_floor: float | None = None
@@ -368,6 +370,14 @@ class ProgressEngine:
             out[i] = self.posterior(g).present_at(t_ns)
         return out
 
+    def _stood_at(self, indices: NDArray[np.int64], times_ns: NDArray[np.int64]) -> NDArray[np.float64]:
+        """P(element ``indices[k]`` (1-based) stood at ``times_ns[k]``), each (K,)."""
+        out = np.zeros(len(indices))
+        for i in np.unique(indices):
+            sel = indices == i
+            out[sel] = self.posterior(self.global_ids[int(i) - 1]).present_curve(times_ns[sel])
+        return out
+
     # -- processing -----------------------------------------------------------------------------------
 
     def _occlusion(self, photo_id: str, shape: tuple[int, int]) -> NDArray[np.bool_]:
@@ -481,7 +491,17 @@ class ProgressEngine:
         for k in range(self.params.peel_passes + 1):
             layers = self.renderer.render(intr, T, built, cand)
             cues = photo_evidence(
-                lab, occluded, layers, self.material_of, ev, reference, points, self.materials, present, confirmed
+                lab,
+                occluded,
+                layers,
+                self.material_of,
+                ev,
+                reference,
+                points,
+                self.materials,
+                present,
+                confirmed,
+                self._stood_at,
             )
             new = [c for c in cues if c.index not in seen or (seen[c.index].status != "seen" and c.status == "seen")]
             for c in new:
@@ -564,7 +584,8 @@ class ProgressEngine:
             look = c.llr_appearance + edge
             if self.params.unchanged_discount and c.reference_ns:
                 ev = self.params.evidence
-                look *= float(np.clip((c.changed_fraction - ev.change_noise) / (ev.change_hit - ev.change_noise), 0, 1))
+                ramp = float(np.clip((c.changed_fraction - ev.change_noise) / (ev.change_hit - ev.change_noise), 0, 1))
+                look *= self.params.unchanged_floor + (1.0 - self.params.unchanged_floor) * ramp
             llr_state = c.llr_points + look
             if llr_state == 0.0 and c.reference_ns == 0:
                 continue

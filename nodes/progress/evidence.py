@@ -22,6 +22,7 @@ Elements whose region is mostly covered by the occlusion mask are ``occluded``; 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import cv2
@@ -57,10 +58,17 @@ class EvidenceParams:
     change_slope: float = 12.0
     """LLR per unit of changed fraction."""
     interior_px: int = 2
-    thin_interior_px: int = -1
-    """Interior radius for elements with too few pixels at ``interior_px`` (-1, the default: none, they get no
-    change cue). 1 helped both default-site recordings and cost three small seeds (BENCHMARKS progress notes)."""
     """The change cue uses pixels at least this far inside an element's region."""
+    thin_interior_px: int = 1
+    """Interior radius for elements with too few pixels at ``interior_px`` (a slab seen edge-on, a beam; -1: none,
+    they get no change cue). Their pixels with a candidate behind are left out and their change score's structure
+    window shrinks to ``2 * thin_interior_px + 1``."""
+    built_behind: bool = True
+    """Discount a candidate's changed pixels where a built element behind it may have appeared since the plate."""
+    neighbour_px: int = 3
+    """Discount, likewise, pixels this close to another element that may have changed since the plate (the
+    registration's error and the change score's blur reach it; -1: none). These two, ``thin_interior_px`` and
+    ``EngineParams.unchanged_floor``: BENCHMARKS progress notes, 2026-12-05."""
     change_full_pixels: int = 60
     """Pixels for the full change LLR (fewer scale it down)."""
     max_llr: float = 5.0
@@ -166,6 +174,16 @@ def interior(ids: NDArray[np.int64], radius_px: int) -> BoolA:
     return (cv2.erode(f, k) == f) & (cv2.dilate(f, k) == f)
 
 
+def _neighbours(ids: NDArray[np.int64], radius_px: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Two (H, W) maps of another element id within ``radius_px`` of each pixel: the largest and the smallest
+    non-zero one (0: none)."""
+    f = ids.astype(np.float32)
+    k = np.ones((2 * radius_px + 1, 2 * radius_px + 1), np.uint8)
+    hi = cv2.dilate(f, k).astype(np.int64)
+    lo = cv2.erode(np.where(ids > 0, f, np.float32(2**24)), k).astype(np.int64)
+    return np.where(hi != ids, hi, 0), np.where((lo != ids) & (lo < 2**24), lo, 0)
+
+
 def colour_bins(lab: F32) -> NDArray[np.int32]:
     """(H, W) int32 histogram bin of every pixel: coarse L x fine a/b."""
     lb = np.clip((lab[..., 0] / 100.0 * L_BINS).astype(np.int32), 0, L_BINS - 1)
@@ -208,13 +226,16 @@ def photo_evidence(
     materials: MaterialModel | None = None,
     present: NDArray[np.float64] | None = None,
     confirmed: NDArray[np.float64] | None = None,
+    stood_at: Callable[[NDArray[np.int64], NDArray[np.int64]], NDArray[np.float64]] | None = None,
 ) -> list[ElementCue]:
     """Cues for every element with pixels in this photo's candidate or built layers.
 
     ``material_of[i]`` is the material of element index i (row 0 unused). ``reference`` = (plate Lab, plate valid,
     plate time ns per pixel), warped onto this photo. ``points`` = (pixels (N, 2) at working size, camera depths
     (N,) m, weights (N,)). ``present`` (n,): P(element stands) before this photo; ``confirmed`` (n,): 1 for
-    elements seen appearing and standing since, whose pixels show their material's look. Returns one
+    elements seen appearing and standing since, whose pixels show their material's look. ``stood_at(indices,
+    times_ns)`` -> P(element stood at that time), each (K,): where a candidate stands in front of a believed-built
+    element that may have appeared since the plate was taken, a change may be that element's. Returns one
     :class:`ElementCue` per element, ascending index.
     """
     n = len(material_of)
@@ -230,7 +251,7 @@ def photo_evidence(
             status = "occluded" if occ >= params.occluded_fraction else "unknown"
         cues[int(i)] = ElementCue(int(i), int(region[i]), int(visible[i]), float(occ), status=status)
     if reference is not None:
-        _change_cue(lab, free, layers, reference, params, cues, n, present)
+        _change_cue(lab, free, layers, reference, params, cues, n, present, stood_at)
     if points is not None and len(points[0]):
         _points_cue(layers, points, params, cues, n)
     if params.edge:
@@ -249,6 +270,7 @@ def _change_cue(
     cues: dict[int, ElementCue],
     n: int,
     present: NDArray[np.float64] | None,
+    stood_at: Callable[[NDArray[np.int64], NDArray[np.int64]], NDArray[np.float64]] | None = None,
 ) -> None:
     """Transition evidence per element from the changed fraction of its front-most interior pixels against the
     plate: ``change_slope * (fraction - change_neutral)``, clipped, scaled down below ``change_full_pixels``.
@@ -267,12 +289,27 @@ def _change_cue(
     behind = np.where(front > 0, second, 0)
     # the change score looks at a neighbourhood: pixels near another element's region would see that one change
     sel = valid & (owner > 0) & interior(owner, p.interior_px)
+    near: tuple[NDArray[np.int64], ...] = ()  # (H, W) elements beside each pixel whose change may spill onto it
     if 0 <= p.thin_interior_px < p.interior_px:
         # elements too thin for interior pixels (a slab seen edge-on, a beam) are read on a narrower interior
         n_in = np.bincount(owner[sel], minlength=n)[:n]
         thin = n_in < p.min_pixels // 2
         thin[0] = False
-        sel |= valid & thin[np.minimum(owner, n - 1)] & (owner < n) & interior(owner, p.thin_interior_px)
+        extra = (
+            valid
+            & ~sel
+            & (behind == 0)
+            & thin[np.minimum(owner, n - 1)]
+            & (owner < n)
+            & interior(owner, p.thin_interior_px)
+        )
+        if extra.any():
+            # their structure window must stay inside them too ...
+            window = 2 * p.thin_interior_px + 1
+            changed = np.where(extra, change_score(lab, ref_lab, valid, window_px=window) > p.change_threshold, changed)
+            sel |= extra
+    if p.neighbour_px > 0:
+        near = _neighbours(owner, p.neighbour_px)
     ids, beh, chg, times = owner[sel], behind[sel], changed[sel], ref_time[sel]
     excl = beh == 0
     n_excl = np.bincount(ids[excl], minlength=n)[:n]
@@ -284,6 +321,30 @@ def _change_cue(
     # a pixel speaks for its owner as much as nothing else could have changed it: the candidate behind it may have
     # appeared while the owner was absent
     wx = 1.0 - np.where(beh > 0, appeared[beh] * (1.0 - stood[ids]), 0.0)
+    # ... and so may a built element behind it or an element beside it, where that one appeared
+    # after the plate's frame: such a pixel would have changed with or without the owner, so the cue's strength
+    # drops with their share
+    is_cand = np.zeros(n, bool)
+    is_cand[np.unique(front[front < n])] = True
+    is_cand[0] = False
+
+    def changed_since(other: NDArray[np.int64]) -> NDArray[np.float64]:
+        """P(element ``other`` (per selected pixel, 0: none) changed since the pixel's plate time)."""
+        out = np.where(is_cand[other], appeared[other], 0.0)
+        m = (other > 0) & ~is_cand[other]
+        if stood_at is not None and m.any():
+            keys, inv = np.unique(np.stack([other[m], times[m]]), axis=1, return_inverse=True)
+            out[m] = np.clip(stood[keys[0]] - stood_at(keys[0], keys[1]), 0.0, 1.0)[inv.reshape(-1)]
+        return out
+
+    p_other = np.zeros(len(ids))
+    if p.built_behind:
+        p_other = changed_since(np.where(front[sel] > 0, built[sel], 0))
+    for side in near:
+        p_other = np.maximum(p_other, changed_since(side[sel]))
+    wb = 1.0 - p_other * (1.0 - stood[ids])
+    wx *= wb
+    informative = np.bincount(ids, weights=wb, minlength=n)[:n] / np.maximum(np.bincount(ids, minlength=n)[:n], 1)
     tot = np.bincount(ids, weights=wx, minlength=n)[:n]
     s_chg = np.bincount(ids, weights=wx * chg, minlength=n)[:n]
     order = np.argsort(ids, kind="stable")
@@ -296,7 +357,7 @@ def _change_cue(
         f = s_chg[i] / tot[i]
         cue.exclusive_px = int(round(tot[i]))
         cue.changed_fraction = float(f)
-        weight = min(1.0, tot[i] / p.change_full_pixels)
+        weight = min(1.0, tot[i] / p.change_full_pixels) * informative[i]
         cue.llr_change = float(np.clip(p.change_slope * (f - p.change_neutral), -p.max_llr, p.max_llr) * weight)
         cue.reference_ns = int(np.median(times_sorted[starts[i] : ends[i]]))
 
