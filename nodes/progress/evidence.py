@@ -8,7 +8,10 @@ onto this photo). Four cues, each a log-likelihood ratio (natural log) per eleme
 
 * ``change``: the fraction of the element's exclusive pixels (it is the only candidate in front of the believed
   built surface there) whose look changed against the reference plate; evidence that the element *appeared*
-  between the plate's time and this photo (a transition, not a state);
+  between the plate's time and this photo (a transition, not a state). A pixel counts as much as nothing else
+  could have changed it: a candidate behind the element, a built element behind it or an element beside it (blur
+  and registration error reach ``neighbour_px``) that appeared since the plate's frame. Elements too thin for a
+  2 px interior (a slab seen edge-on, a beam) are read 1 px inside;
 * ``points``: sparse-cloud observations of this photo lying on the element's surface (present) or behind it along
   the viewing ray (absent: the camera saw through it);
 * ``appearance``: the colours of the element's pixels under a model of its material (learnt from this photo's
