@@ -331,20 +331,19 @@ def _change_cue(
     is_cand[np.unique(front[front < n])] = True
     is_cand[0] = False
 
-    def changed_since(other: NDArray[np.int64]) -> NDArray[np.float64]:
-        """P(element ``other`` (per selected pixel, 0: none) changed since the pixel's plate time)."""
-        out = np.where(is_cand[other], appeared[other], 0.0)
+    # candidates: P(appeared) from their exclusive pixels; built elements: from their belief, one lookup for all
+    others = [np.where(front[sel] > 0, built[sel], 0)] if p.built_behind else []
+    others += [side[sel] for side in near]
+    p_other = np.zeros(len(ids))
+    if others:
+        other = np.stack(others)  # (S, K): element behind / beside each selected pixel, 0: none
+        p_all = np.where(is_cand[other], appeared[other], 0.0)
         m = (other > 0) & ~is_cand[other]
         if stood_at is not None and m.any():
-            keys, inv = np.unique(np.stack([other[m], times[m]]), axis=1, return_inverse=True)
-            out[m] = np.clip(stood[keys[0]] - stood_at(keys[0], keys[1]), 0.0, 1.0)[inv.reshape(-1)]
-        return out
-
-    p_other = np.zeros(len(ids))
-    if p.built_behind:
-        p_other = changed_since(np.where(front[sel] > 0, built[sel], 0))
-    for side in near:
-        p_other = np.maximum(p_other, changed_since(side[sel]))
+            t = np.broadcast_to(times, other.shape)
+            keys, inv = np.unique(np.stack([other[m], t[m]]), axis=1, return_inverse=True)
+            p_all[m] = np.clip(stood[keys[0]] - stood_at(keys[0], keys[1]), 0.0, 1.0)[inv.reshape(-1)]
+        p_other = p_all.max(0)
     wb = 1.0 - p_other * (1.0 - stood[ids])
     wx *= wb
     informative = np.bincount(ids, weights=wb, minlength=n)[:n] / np.maximum(np.bincount(ids, minlength=n)[:n], 1)
