@@ -103,7 +103,15 @@ def run_register(
             # every photo's first registration (counting messages would stop early: a photo may fail, then register)
             deadline = time.monotonic() + 240
             while not ids <= {r.photo_id for _k, r in regs.items}:
-                regs.wait(len(regs.items) + 1, timeout=max(deadline - time.monotonic(), 0.1))
+                try:
+                    regs.wait(len(regs.items) + 1, timeout=max(deadline - time.monotonic(), 0.1))
+                except TimeoutError:
+                    missing = sorted(
+                        f"{p.camera_id}@{p.capture_time_ns}"
+                        for p in photos
+                        if p.photo_id not in {r.photo_id for _k, r in regs.items}
+                    )
+                    raise TimeoutError(f"{workers} worker(s): no registration of {missing}") from None
         finally:
             run.send_signal(signal.SIGINT)
             run.wait(120)

@@ -86,7 +86,8 @@ def test_relative_pose_refuses_a_rotation_and_a_disagreeing_scale() -> None:
 def test_a_fixed_camera_frame_is_placed_relative_to_its_own_camera_only() -> None:
     """A knocked frame of fixed camera A, with A's anchored frame registered, is not placed by a relative motion to
     another camera's frame (B; CI saw such a motion put a knocked camera 2.7 deg and 3 m off), while a frame of
-    a camera with no registered frame of its own, and a phone photo, still are tried from B."""
+    a camera with no registered frame of its own, and a phone photo, still are tried from B. The same when the knock
+    left the frame no verified pair with A's frame."""
     rng = np.random.default_rng(6)
     pts = scene_points(rng)
     desc = rng.normal(size=(len(pts), 128))
@@ -105,6 +106,10 @@ def test_a_fixed_camera_frame_is_placed_relative_to_its_own_camera_only() -> Non
         match_image(recon, i, list(range(i)), cfg)
     mapper.register_anchor(recon, 0, clicks_for(rng, pts, T_a, n=10), cfg)
     mapper.register_anchor(recon, 1, clicks_for(rng, pts, T_b, n=10), cfg)
+    assert not mapper.try_relative_pose(recon, 1, 2, cfg)
+    assert "another camera" in recon.images[2].message, recon.images[2].message
+    recon.pairs = {k: v for k, v in recon.pairs.items() if set(k) != {0, 2}}  # the knock broke its pair with a0
+    assert recon.pair(0, 2) is None
     assert not mapper.try_relative_pose(recon, 1, 2, cfg)
     assert "another camera" in recon.images[2].message, recon.images[2].message
     for cam_id in (None, "cam-c"):  # a phone photo, then a camera without registered frames: tried from B

@@ -325,16 +325,13 @@ def _rotation_residual_deg(x_a: np.ndarray, x_b: np.ndarray) -> np.ndarray:
     return ang
 
 
-def own_camera_partners(recon: Reconstruction, idx: int) -> list[int]:
-    """Registered frames of image ``idx``'s fixed camera that share verified matches with it (none for phones)."""
+def own_camera_frames(recon: Reconstruction, idx: int) -> list[int]:
+    """Registered frames of image ``idx``'s fixed camera (none for phones), whether or not they share verified
+    matches with it."""
     cam_id = recon.images[idx].camera_id
     if cam_id is None:
         return []
-    return [
-        j
-        for j in recon.registered_indices()
-        if j != idx and recon.images[j].camera_id == cam_id and recon.pair(j, idx) is not None
-    ]
+    return [j for j in recon.registered_indices() if j != idx and recon.images[j].camera_id == cam_id]
 
 
 def try_relative_pose(recon: Reconstruction, ref: int, idx: int, cfg: MapperConfig) -> bool:
@@ -354,10 +351,11 @@ def try_relative_pose(recon: Reconstruction, ref: int, idx: int, cfg: MapperConf
     p = recon.pair(ref, idx)
     if p is None or len(p[0]) < cfg.bootstrap_min_matches or r.intrinsics is None:
         return False
-    if im.camera_id is not None and r.camera_id != im.camera_id and own_camera_partners(recon, idx):
+    if im.camera_id is not None and r.camera_id != im.camera_id and own_camera_frames(recon, idx):
         # A fixed camera's registered frames see from (nearly) its place: a motion to another camera's frame, scaled
-        # by that frame's points, is checked against them by rotation only (their pair has no baseline to test);
-        # such a motion placed a knocked camera 2.7 deg and 3 m off (CI, small site without BIM depth).
+        # by that frame's points, is checked against them by rotation only (their pair has no baseline to test), or
+        # not at all when the knock left them no verified pair with the frame; such a motion placed a knocked
+        # camera 2.7 deg and 3 m off (CI, small site without BIM depth, twice).
         im.message = f"relative pose from {r.name} (another camera) not tried: frames of its own camera are registered"
         return False
     m, _ = p
