@@ -95,6 +95,7 @@ def run_register(
         try:
             live_ke = keys.pattern(keys.LIVELINESS, site=SITE, node="register")
             wait_tokens(bus, live_ke, workers, timeout=90)
+            print(f"{workers} worker(s): the test's bus at publishing: {bus.topology()}")
             for a in anchors:
                 bus.publish(keys.key(keys.ANCHORS, site=SITE, photo=a.photo_id), a)
             for p in photos:

@@ -123,9 +123,14 @@ def test_bumped_camera_takes_full_path_and_a_moved_one_registers_without_clicks(
     # After re-registration, the fast path resumes from the new aim.
     ij, Tj = jitter(Tb, intr, np.random.default_rng(3), 0.3, 0.005)
     assert reg.register(photo(scene, "b2", ij, Tj)).registration.method == "fastpath"
-    # Moved to another mast, with no 3D points in the map: placed by its relative pose to the anchor, the baseline
-    # from the anchor's clicks (no new clicks).
-    Tm = cam.look_at((4.0, -5.0, 6.5), (0.5, 16.0, 4.0))
+    # Moved by 1.5 m on its mast: too little parallax (2.6 deg median) for a relative pose to its own frames to be
+    # trusted (a knocked camera's came out 2.9 deg off); it asks for clicks.
+    out = reg.register(photo(scene, "m0", intr, cam.look_at((4.0, -5.0, 6.5), (0.5, 16.0, 4.0))))
+    assert out.registration.status == "failed" and out.needs_anchor, out.registration.message
+    assert "parallax 2.6 deg too small" in out.registration.message, out.registration.message
+    # Moved to another mast 6 m away, with no 3D points in the map: placed by its relative pose to the anchor, the
+    # baseline from the anchor's clicks (no new clicks).
+    Tm = cam.look_at((-3.0, -6.0, 6.0), (0.5, 16.0, 4.0))
     out = reg.register(photo(scene, "m1", intr, Tm))
     r = out.registration
     assert r.status == "auto" and r.method == "relative", r.message

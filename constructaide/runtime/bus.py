@@ -130,6 +130,10 @@ class Bus:
     def close(self) -> None:
         raise NotImplementedError
 
+    def topology(self) -> str:
+        """This session's place on the bus, for logs."""
+        return type(self).__name__
+
     def history(self, keyexpr: str, since_ns: int = 0, timeout: float = 10.0) -> list[Publication]:
         """Publications under ``keyexpr`` since ``since_ns`` still cached by any session, oldest first."""
         return []
@@ -539,6 +543,15 @@ class ZenohBus(Bus):
             if loc.startswith(("tcp/", "tls/")) and port:
                 return port
         raise RuntimeError(f"the zenoh session listens on no TCP port ({self.locators()})")
+
+    def topology(self) -> str:
+        """This session's place on the bus, for logs: its zenoh id, hub or not, and the peers and routers it has a
+        transport to (a peer another session has no transport to gets none of its publications)."""
+        info = self.session.info
+        peers = sorted(str(z)[:8] for z in info.peers_zid())
+        routers = sorted(str(z)[:8] for z in info.routers_zid())
+        role = "hub" if self.is_hub else self.config.mode
+        return f"zid {str(info.zid())[:8]} ({role}), peers {peers}, routers {routers}"
 
     def close(self) -> None:
         for q in self._queryables.values():

@@ -704,7 +704,7 @@ def run_node_cli(spec: NodeSpec, argv: list[str] | None = None, *, prog: str | N
             start_node(spec, config, bus, state_dir=args.state_dir, partition=partition, retention=retention),
         ):
             logging.getLogger("constructaide").info(
-                "node %s live on site %s (pid %d)", spec.name, config.site, os.getpid()
+                "node %s live on site %s (pid %d); bus: %s", spec.name, config.site, os.getpid(), bus.topology()
             )
             stop.wait()
         return 0

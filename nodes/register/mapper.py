@@ -345,8 +345,9 @@ def try_relative_pose(recon: Reconstruction, ref: int, idx: int, cfg: MapperConf
     drift across the image; a click on an edge or on something in front disagrees alone). The clicks are
     then carried into ``idx`` by local homographies of their neighbouring matches (checked against the pose and
     kept as constraints that hold the baseline in the adjustments). Needs a median ray angle of
-    ``bootstrap_min_parallax_deg``; a fixed camera's frame with registered frames of its own camera is placed
-    relative to those only. Returns True when registered."""
+    ``bootstrap_min_parallax_deg`` (``bootstrap_min_parallax_deg_own_camera`` between frames of one fixed camera); a
+    fixed camera's frame with registered frames of its own camera is placed relative to those only. Returns True
+    when registered."""
     r, im = recon.images[ref], recon.images[idx]
     p = recon.pair(ref, idx)
     if p is None or len(p[0]) < cfg.bootstrap_min_matches or r.intrinsics is None:
@@ -378,6 +379,8 @@ def try_relative_pose(recon: Reconstruction, ref: int, idx: int, cfg: MapperConf
         cw = r.clicks[1][keep]
         clicks = (r.clicks[0][keep], cw, (cw @ T_r[:3, :3].T + T_r[:3, 3])[:, 2])
     radius = cfg.bootstrap_click_radius_frac * r.width_px
+    own_camera = im.camera_id is not None and r.camera_id == im.camera_id
+    min_parallax = cfg.bootstrap_min_parallax_deg_own_camera if own_camera else cfg.bootstrap_min_parallax_deg
     best = None
     why = f"relative pose from {r.name}: no motion with enough matches in front of both cameras"
     motions = _relative_motions(x_r, x_u, thr, cfg.homography_max_rotation_deviation)
@@ -406,8 +409,8 @@ def try_relative_pose(recon: Reconstruction, ref: int, idx: int, cfg: MapperConf
         c1 = -R.T @ t
         cosang = np.sum(X * (X - c1), axis=1) / (np.linalg.norm(X, axis=1) * np.linalg.norm(X - c1, axis=1))
         parallax = float(np.median(np.degrees(np.arccos(np.clip(cosang, -1, 1)))))
-        if parallax < cfg.bootstrap_min_parallax_deg:
-            why = f"relative pose from {r.name}: median parallax {parallax:.1f} deg too small"
+        if parallax < min_parallax:
+            why = f"relative pose from {r.name}: median parallax {parallax:.1f} deg too small (< {min_parallax:g})"
             continue
         # Baseline length: triangulated tracks among the matches, else the clicks.
         tr = tracks_all[sel]
@@ -419,7 +422,6 @@ def try_relative_pose(recon: Reconstruction, ref: int, idx: int, cfg: MapperConf
             k = np.nonzero(known)[0]
             known[k] = ~(recon.point_from_model[tr[k]] & ~recon.point_confirmed[tr[k]])
         source = np.zeros(0, np.int64)  # the clicks the ratios come from (none for track points)
-        own_camera = im.camera_id is not None and r.camera_id == im.camera_id
         min_points = cfg.bootstrap_min_scale_points_own_camera if own_camera else cfg.bootstrap_min_scale_points
         if known.sum() >= min_points:
             ratios = (recon.points[tr[known]] @ T_r[:3, :3].T + T_r[:3, 3])[:, 2] / X[known, 2]
