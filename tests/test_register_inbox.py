@@ -118,3 +118,12 @@ def test_bim_meshes_follow_updates_and_the_schedule() -> None:
     )
     assert set(bim.meshes) == {"fence", "col"} and bim.ref_of == {"col": "col"}
     assert bim.refs_at()(0) is None  # no tasks: no filter
+
+
+def test_inbox_saved_before_the_unreported_field_loads_with_it_empty() -> None:
+    import pickle
+
+    box = Inbox(4, 4, 2)
+    del box.__dict__["unreported"]  # as pickled by a build before the field existed
+    restored = pickle.loads(pickle.dumps(box))
+    assert restored.unreported == set() and restored.max_pending == 4

@@ -369,3 +369,25 @@ def test_pose_pair_agreement_refuses_poses_that_contradict_the_matches(scene) ->
     turn = cam.rigid(cam.rodrigues_to_matrix(np.array([0.0, 0.0, np.radians(10.0)])), np.zeros(3))
     assert pose_pair_agreement(reg.recon, idx, ip, Tp, 2 * 0.01 * W) > 0.8
     assert pose_pair_agreement(reg.recon, idx, ip, turn @ Tp, 2 * 0.01 * W) < 0.3
+
+
+def test_a_frame_that_came_before_its_cameras_anchor_is_tracked_from_it(scene) -> None:
+    """Camera A's frame arrives while only camera B (another site texture: nothing to match) is registered: the full
+    path fails and it waits in the map. When A's anchor registers, the retry tracks it by the fast path, the path it
+    would have taken had it come after the anchor (arrival order across a node's inputs is not guaranteed), and it
+    leaves the map as an unregistered image."""
+    intr, T = mast_camera(W, H)
+    other = PlaneScene(1)
+    reg = StreamingRegistrar(StreamConfig(), site="t")
+    px_b, pts_b = anchor_clicks(intr, T, noise_px=0.2, seed=1)
+    reg.register_anchor(photo(other, "b0", intr, T, camera_id="cam-b"), px_b, pts_b)
+    ij, Tj = jitter(T, intr, np.random.default_rng(3), 0.3, 0.005)
+    early = photo(scene, "a1", ij, Tj)
+    first = reg.register(early)
+    assert first.registration.status == "failed" and "a1" in reg.recon, first.registration.message
+    px, pts = anchor_clicks(intr, T, noise_px=0.2)
+    a = reg.register_anchor(photo(scene, "a0", intr, T), px, pts)
+    out = reg.retry(early)
+    assert out is not None and out.registration.method == "fastpath", out.registration.message
+    assert relative_rotation_error_deg(pose_of(out), pose_of(a), Tj, T) < 0.1
+    assert "a1" not in reg.recon and "a1" in reg.poses

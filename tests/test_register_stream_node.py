@@ -7,6 +7,7 @@ import hashlib
 import numpy as np
 from test_register_stream_scene import PlaneScene, anchor_clicks, encode_jpeg, jitter, mast_camera
 
+from constructaide import camera as cam
 from constructaide.runtime import start_node
 from constructaide.runtime.local import LocalBus
 from nodes.register.node import SPEC, Config
@@ -221,3 +222,40 @@ def test_refused_up_front_clicks_leave_the_photo_waiting_for_new_clicks() -> Non
         bus.publish(keys.key(keys.ANCHORS, site=SITE, photo=photo.photo_id), clicks_msg(photo.photo_id, px, pts))
         ((_, reg),) = regs.wait(1, timeout=60)
         assert isinstance(reg, Registration) and reg.photo_id == photo.photo_id and reg.status == "anchor"
+
+
+def test_frames_before_the_anchor_that_the_map_cannot_place_say_why() -> None:
+    """Frames that came before their camera's anchor clicks wait without a Registration (one NeedsAnchor for the
+    camera). When the clicks come, the anchor registers and the frames are tried again: the ones that register are
+    published, and a frame the map cannot place either (the camera turned away from the building) gets its failed
+    Registration and a NeedsAnchor that say why, instead of waiting unseen (arrival order across a node's inputs is
+    not guaranteed: a partitioned worker got its photos before the clicks published first, CI 2026-12-05)."""
+    scene = PlaneScene(0)
+    intr, T = mast_camera(W, H)
+    rng = np.random.default_rng(5)
+    away = T.copy()
+    away[:3, :3] = T[:3, :3] @ cam.rodrigues_to_matrix(np.radians([0.0, 150.0, 0.0]))
+    frames = [(intr, T), jitter(T, intr, rng, 0.3, 0.005), (intr, away), jitter(T, intr, rng, 0.3, 0.005)]
+    photos = [make_photo(encode_jpeg(scene.render(i, t)), "cam-a", k) for k, (i, t) in enumerate(frames)]
+    with LocalBus() as bus, start_node(SPEC, Config(site=SITE), bus) as node:
+        regs = bus.collect(keys.pattern(keys.REGISTRATION, site=SITE))
+        needs = bus.collect(keys.pattern(keys.NEEDS_ANCHOR, site=SITE))
+        for p in photos:
+            bus.publish(keys.key(keys.PHOTO, site=SITE, camera="cam-a"), p)
+        assert node.wait_idle(30)
+        assert regs.items == [] and len(needs.items) == 1
+        px, pts = anchor_clicks(intr, T, noise_px=0.2)
+        bus.publish(
+            keys.key(keys.ANCHORS, site=SITE, photo=photos[0].photo_id), clicks_msg(photos[0].photo_id, px, pts)
+        )
+        regs.wait(4, timeout=60)
+        assert node.wait_idle(30)
+        by_id = {m.photo_id: m for _, m in regs.items}
+        assert set(by_id) == {p.photo_id for p in photos}
+        assert by_id[photos[0].photo_id].status == "anchor"
+        assert {by_id[p.photo_id].method for p in (photos[1], photos[3])} == {"fastpath"}
+        lost = by_id[photos[2].photo_id]
+        assert lost.status == "failed" and "please click anchors" in lost.message, lost.message
+        asked = [m for _, m in needs.items if m.photo_id == photos[2].photo_id]
+        assert asked and asked[-1].reason in lost.message, (asked, lost.message)
+        assert "no registered photos yet" not in asked[-1].reason

@@ -61,6 +61,12 @@ class Inbox:
         self.pending_anchors: OrderedDict[str, AnchorClicks] = OrderedDict()
         self.recent: OrderedDict[str, Photo] = OrderedDict()
         self.asked_groups: set[str] = set()
+        self.unreported: set[str] = set()
+        """Waiting photos no Registration has been published for (they came before any registration)."""
+
+    def __setstate__(self, state: dict) -> None:
+        state.setdefault("unreported", set())  # saved before the field existed
+        self.__dict__.update(state)
 
     def enqueue(self, photo: Photo) -> list[Photo]:
         """Let a photo wait; returns the photos pushed out (oldest first)."""
@@ -68,6 +74,7 @@ class Inbox:
         dropped = []
         while len(self.pending) > self.max_pending:
             dropped.append(self.pending.popitem(last=False)[1])
+            self.unreported.discard(dropped[-1].photo_id)  # the caller publishes its (failed) Registration
         return dropped
 
     def keep_anchors(self, clicks: AnchorClicks) -> None:

@@ -104,6 +104,7 @@ class RegisterNode:
                 return
         if not self.registrar.has_registrations() and not self.registrar.can_track(msg.camera_id):
             self._enqueue(msg)
+            self.inbox.unreported.add(msg.photo_id)
             if self.inbox.first_ask(msg):
                 self._publish_needs_anchor(msg.photo_id, "no registered photos yet: please click anchors on this photo")
             return
@@ -202,6 +203,9 @@ class RegisterNode:
             for msg in self.inbox.waiting_by_time():
                 out = self.registrar.retry(photo_input(msg))
                 if out is None or out.registration.status == "failed":
+                    if out is not None and msg.photo_id in self.inbox.unreported:
+                        # it came before any registration: now the map cannot place it either, say why
+                        self._publish(out)
                     continue
                 del self.inbox.pending[msg.photo_id]
                 self._publish(out, ask=False)
@@ -223,6 +227,7 @@ class RegisterNode:
         )
 
     def _publish(self, out: Outcome, ask: bool = True) -> None:
+        self.inbox.unreported.discard(out.registration.photo_id)
         reg = out.registration
         if self.registrar.depth_error:
             self.ctx.error("bim", self.registrar.depth_error)

@@ -268,50 +268,58 @@ class StreamingRegistrar:
                     photo, "auto", rec.method, rec.intrinsics, rec.world_from_camera, 0, 0.0, "already registered", t0
                 )
             )
-        note = ""
-        if photo.camera_id is not None and photo.camera_id in self.fast.tracks:
-            res, note = self.fast.track(photo, self._lookup if self.depth_lookup is not None else None)
-            if res is not None:
-                changed = self._record(
-                    photo, res.intrinsics, res.world_from_camera, res.method, (res.inlier_ratio, res.num_inliers)
-                )
-                grew = self._wants_key_frame(photo)
-                if grew:  # the site changes: a fixed camera's frame now and then joins the map (other photos match it)
-                    idx = self._ensure_image(photo)
-                    im = self.recon.images[idx]
-                    im.intrinsics, im.world_from_camera = res.intrinsics, res.world_from_camera
-                    im.status, im.method, im.message, im.num_inliers = "auto", res.method, res.note, res.num_inliers
-                    self._match(idx)
-                    link_image_tracks(self.recon, idx)
-                    changed += [p for p in self._grow(photo, idx, trusted=True) if p not in changed]
-                    res.note += "; joined the map as a key frame"
-                reg = self._registration(
-                    photo,
-                    "auto",
-                    res.method,
-                    res.intrinsics,
-                    res.world_from_camera,
-                    res.num_inliers,
-                    res.rms_px,
-                    res.note,
-                    t0,
-                )
-                if grew:
-                    self._retire_camera_images(photo)
-                return Outcome(reg, viewpoint_changed=changed, map_changed=grew)
+        out, note = self._fast_path(photo, t0)
+        if out is not None:
+            return out
         if not self.has_registrations():
             reason = "no registered images yet: anchor clicks are needed"
             return Outcome(self._failed(photo, reason, t0), needs_anchor=reason)
         return self._full_path(photo, self._ensure_image(photo), t0, note)
 
+    def _fast_path(self, photo: PhotoInput, t0: float) -> tuple[Outcome | None, str]:
+        """A tracked fixed camera's frame by the fast path (joining the map as a key frame now and then): its
+        Outcome, else None and why the fast path failed ("" when its camera is not tracked)."""
+        if photo.camera_id is None or photo.camera_id not in self.fast.tracks:
+            return None, ""
+        res, note = self.fast.track(photo, self._lookup if self.depth_lookup is not None else None)
+        if res is None:
+            return None, note
+        changed = self._record(
+            photo, res.intrinsics, res.world_from_camera, res.method, (res.inlier_ratio, res.num_inliers)
+        )
+        grew = self._wants_key_frame(photo)
+        if grew:  # the site changes: a fixed camera's frame now and then joins the map (other photos match it)
+            idx = self._ensure_image(photo)
+            im = self.recon.images[idx]
+            im.intrinsics, im.world_from_camera = res.intrinsics, res.world_from_camera
+            im.status, im.method, im.message, im.num_inliers = "auto", res.method, res.note, res.num_inliers
+            self._match(idx)
+            link_image_tracks(self.recon, idx)
+            changed += [p for p in self._grow(photo, idx, trusted=True) if p not in changed]
+            res.note += "; joined the map as a key frame"
+        reg = self._registration(
+            photo, "auto", res.method, res.intrinsics, res.world_from_camera, res.num_inliers, res.rms_px, res.note, t0
+        )
+        if grew:
+            self._retire_camera_images(photo)
+        return Outcome(reg, viewpoint_changed=changed, map_changed=grew), ""
+
     def retry(self, photo: PhotoInput) -> Outcome | None:
-        """Try again a photo that could not be registered (the map has grown since): matched with the registered
-        photos it has not been matched with yet, then registered as in :meth:`register`. None when nothing new
-        could change its outcome (no new registered photo to match it with)."""
+        """Try again a photo that could not be registered (the map has grown since): by the fast path when its
+        fixed camera is tracked now, else matched with the registered photos it has not been matched with yet and
+        registered by the full path. None when nothing new could change its outcome (no new registered photo to
+        match it with)."""
         if photo.photo_id in self.poses:
             return None
         if photo.photo_id not in self.recon:
             return self.register(photo)
+        # A frame that waited for its camera's anchor (it came first: arrival order across a node's inputs is not
+        # guaranteed) is tracked from it as if it had come after it, not placed by the full path.
+        out, _ = self._fast_path(photo, time.perf_counter())
+        if out is not None:
+            if photo.photo_id in self.recon and not self.recon.images[self.recon.index(photo.photo_id)].registered:
+                self._remove_images({self.recon.index(photo.photo_id)})  # the map image it waited as
+            return out
         idx = self.recon.index(photo.photo_id)
         n_pairs = sum(1 for j in self.recon.registered_indices() if self.recon.pair(j, idx) is not None)
         self._match(idx)
