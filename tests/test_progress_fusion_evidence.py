@@ -282,7 +282,7 @@ def test_change_cue_discounts_a_built_element_behind_that_appeared_since_the_pla
     grass = textured(rng, (H, W), (90, 140, 80))
     bricks = textured(rng, (H, W), (160, 70, 50))
     present = np.array([0.0, 0.3, 1.0])
-    params = EvidenceParams(built_behind=True, neighbour_px=-1)
+    params = EvidenceParams(built_behind=True, neighbour_px=-1, change_ring_px=0)  # this discount alone
     ones, zeros = np.ones((H, W), bool), np.zeros((H, W), np.int64)
 
     def beam_llr(before: np.ndarray, after: np.ndarray, wall_then: float, p: EvidenceParams) -> float:
@@ -301,7 +301,7 @@ def test_change_cue_discounts_a_built_element_behind_that_appeared_since_the_pla
 
     # the wall went up since the plate, the beam did not: the beam's pixels show bricks where there was grass
     wall_up = np.where((beam | wall)[..., None], bricks, grass)
-    unaware = beam_llr(grass, wall_up, 0.0, EvidenceParams(built_behind=False, neighbour_px=-1))
+    unaware = beam_llr(grass, wall_up, 0.0, EvidenceParams(built_behind=False, neighbour_px=-1, change_ring_px=0))
     assert unaware > 3.0, "without the built element's history the wall's appearance reads as the beam's"
     assert beam_llr(grass, wall_up, 0.0, params) < 0.5 * unaware, "discounted: the wall may have changed them"
     # the wall stood already; the beam appeared in front of it: full evidence
@@ -361,3 +361,35 @@ def test_thin_elements_get_a_change_cue_and_a_neighbours_change_is_not_theirs(se
     naive, wall_llr = cue(sky, wall_up, on)
     assert wall_llr > 3.0 and naive > 1.0, "without the discount the wall's spill reads as the slab's"
     assert cue(sky, wall_up, shipped)[0] < 0.5 * naive
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_change_cue_is_discounted_when_the_surroundings_changed_too(scene, seed: int) -> None:  # noqa: ANN001
+    """The slab stays absent while something unmodelled goes up behind it and around it (a stack of formwork
+    panels filling its region and 20 px beyond): its pixels changed, but so did its surroundings, and the change
+    cue says much less than when the slab alone changes; the wall appearing alone keeps its full cue."""
+    r, T = scene
+    rng = np.random.default_rng(seed)
+    layers = r.render(INTR, T, np.zeros(4, bool), np.array([False, True, True, True]))
+    ids = layers.ids_all
+    slab, wall = ids == 3, ids == 1
+    ys, xs = np.nonzero(slab)
+    around = np.zeros((H, W), bool)
+    around[max(ys.min() - 20, 0) : ys.max() + 21, max(xs.min() - 20, 0) : xs.max() + 21] = True
+    grass = textured(rng, (H, W), (90, 140, 80))
+    panels = textured(rng, (H, W), (200, 170, 60))
+    concrete = textured(rng, (H, W), (120, 120, 125))
+    ref = (to_lab(grass), np.ones((H, W), bool), np.zeros((H, W), np.int64))
+
+    def llr(after: np.ndarray, p: EvidenceParams, index: int) -> float:
+        cues = photo_evidence(to_lab(after), np.zeros((H, W), bool), layers, ["", "b", "c", "c"], p, reference=ref)
+        return next(c for c in cues if c.index == index).llr_change
+
+    off, shipped = EvidenceParams(change_ring_px=0), EvidenceParams()
+    stacked = np.where(around[..., None], panels, grass)
+    assert llr(stacked, off, 3) > 3.0, "without the ring the panels' change reads as the slab's"
+    assert llr(stacked, shipped, 3) < 0.5 * llr(stacked, off, 3)
+    slab_up = np.where(slab[..., None], concrete, grass)
+    assert llr(slab_up, shipped, 3) > 0.9 * llr(slab_up, off, 3) > 3.0, "the slab alone appearing: full cue"
+    wall_up = np.where(wall[..., None], panels, grass)
+    assert llr(wall_up, shipped, 1) > 0.9 * llr(wall_up, off, 1) > 3.0

@@ -72,6 +72,12 @@ class EvidenceParams:
     """Discount, likewise, pixels this close to another element that may have changed since the plate (the
     registration's error and the change score's blur reach it; -1: none). These two, ``thin_interior_px`` and
     ``EngineParams.unchanged_floor``: BENCHMARKS progress notes, 2026-12-05."""
+    change_ring_px: int = 8
+    """A change inside an element speaks for its appearance only as much as its surroundings stayed the same: a
+    positive change LLR is scaled by ``(1 - f) ** change_ring_power``, f the changed fraction of the ring this wide
+    around the element (valid pixels; 0: off). Something beside or behind it going up, a moving shadow or a
+    registration shift change the ring too; its own appearance mostly does not."""
+    change_ring_power: float = 0.5
     change_full_pixels: int = 60
     """Pixels for the full change LLR (fewer scale it down)."""
     max_llr: float = 5.0
@@ -314,6 +320,7 @@ def _change_cue(
     if p.neighbour_px > 0:
         near = _neighbours(owner, p.neighbour_px)
     ids, beh, chg, times = owner[sel], behind[sel], changed[sel], ref_time[sel]
+    sel_ys, sel_xs = np.nonzero(sel)  # the same (row-major) order as ids
     excl = beh == 0
     n_excl = np.bincount(ids[excl], minlength=n)[:n]
     f_excl = np.bincount(ids[excl], weights=chg[excl], minlength=n)[:n] / np.maximum(n_excl, 1)
@@ -360,8 +367,35 @@ def _change_cue(
         cue.exclusive_px = int(round(tot[i]))
         cue.changed_fraction = float(f)
         weight = min(1.0, tot[i] / p.change_full_pixels) * informative[i]
-        cue.llr_change = float(np.clip(p.change_slope * (f - p.change_neutral), -p.max_llr, p.max_llr) * weight)
+        llr = float(np.clip(p.change_slope * (f - p.change_neutral), -p.max_llr, p.max_llr) * weight)
+        if llr > 0 and p.change_ring_px > 0:
+            mine = order[starts[i] : ends[i]]
+            ring = _ring_changed(owner, changed, valid, i, sel_ys[mine], sel_xs[mine], p.change_ring_px, p.min_pixels)
+            llr *= (1.0 - ring) ** p.change_ring_power
+        cue.llr_change = llr
         cue.reference_ns = int(np.median(times_sorted[starts[i] : ends[i]]))
+
+
+def _ring_changed(
+    owner: NDArray[np.int64],
+    changed: BoolA,
+    valid: BoolA,
+    i: int,
+    ys: NDArray[np.intp],
+    xs: NDArray[np.intp],
+    radius_px: int,
+    min_pixels: int,
+) -> float:
+    """Changed fraction of the valid pixels within ``radius_px`` around element ``i``'s region (``owner`` == i,
+    found around its pixels ``ys``, ``xs``); 0 with fewer than ``min_pixels`` such pixels."""
+    h, w = owner.shape
+    y0, y1 = max(int(ys.min()) - 2 * radius_px, 0), min(int(ys.max()) + 2 * radius_px + 1, h)
+    x0, x1 = max(int(xs.min()) - 2 * radius_px, 0), min(int(xs.max()) + 2 * radius_px + 1, w)
+    region = owner[y0:y1, x0:x1] == i
+    kernel = np.ones((2 * radius_px + 1, 2 * radius_px + 1), np.uint8)
+    ring = (cv2.dilate(region.astype(np.uint8), kernel) > 0) & ~region & valid[y0:y1, x0:x1]
+    n = int(ring.sum())
+    return float(changed[y0:y1, x0:x1][ring].mean()) if n >= min_pixels else 0.0
 
 
 def _points_cue(
