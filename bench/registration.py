@@ -204,14 +204,28 @@ def predicted_centre(report: dict, est: dict, cams: list[GtCamera]) -> dict[str,
 
 
 def run_ours(
-    images_dir: Path, anchor_file: Path, out_dir: Path, max_side: int | None, cfg: MapperConfig, densify: bool = False
+    images_dir: Path,
+    anchor_file: Path,
+    out_dir: Path,
+    max_side: int | None,
+    cfg: MapperConfig,
+    densify: bool = False,
+    camera_folders: bool = False,
 ):
     """Our batch registration timed without densification; with ``densify`` the default densification is then run
-    on the result and timed on its own (what the default ``run_batch`` does after registering). Returns
-    (estimates, registration secs, report, densify secs or NaN)."""
+    on the result and timed on its own (what the default ``run_batch`` does after registering); ``camera_folders``:
+    the site layout (``register --camera-folders``). Returns (estimates, registration secs, report, densify secs or
+    NaN)."""
     t0 = time.perf_counter()
     recon, report = run_batch(
-        images_dir, anchor_file, out_dir, cfg=cfg, max_side_px=max_side, show_progress=False, densify_params=None
+        images_dir,
+        anchor_file,
+        out_dir,
+        cfg=cfg,
+        max_side_px=max_side,
+        show_progress=False,
+        densify_params=None,
+        camera_folders=camera_folders,
     )
     secs = time.perf_counter() - t0
     est = {im.name: (im.intrinsics, im.world_from_camera) for im in recon.images if im.registered}
@@ -380,6 +394,7 @@ def bench_set(
     X_check: np.ndarray | None = None,
     pycolmap_runs: int = 3,
     first_draw: int = 0,
+    camera_folders: bool = False,
 ):
     """Rows for one set: for each anchor protocol (who clicks what: ``protocols`` label -> writer) and variant
     (``cfgs``), ours over ``runs`` click-noise draws (run r: draw first_draw + r); pycolmap (no clicks) in the first
@@ -412,7 +427,9 @@ def bench_set(
                 for k, label in enumerate(cfgs):
                     out = tmp / f"ours_{p_label.replace(' ', '_')}_{k}_{r}"
                     first = not densify_times or len(densify_times) < r + 1
-                    est, secs, report, dsecs = run_ours(images_dir, anchor_file, out, max_side, cfgs[label], first)
+                    est, secs, report, dsecs = run_ours(
+                        images_dir, anchor_file, out, max_side, cfgs[label], first, camera_folders
+                    )
                     times[(p_label, label)].append(secs)
                     if first:
                         densify_times.append(dsecs)
@@ -506,7 +523,9 @@ def synth_rows(
 
         protocols[label] = write
     name = f"synthetic {size} (seed {seed})"
-    rows = bench_set(name, cams, site / "photos", None, runs, cfgs, protocols, X, pycolmap_runs, first_draw)
+    rows = bench_set(
+        name, cams, site / "photos", None, runs, cfgs, protocols, X, pycolmap_runs, first_draw, camera_folders=True
+    )
     return rows, synth_note(size, seed)
 
 

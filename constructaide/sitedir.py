@@ -19,6 +19,13 @@ from schemas.messages import AnchorClicks, AnchorPoint, Photo
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png")
 
 
+def camera_of(rel_path: str) -> str | None:
+    """The fixed camera a photo at ``rel_path`` (posix, relative to the photos folder) belongs to in the site
+    layout: its first folder; None for the ``phone`` folder and for a photo directly in the photos folder."""
+    parts = rel_path.split("/")
+    return None if len(parts) < 2 or parts[0] == keys.PHONE else parts[0]
+
+
 def site_doc(site_dir: Path) -> dict:
     """The parsed ``site.toml``."""
     return tomllib.loads((Path(site_dir) / "site.toml").read_text())
@@ -39,10 +46,9 @@ def site_photos(
     out: dict[str, Photo] = {}
     for f in progress(files) if progress is not None else files:
         rel = f.relative_to(photos_dir).as_posix()
-        camera = rel.split("/")[0]
-        if cameras is not None and not cameras(camera):
+        if cameras is not None and not cameras(rel.split("/")[0]):
             continue
-        out[rel] = photo_from_file(f, camera_id=None if camera == keys.PHONE else camera, site=site, tz=tz)
+        out[rel] = photo_from_file(f, camera_id=camera_of(rel), site=site, tz=tz)
     return out
 
 

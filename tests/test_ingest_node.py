@@ -55,12 +55,15 @@ def test_node_publishes_model_updates_and_photos(tmp_path: Path) -> None:
             assert set(meshes) == {e.geometry_ref for e in bim.elements}
 
             # Photos: one good in a camera folder, the same bytes again (deduplicated), a phone
-            # photo at the root, a truncated one (NodeError, node keeps going).
+            # photo at the root and one in the site layout's phone/ folder, a truncated one (NodeError, node keeps
+            # going).
             (watch / "cam-a" / "001.jpg").write_bytes(jpeg(1))
             (watch / "cam-a" / "001-copy.jpg").write_bytes(jpeg(1))
             (watch / "phone.jpg").write_bytes(jpeg(2))
+            (watch / "phone" / "20260312").mkdir(parents=True)
+            (watch / "phone" / "20260312" / "IMG_0001.jpg").write_bytes(jpeg(4))
             (watch / "broken.jpg").write_bytes(jpeg(3)[:300])
-            got = photos.wait(count=2, timeout=30.0)
+            got = photos.wait(count=3, timeout=30.0)
             errs = errors.wait(count=1, timeout=30.0)
             by_key = {k: m for k, m in got}
             assert set(by_key) == {
@@ -68,7 +71,8 @@ def test_node_publishes_model_updates_and_photos(tmp_path: Path) -> None:
                 "constructaide/t/photo/phone",
             }
             assert isinstance(by_key["constructaide/t/photo/cam-a"], Photo)
-            assert by_key["constructaide/t/photo/phone"].camera_id is None
+            assert by_key["constructaide/t/photo/cam-a"].camera_id == "cam-a"
+            assert [m.camera_id for k, m in got if k.endswith("/phone")] == [None, None]
             assert by_key["constructaide/t/photo/cam-a"].source == "watch"
             assert isinstance(errs[0][1], NodeError) and "broken.jpg" in errs[0][1].reason
             assert "truncated" in errs[0][1].reason
@@ -79,7 +83,7 @@ def test_node_publishes_model_updates_and_photos(tmp_path: Path) -> None:
             bus.publish(upload, jpeg(7))
             bus.publish(upload, jpeg(7))
             bus.publish(upload, b"GIF89a not really")
-            ((_, up),) = photos.wait(count=3, timeout=30.0)[2:]
+            ((_, up),) = photos.wait(count=4, timeout=30.0)[3:]
             assert up.camera_id == "cam-z" and up.source == "upload"
             errs = errors.wait(count=2, timeout=30.0)
             assert "not an image" in errs[1][1].reason and errs[1][1].key == upload
@@ -100,8 +104,8 @@ def test_node_publishes_model_updates_and_photos(tmp_path: Path) -> None:
             model.write_text(text[: len(text) // 2])
             errs = errors.wait(count=3, timeout=60.0)
             assert "truncated" in errs[2][1].reason and errs[2][1].topic == "bim"
-        # Exactly the three good photos were published, never a duplicate.
-        assert len(photos.items) == 3
+        # Exactly the four good photos were published, never a duplicate.
+        assert len(photos.items) == 4
 
 
 def test_node_reports_bad_model_and_keeps_watching(tmp_path: Path) -> None:

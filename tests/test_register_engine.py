@@ -246,3 +246,57 @@ def test_batch_and_streaming_agree_on_the_same_photos(scene) -> None:
         assert np.linalg.norm(im.pose[:3, 3] - s[:3, 3]) < 0.01 * dist, (p.photo_id, im.method)
         assert cam.viewing_angle_deg(im.pose, s) < 0.3, (p.photo_id, im.method)
         assert cam.viewing_angle_deg(im.pose, poses[k]) < 0.5
+
+
+@pytest.mark.parametrize("camera_folders", [True, False])
+def test_batch_reads_fixed_cameras_from_the_site_layout(scene, tmp_path, camera_folders: bool) -> None:
+    """``register --camera-folders`` on a site's photos folder (``<camera>/`` per fixed camera, ``phone/``): the
+    batch gives a camera's frames the camera id the streaming node gets, so the same rules hold. A frame of the
+    mast camera moved 1.5 m (2.6 deg of parallax to its first frame) is refused a relative pose to its own frame,
+    as in streaming (``test_bumped_camera_takes_full_path_and_a_moved_one_registers_without_clicks``); without the
+    layout the two frames are two unrelated photos and it is placed by that relative pose (right here, on a clean
+    scene; a knocked camera's came out 2.9 deg off that way)."""
+    import json
+
+    from nodes.register.batch import run_batch
+
+    intr, T = mast_camera(W, H)
+    moved = cam.look_at((4.0, -5.0, 6.5), (0.5, 16.0, 4.0))
+    elsewhere = cam.look_at((-3.0, -6.0, 6.0), (0.5, 16.0, 4.0))
+    poses = {"cam-a/0000.jpg": T, "cam-a/0001.jpg": moved, "phone/IMG_0001.jpg": elsewhere}
+    for rel, pose in poses.items():
+        (tmp_path / "photos" / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / "photos" / rel).write_bytes(encode_jpeg(scene.render(intr, pose)))
+    px, pts = anchor_clicks(intr, T, noise_px=0.3, seed=1)
+    points = [{"pixel": list(p), "world": list(w)} for p, w in zip(px, pts, strict=True)]
+    doc = {"focal_px": intr.f_px, "anchors": [{"image": "cam-a/0000.jpg", "points": points}]}
+    (tmp_path / "anchors.json").write_text(json.dumps(doc))
+    cfg = config.MapperConfig(min_anchors=0, release_anchors=False)
+    recon, report = run_batch(
+        tmp_path / "photos",
+        tmp_path / "anchors.json",
+        tmp_path / "out",
+        cfg=cfg,
+        show_progress=False,
+        densify_params=None,
+        camera_folders=camera_folders,
+    )
+    images = {d["image"]: d for d in report["images"]}
+    assert report["camera_folders"] is camera_folders
+    moved_frame = images["cam-a/0001.jpg"]
+    if camera_folders:
+        assert images["cam-a/0000.jpg"]["camera_id"] == "cam-a" == moved_frame["camera_id"]
+        assert "camera_id" not in images["phone/IMG_0001.jpg"]
+        assert moved_frame["method"] != "relative", moved_frame["message"]
+        # a phone photo is no frame of the camera: placed relative to the anchor (6 m away), the moved frame then
+        # from what the two triangulate
+        assert images["phone/IMG_0001.jpg"]["method"] == "relative", images["phone/IMG_0001.jpg"]["message"]
+    else:
+        assert all("camera_id" not in d for d in images.values())
+        assert moved_frame["method"] == "relative", moved_frame["message"]
+    for rel, pose in poses.items():
+        got = recon.images[recon.index(rel)]
+        assert got.registered, (rel, got.message)
+        dist = np.linalg.norm(pose[:3, 3] - np.array([0.0, 16.0, 4.0]))
+        assert np.linalg.norm(got.pose[:3, 3] - pose[:3, 3]) < 0.01 * dist, (rel, got.method)
+        assert cam.viewing_angle_deg(got.pose, pose) < 0.3, (rel, got.method)

@@ -18,7 +18,8 @@ class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=Tr
     on_missing: str = "error"
     """Schedule references to elements not in the model: "error" (reject the schedule) or "drop"."""
     watch_dir: str = ""
-    """Folder cameras upload into; a first-level sub-folder name is taken as the camera id."""
+    """Folder cameras upload into; a first-level sub-folder name is taken as the camera id (``phone/``: phone
+    photos), as in a site directory (``constructaide.sitedir.camera_of``)."""
     camera_id: str = ""
     """Camera id for files directly in ``watch_dir`` ("" = phone photos)."""
     poll_secs: float = 2.0

@@ -20,6 +20,7 @@ from pathlib import Path
 
 from constructaide.photos import PhotoError, photo_from_bytes
 from constructaide.runtime import Input, NodeContext, NodeSpec, Output, run_node_cli
+from constructaide.sitedir import camera_of
 from nodes.ingest.config import Config
 from nodes.ingest.ifc import load_site_model
 from nodes.ingest.model import SiteModel
@@ -129,9 +130,9 @@ class IngestNode:
 
     def _camera_for(self, path: Path) -> str | None:
         assert self.watcher is not None
-        rel = path.relative_to(self.watcher.root)
-        if len(rel.parts) > 1:
-            return rel.parts[0]
+        rel = path.relative_to(self.watcher.root).as_posix()
+        if "/" in rel:
+            return camera_of(rel)  # the site layout: <camera>/..., phone/... for phones
         return self.config.camera_id or None
 
     def poll_photos(self) -> list[Photo]:

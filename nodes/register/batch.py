@@ -32,6 +32,7 @@ from tqdm import tqdm
 from constructaide import camera as cam
 from constructaide.errors import UserError
 from constructaide.geo import exif_gps
+from constructaide.sitedir import camera_of
 from nodes.register.colmap_io import ColmapImage, ColmapModel, write_text_model
 from nodes.register.config import MapperConfig
 from nodes.register.densify import DensifyParams, densify_reconstruction
@@ -242,6 +243,8 @@ def image_report(recon: Reconstruction) -> list[dict]:
     out = []
     for im in recon.images:
         d: dict = {"image": im.name, "status": im.status}
+        if im.camera_id is not None:
+            d["camera_id"] = im.camera_id
         d["method"] = im.method
         d["message"] = im.message
         if im.registered:
@@ -308,8 +311,14 @@ def run_batch(
     bim_paths: tuple[Path, ...] = (),
     show_progress: bool = True,
     densify_params: DensifyParams | None = DEFAULT_DENSIFY,
+    camera_folders: bool = False,
 ) -> tuple[Reconstruction, dict]:
     """Register every image under ``images_dir``; write the COLMAP model and report.json to ``out_dir``.
+
+    ``camera_folders``: the site layout (``constructaide.sitedir.camera_of``): the images of a first-level folder are
+    the frames of one fixed camera, those under ``phone/`` or directly in ``images_dir`` phone photos; the mapper
+    then treats them as the streaming node treats photos published with that camera id (its own frames' intrinsics
+    and poses first, no relative pose at small parallax between its own frames).
 
     With ``densify_params`` (the default) the registered cloud is then densified by epipolar-guided matching
     (:func:`densify_reconstruction`; ``None`` skips it); its time is reported separately (``timings_secs``)."""
@@ -333,7 +342,16 @@ def run_batch(
     feats = extract_all([p for _, p in named], max_features, max_side_px, cfg.workers, show_progress)
     recon = Reconstruction()
     for (name, path), (f, c) in zip(named, feats, strict=True):
-        add_image(recon, name, f, c, exif_focal_px(path, f.width_px), exif_gps_position(path))
+        add_image(
+            recon,
+            name,
+            f,
+            c,
+            exif_focal_px(path, f.width_px),
+            exif_gps_position(path),
+            camera_id=camera_of(name) if camera_folders else None,
+            capture_time_ns=exif_capture_time_ns(path),
+        )
     features_secs = time.perf_counter() - t_feat
     n_pairs = len(named) * (len(named) - 1) // 2
     bar_m = tqdm(total=n_pairs, desc="matching", unit="pair", disable=not show_progress, file=sys.stderr)
@@ -375,6 +393,7 @@ def run_batch(
         "anchors": str(anchors_path),
         "bim": [str(b) for b in bim_paths],
         "focal_prior_px": focal,
+        "camera_folders": camera_folders,
         "num_images": len(recon.images),
         "num_registered": len(registered),
         "num_points": int(np.sum(np.all(np.isfinite(recon.points), axis=1))),
@@ -437,6 +456,12 @@ def main(argv: list[str] | None = None) -> int:
         "file's clicks of the least certain image are used too (up to 4 images; the report's needs_anchor names "
         "the image to click next when the file has none)",
     )
+    ap.add_argument(
+        "--camera-folders",
+        action="store_true",
+        help="the site layout: each first-level folder holds one fixed camera's frames (folder name = camera id), "
+        "phone/ and the top folder phone photos, as the streaming node gets them",
+    )
     ap.add_argument("--quiet", action="store_true", help="no progress bars")
     args = ap.parse_args(argv)
     if args.focal_px is not None and not (args.focal_px > 0):
@@ -460,6 +485,7 @@ def main(argv: list[str] | None = None) -> int:
         bim_paths=tuple(args.bim),
         show_progress=not args.quiet,
         densify_params=None if args.no_densify else DEFAULT_DENSIFY,
+        camera_folders=args.camera_folders,
     )
     print(
         f"registered {report['num_registered']}/{report['num_images']} images, {report['num_points']} points "
