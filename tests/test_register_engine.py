@@ -258,7 +258,7 @@ def test_batch_reads_fixed_cameras_from_the_site_layout(scene, tmp_path, camera_
     scene; a knocked camera's came out 2.9 deg off that way)."""
     import json
 
-    from nodes.register.batch import run_batch
+    from nodes.register.batch import looks_like_site_layout, run_batch
 
     intr, T = mast_camera(W, H)
     moved = cam.look_at((4.0, -5.0, 6.5), (0.5, 16.0, 4.0))
@@ -272,6 +272,8 @@ def test_batch_reads_fixed_cameras_from_the_site_layout(scene, tmp_path, camera_
     doc = {"focal_px": intr.f_px, "anchors": [{"image": "cam-a/0000.jpg", "points": points}]}
     (tmp_path / "anchors.json").write_text(json.dumps(doc))
     cfg = config.MapperConfig(min_anchors=0, release_anchors=False)
+    assert looks_like_site_layout(tmp_path / "photos")  # a phone/ folder: `register` suggests --camera-folders
+    assert not looks_like_site_layout(tmp_path / "photos" / "cam-a")
     recon, report = run_batch(
         tmp_path / "photos",
         tmp_path / "anchors.json",

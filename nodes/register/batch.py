@@ -49,6 +49,13 @@ DEFAULT_DENSIFY = DensifyParams()
 DEFAULT_MAX_SIDE_PX = 3200
 
 
+def looks_like_site_layout(images_dir: Path) -> bool:
+    """Whether ``images_dir`` is laid out as a site's photos folder (a ``phone/`` sub-folder, or a ``site.toml``
+    beside it): then its first-level folders are most likely fixed cameras (``--camera-folders``)."""
+    root = Path(images_dir)
+    return (root / "phone").is_dir() or (root.parent / "site.toml").is_file()
+
+
 def find_images(images_dir: Path) -> list[tuple[str, Path]]:
     """Images under ``images_dir`` (recursive), sorted, as (posix name relative to the folder, path)."""
     root = Path(images_dir)
@@ -468,6 +475,12 @@ def main(argv: list[str] | None = None) -> int:
         raise UserError("--focal-px must be positive")
     if args.target_centre_sigma is not None and not (args.target_centre_sigma > 0):
         raise UserError("--target-centre-sigma must be positive")
+    if not args.camera_folders and looks_like_site_layout(args.images):
+        print(
+            f"note: {args.images} looks like a site's photos folder (one folder per fixed camera, phone/ for phones); "
+            "--camera-folders treats each camera's frames as one camera, as the streaming node does",
+            file=sys.stderr,
+        )
     cfg = MapperConfig(
         refine_principal_point=args.refine_principal_point,
         fix_anchor_poses=not args.free_anchors,
