@@ -383,14 +383,13 @@ def run_batch(
     bar_r.close()
     dense_stats = None
     if densify_params is not None:
-        times = [exif_capture_time_ns(p) for _, p in named]
         bar_d = tqdm(total=0, desc="densify", unit="pair", disable=not show_progress, file=sys.stderr)
 
         def dprog(done: int, total: int) -> None:
             bar_d.total, bar_d.n = total, done
             bar_d.refresh()
 
-        dense_stats = densify_reconstruction(recon, densify_params, times, dprog)
+        dense_stats = densify_reconstruction(recon, densify_params, None, dprog)  # the images' EXIF times
         bar_d.close()
     out_dir = Path(out_dir)
     write_text_model(reconstruction_to_colmap(recon), out_dir)
