@@ -7,7 +7,9 @@ Photos of one fixed camera share its viewpoint (one group). Groups joined by pai
 true verified matches form components; each component needs at least one anchor, so their number is a lower bound
 on the anchors any image-based registration needs (with requests answered). Also counted: verified pairs with
 no true match at all (repeated texture: the site hoarding's print, neighbour facades), which is what makes the
-geometry checks refuse many automatic poses. Last: the photos in components that hold a photo of the site's
+geometry checks refuse many automatic poses; the same counts by kind of pair and by the distance between the two
+true camera centres, and the phone photos a fixed camera's frame of their day or before joins (what a streaming
+registration meeting photos in capture order can use). Last: the photos in components that hold a photo of the site's
 ``anchors.json`` (the up-front clicks of the plain demo), an upper bound on what any registration with those
 anchors alone can register.
 
@@ -56,6 +58,62 @@ def group(rel: str) -> str:
     return rel.split("/")[0] if not rel.startswith("phone") else rel
 
 
+def link_table(links: list[tuple[str, str, int, int]], names: list[str], cams: dict, min_true: int) -> str:
+    """Which verified pairs join (>= ``min_true`` true matches) and which hold no true match, by kind of pair and by
+    the distance between the two true camera centres; and the phone photos a fixed camera's frame taken on or before
+    their day joins (what a streaming registration that meets photos in capture order can use), with the share of
+    true matches among those pairs' verified matches."""
+
+    def centre(n: str) -> np.ndarray:
+        return np.asarray(cams[n]["world_from_camera"], np.float64)[:3, 3]
+
+    def day(n: str) -> int:
+        return int(cams[n]["capture_time_utc_ns"]) // (86400 * 10**9)
+
+    def kind(a: str, b: str) -> str:
+        pa, pb = a.startswith("phone/"), b.startswith("phone/")
+        if pa and pb:
+            return "phone - phone, same visit" if day(a) == day(b) else "phone - phone, other visit"
+        return "phone - fixed camera" if pa or pb else "fixed camera - fixed camera"
+
+    rows: list[list] = []
+    by_kind: dict[str, list[int]] = collections.defaultdict(lambda: [0, 0, 0])
+    bands = (0.0, 20.0, 40.0, 80.0, np.inf)
+    by_band: dict[int, list[int]] = collections.defaultdict(lambda: [0, 0, 0])
+    reached: dict[str, list[float]] = collections.defaultdict(list)
+    phones = [n for n in names if n.startswith("phone/")]
+    for a, b, n, t in links:
+        d = float(np.linalg.norm(centre(a) - centre(b)))
+        band = int(np.searchsorted(bands, d, side="right")) - 1
+        for acc in (by_kind[kind(a, b)], by_band[band]):
+            acc[0] += 1
+            acc[1] += t >= min_true
+            acc[2] += t == 0
+        phone, other = (a, b) if a.startswith("phone/") else (b, a)
+        if phone.startswith("phone/") and not other.startswith("phone/") and day(other) <= day(phone) and t >= min_true:
+            reached[phone].append(t / n)
+    band_rows = [
+        (
+            f"true centres {bands[k]:.0f}-{bands[k + 1]:.0f} m apart"
+            if k + 2 < len(bands)
+            else f"true centres >= {bands[k]:.0f} m apart",
+            v,
+        )
+        for k, v in sorted(by_band.items())
+    ]
+    for label, (n, j, z) in [*sorted(by_kind.items()), *band_rows]:
+        rows.append([label, n, j, z])
+    shares = [s for v in reached.values() for s in v]
+    head = ["verified pairs between groups", "pairs", f">= {min_true} true matches", "no true match"]
+    note = f"Phone photos that a fixed camera's frame of their day or before joins: {len(reached)} of {len(phones)}" + (
+        f" (by {sum(len(v) for v in reached.values())} pairs; true share of those pairs' verified matches: "
+        f"median {np.median(shares):.2f}, {min(shares):.2f}-{max(shares):.2f})."
+        if shares
+        else "."
+    )
+    return table(head, rows) + "\n\n" + note + "\n"
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", default="small")
@@ -83,6 +141,7 @@ def main(argv: list[str] | None = None) -> int:
         return x
 
     verified_pairs = junk_pairs = joined = 0
+    links: list[tuple[str, str, int, int]] = []  # (photo, photo, verified matches, true ones) between groups
     for i in range(len(names)):
         for j in range(i + 1, len(names)):
             if group(names[i]) == group(names[j]):
@@ -94,6 +153,7 @@ def main(argv: list[str] | None = None) -> int:
             d = np.linalg.norm(world[names[i]][g.matches[:, 0]] - world[names[j]][g.matches[:, 1]], axis=1)
             n_true = int(np.sum(d < 0.3))
             junk_pairs += n_true == 0
+            links.append((names[i], names[j], len(g.matches), n_true))
             if n_true >= args.min_true:
                 joined += 1
                 parent[find(group(names[i]))] = find(group(names[j]))
@@ -127,6 +187,7 @@ def main(argv: list[str] | None = None) -> int:
         "photos reachable from anchors.json",
     ]
     out = table(head, rows)
+    out += "\n\n" + link_table(links, names, cams, args.min_true)
     print(out)
     print(f"site {args.size} seed {args.seed}: at least {len(comps)} anchors; {reachable} photos reach anchors.json")
     if not args.no_write:

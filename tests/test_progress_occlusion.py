@@ -1,0 +1,74 @@
+"""Progress: which mask pixels hide elements from a fixed camera's cues when ``EngineParams.dynamic_hides_unseen`` is
+False (``nodes.progress.occlusion``; off by default, see BENCHMARKS 'progress notes')."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_progress_edge_discount import paint, scene  # noqa: F401  (fixture)
+from test_progress_fusion_evidence import INTR, H, W
+
+from nodes.progress.evidence import EvidenceParams, photo_evidence, to_lab
+from nodes.progress.occlusion import hiding_mask
+
+BUILT = np.array([False, False, True])  # the slab (2) stands
+CAND = np.array([False, True, False])  # the wall (1) may be appearing
+
+
+def blob(rng: np.random.Generator) -> np.ndarray:
+    """(H, W) bool: a random box over the middle of the image (where the wall and the slab are)."""
+    x0, y0 = int(rng.integers(W // 4, W // 3)), int(rng.integers(H // 5, H // 3))
+    out = np.zeros((H, W), bool)
+    out[y0 : y0 + H // 2, x0 : x0 + W // 2] = True
+    return out
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_time_lapse_mask_hides_only_what_was_seen_appearing(scene, seed: int) -> None:  # noqa: ANN001, F811
+    """A dynamic mask over the wall (a candidate) and the slab: the wall shows through it; the slab shows through
+    while no photo has seen it appear (the schedule's belief) and is hidden once one has; the background stays
+    hidden; a static mask hides every element."""
+    rng = np.random.default_rng(seed)
+    r, T = scene
+    layers = r.render(INTR, T, BUILT, CAND)
+    dynamic, static = blob(rng), np.zeros((H, W), bool)
+    wall, slab, ground = layers.ids_all == 1, layers.ids_all == 2, layers.ids_all == 0
+    assert (dynamic & wall).sum() > 200 and (dynamic & slab).sum() > 200 and (dynamic & ground).sum() > 200
+    unseen = np.zeros(3, bool)
+    hide = hiding_mask(dynamic, static, layers.ids_front, layers.ids_all, unseen)
+    assert not hide[wall].any() and not hide[slab].any()
+    assert hide[dynamic & ground].all()
+    slab_seen = np.array([False, False, True])
+    hide = hiding_mask(dynamic, static, layers.ids_front, layers.ids_all, slab_seen)
+    assert hide[dynamic & slab].all() and not hide[wall].any()
+    wall_seen = np.array([False, True, True])  # a candidate is read even when seen appearing (it is re-read)
+    assert not hiding_mask(dynamic, static, layers.ids_front, layers.ids_all, wall_seen)[wall].any()
+    static = blob(rng)
+    both = dynamic | static
+    hide = hiding_mask(both, static, layers.ids_front, layers.ids_all, unseen)
+    assert hide[static].all()
+    assert not hide[dynamic & ~static & (wall | slab)].any()
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_candidate_under_a_time_lapse_mask_gets_its_change_cue(scene, seed: int) -> None:  # noqa: ANN001, F811
+    """The wall appeared since the camera's plate, wholly under the dynamic mask (with a margin): with the combined
+    mask it is ``occluded`` and gets no change evidence; with the mask the fixed camera's cues use it is ``seen``
+    and its change reads that it appeared."""
+    rng = np.random.default_rng(seed)
+    r, T = scene
+    layers = r.render(INTR, T, BUILT, CAND)
+    before, after = paint(scene, rng, None), paint(scene, rng, (160, 70, 50))
+    ref = (to_lab(before), np.ones((H, W), bool), np.zeros((H, W), np.int64))
+    dynamic = np.zeros((H, W), bool)
+    ys, xs = np.nonzero(layers.ids_all == 1)
+    dynamic[max(ys.min() - 6, 0) : ys.max() + 7, max(xs.min() - 6, 0) : xs.max() + 7] = True
+    mats = ["", "brick", "concrete"]
+
+    def cue(hide: np.ndarray):  # noqa: ANN202
+        return {c.index: c for c in photo_evidence(to_lab(after), hide, layers, mats, EvidenceParams(), ref)}[1]
+
+    masked = cue(dynamic)
+    assert masked.status == "occluded" and masked.llr_change == 0.0
+    read = cue(hiding_mask(dynamic, np.zeros((H, W), bool), layers.ids_front, layers.ids_all, np.zeros(3, bool)))
+    assert read.status == "seen" and read.llr_change > 2.0
