@@ -1,5 +1,5 @@
-"""Progress: which mask pixels hide elements from a fixed camera's cues when ``EngineParams.dynamic_hides_unseen`` is
-False (``nodes.progress.occlusion``; off by default, see BENCHMARKS 'progress notes')."""
+"""Progress: which occlusion-mask pixels hide elements from a fixed camera's cues (``nodes.progress.occlusion``, the
+engine's default ``dynamic_hides_unseen=False``, ``dynamic_spares_material_like=True``)."""
 
 from __future__ import annotations
 
@@ -72,3 +72,33 @@ def test_a_candidate_under_a_time_lapse_mask_gets_its_change_cue(scene, seed: in
     assert masked.status == "occluded" and masked.llr_change == 0.0
     read = cue(hiding_mask(dynamic, np.zeros((H, W), bool), layers.ids_front, layers.ids_all, np.zeros(3, bool)))
     assert read.status == "seen" and read.llr_change > 2.0
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_only_what_looks_like_the_elements_material_is_read_through(scene, seed: int) -> None:  # noqa: ANN001, F811
+    """The wall (brick, a candidate) under a dynamic mask, its left half covered by a white truck: with the brick look
+    learnt, the brick half is read through the mask and the truck half stays hidden; without a learnt look of brick
+    nothing is read through."""
+    from nodes.progress.evidence import NUM_BINS, colour_bins
+    from nodes.progress.occlusion import fixed_camera_hiding, material_like
+
+    rng = np.random.default_rng(seed)
+    r, T = scene
+    layers = r.render(INTR, T, BUILT, CAND)
+    img = paint(scene, rng, (160, 70, 50))
+    wall = layers.ids_all == 1
+    ys, xs = np.nonzero(wall)
+    truck = wall & (np.arange(W)[None, :] < (xs.min() + xs.max()) // 2)
+    img[truck] = np.clip(rng.normal(235, 6, (int(truck.sum()), 3)), 0, 255).astype(np.uint8)
+    lab = to_lab(img)
+    brick = to_lab(paint(scene, np.random.default_rng(seed + 10), (160, 70, 50)))
+    looks = {"brick": np.bincount(colour_bins(brick)[wall], minlength=NUM_BINS).astype(np.float64)}
+    dynamic = np.zeros((H, W), bool)
+    dynamic[max(ys.min() - 6, 0) : ys.max() + 7, max(xs.min() - 6, 0) : xs.max() + 7] = True
+    mats = ["", "brick", "concrete"]
+    like = material_like(colour_bins(lab), layers.ids_all, mats, looks, ~dynamic & (layers.ids_all == 0))
+    assert like[wall & ~truck].mean() > 0.8 and like[truck].mean() < 0.05
+    none = np.zeros((H, W), bool)
+    hide = fixed_camera_hiding(lab, dynamic, none, layers, np.zeros(3, bool), mats, looks)
+    assert hide[truck].mean() > 0.95 and hide[wall & ~truck].mean() < 0.2
+    assert fixed_camera_hiding(lab, dynamic, none, layers, np.zeros(3, bool), mats, {})[wall].all()

@@ -39,7 +39,7 @@ from nodes.progress.fusion import (
     working_midpoint,
 )
 from nodes.progress.modelview import LayerRenderer, Layers, Mesh
-from nodes.progress.occlusion import hiding_mask, union_of
+from nodes.progress.occlusion import fixed_camera_hiding, union_of
 from nodes.progress.plates import ReferencePlate, same_segment
 from nodes.progress.support import dependants_of, mesh_boxes, support_graph
 from schemas.messages import (
@@ -81,12 +81,15 @@ class EngineParams:
     sure_probability: float = 0.9
     """Elements at least this likely to stand before a photo are drawn as built; the rest of the schedule window
     are candidates (their change and looks are read)."""
-    dynamic_hides_unseen: bool = True
-    """False: in a fixed camera's photo the dynamic (time-lapse) mask hides only the elements seen appearing
-    (:func:`~nodes.progress.occlusion.hiding_mask`). Off: on the synthetic small sites it raised F1 (seed 13 0.943 ->
-    0.957) but on the default sites, where trucks and the crane pass in front of elements, it read their changes as
-    the elements' (seed 7 F1 0.982 -> 0.973, the never-built element called built on both seeds; BENCHMARKS
-    'progress notes')."""
+    dynamic_hides_unseen: bool = False
+    """In a fixed camera's photo the dynamic (time-lapse) mask, what changed between the camera's frames, hides only
+    the elements seen appearing; candidates and elements only the schedule believes built are read through it where
+    they look like their material (:func:`~nodes.progress.occlusion.fixed_camera_hiding`): new beams the occlude
+    node took for a mover (they stood one day before the next day's slab covered them). True: it hides every element,
+    as the static and user masks do."""
+    dynamic_spares_material_like: bool = True
+    """... only where the pixel looks like the element's learnt material (False: every pixel of those elements; on the
+    synthetic default sites that read passing trucks as elements and called the never-built element built)."""
     peel_passes: int = 1
     """Extra evidence passes without the elements that, with this photo's evidence, most probably do not stand (reads
     what stands behind them)."""
@@ -494,8 +497,11 @@ class ProgressEngine:
         layers = None
         for k in range(self.params.peel_passes + 1):
             layers = self.renderer.render(intr, T, built, cand)
-            seen_ids = seen_appearing >= 0.5
-            hide = hiding_mask(occluded, static, layers.ids_front, layers.ids_all, seen_ids) if lenient else occluded
+            hide = occluded
+            if lenient:
+                looks = self.materials.counts if self.params.dynamic_spares_material_like else None
+                seen_ids = seen_appearing >= 0.5
+                hide = fixed_camera_hiding(lab, occluded, static, layers, seen_ids, self.material_of, looks)
             cues = photo_evidence(
                 lab,
                 hide,
