@@ -8,8 +8,8 @@ import pytest
 from test_progress_edge_discount import paint, scene  # noqa: F401  (fixture)
 from test_progress_fusion_evidence import INTR, H, W
 
-from nodes.progress.evidence import EvidenceParams, photo_evidence, to_lab
-from nodes.progress.occlusion import hiding_mask
+from nodes.progress.evidence import NUM_BINS, EvidenceParams, colour_bins, photo_evidence, to_lab
+from nodes.progress.occlusion import fixed_camera_hiding, hiding_mask, material_like
 
 BUILT = np.array([False, False, True])  # the slab (2) stands
 CAND = np.array([False, True, False])  # the wall (1) may be appearing
@@ -79,9 +79,6 @@ def test_only_what_looks_like_the_elements_material_is_read_through(scene, seed:
     """The wall (brick, a candidate) under a dynamic mask, its left half covered by a white truck: with the brick look
     learnt, the brick half is read through the mask and the truck half stays hidden; without a learnt look of brick
     nothing is read through."""
-    from nodes.progress.evidence import NUM_BINS, colour_bins
-    from nodes.progress.occlusion import fixed_camera_hiding, material_like
-
     rng = np.random.default_rng(seed)
     r, T = scene
     layers = r.render(INTR, T, BUILT, CAND)
@@ -99,6 +96,6 @@ def test_only_what_looks_like_the_elements_material_is_read_through(scene, seed:
     like = material_like(colour_bins(lab), layers.ids_all, mats, looks, ~dynamic & (layers.ids_all == 0))
     assert like[wall & ~truck].mean() > 0.8 and like[truck].mean() < 0.05
     none = np.zeros((H, W), bool)
-    hide = fixed_camera_hiding(lab, dynamic, none, layers, np.zeros(3, bool), mats, looks)
+    hide = fixed_camera_hiding(colour_bins(lab), dynamic, none, layers, np.zeros(3, bool), mats, looks)
     assert hide[truck].mean() > 0.95 and hide[wall & ~truck].mean() < 0.2
-    assert fixed_camera_hiding(lab, dynamic, none, layers, np.zeros(3, bool), mats, {})[wall].all()
+    assert fixed_camera_hiding(colour_bins(lab), dynamic, none, layers, np.zeros(3, bool), mats, {})[wall].all()

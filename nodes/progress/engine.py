@@ -492,6 +492,8 @@ class ProgressEngine:
         confirmed = np.maximum(seen_appearing, built.astype(np.float64))
         lenient = bool(photo.camera_id) and not self.params.dynamic_hides_unseen
         static = union_of(self.masks.get(photo_id, {}), ("static", "user"), (H, W)) if lenient else occluded
+        looks = self.materials.counts if lenient and self.params.dynamic_spares_material_like else None
+        bins = colour_bins(lab) if looks is not None else None
         seen: dict[int, ElementCue] = {}
         touched: list[str] = []
         layers = None
@@ -499,9 +501,8 @@ class ProgressEngine:
             layers = self.renderer.render(intr, T, built, cand)
             hide = occluded
             if lenient:
-                looks = self.materials.counts if self.params.dynamic_spares_material_like else None
                 seen_ids = seen_appearing >= 0.5
-                hide = fixed_camera_hiding(lab, occluded, static, layers, seen_ids, self.material_of, looks)
+                hide = fixed_camera_hiding(bins, occluded, static, layers, seen_ids, self.material_of, looks)
             cues = photo_evidence(
                 lab,
                 hide,

@@ -6,7 +6,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from constructaide.imagecodec import mask_of_message
-from nodes.progress.evidence import NUM_BINS, colour_bins, normalised_hist
+from nodes.progress.evidence import NUM_BINS, normalised_hist
 from nodes.progress.modelview import Layers
 from schemas.messages import OcclusionMask
 
@@ -84,7 +84,7 @@ def material_like(
 
 
 def fixed_camera_hiding(
-    lab: NDArray[np.float32],
+    bins: NDArray[np.int32] | None,
     occluded: BoolA,
     static: BoolA,
     layers: Layers,
@@ -92,11 +92,11 @@ def fixed_camera_hiding(
     material_of: list[str],
     looks: dict[str, NDArray[np.float64]] | None,
 ) -> BoolA:
-    """:func:`hiding_mask` of a fixed camera's photo (``lab`` (H, W, 3) at working size, ``layers`` its render);
-    with ``looks`` (learnt colour counts per material) only the pixels that look like their element's material
-    (:func:`material_like`) are read through the dynamic mask."""
+    """:func:`hiding_mask` of a fixed camera's photo (``bins`` (H, W): :func:`~nodes.progress.evidence.colour_bins`
+    of the photo at working size, ``layers`` its render); with ``looks`` (learnt colour counts per material) only the
+    pixels that look like their element's material (:func:`material_like`) are read through the dynamic mask."""
     like = None
-    if looks is not None:
+    if looks is not None and bins is not None:
         shown_bg = ~occluded & (layers.ids_all == 0)
-        like = material_like(colour_bins(lab), layers.ids_all, material_of, looks, shown_bg)
+        like = material_like(bins, layers.ids_all, material_of, looks, shown_bg)
     return hiding_mask(occluded, static, layers.ids_front, layers.ids_all, seen_appearing, like)
