@@ -36,6 +36,10 @@ class MeshDepthLookup:
         self.max_relative_spread = max_relative_spread
         self.ground_height_m = ground_height_m
 
+    def elements(self, capture_time_ns: int) -> set[str] | None:
+        """Mesh names standing at a time (None: all)."""
+        return self._elements(capture_time_ns)
+
     def _elements(self, capture_time_ns: int) -> set[str] | None:
         return self.elements_at(capture_time_ns) if self.elements_at is not None else None
 

@@ -33,12 +33,13 @@ from constructaide import camera as cam
 from constructaide.geo import horizontal_distance_m
 from nodes.register import mapper
 from nodes.register.adjust import bundle
-from nodes.register.bimdepth import DepthLookup, points_from_depth
+from nodes.register.bimdepth import DepthLookup, MeshDepthLookup, points_from_depth
 from nodes.register.config import MapperConfig
 from nodes.register.densify import DensifyParams, densify_reconstruction
 from nodes.register.fastpath import FastPath, FastPathConfig
 from nodes.register.features import extract_features, homography_inlier_ratio
 from nodes.register.matching import Vocabulary, match_image
+from nodes.register.modelalign import AlignParams, refine_pose
 from nodes.register.photo import FrameImage, PhotoInput
 from nodes.register.pose import rotation_deviation
 from nodes.register.recon import (
@@ -97,6 +98,14 @@ class StreamConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     densify: bool = True
     densify_pairs: int = 3
     mapper: MapperConfig = STREAM_MAPPER
+    model_align: bool = True
+    """Polish each published pose of a fixed camera's frame by the BIM's outlines (:mod:`nodes.register.modelalign`;
+    needs the BIM depth lookup). The map keeps the pose the features and clicks gave; only the published
+    registration moves."""
+    model_align_phones: bool = False
+    """... phone photos too (off: on close-ups of brick and printed hoarding the outlines lock onto texture as often
+    as they help; see BENCHMARKS 'model outline polish')."""
+    align: AlignParams = AlignParams()
 
 
 @dataclass
@@ -691,6 +700,9 @@ class StreamingRegistrar:
         t0: float,
         residuals: tuple[float, ...] = (),
     ) -> Registration:
+        if status != "failed" and intr is not None and world_from_camera is not None:
+            intr, world_from_camera, note = self._polish(photo, intr, world_from_camera)
+            message = f"{message}; {note}" if message and note else message or note
         return Registration(
             site=self.site,
             photo_id=photo.photo_id,
@@ -706,6 +718,30 @@ class StreamingRegistrar:
             message=message,
             processing_ms=(time.perf_counter() - t0) * 1000.0,
         )
+
+    def _polish(
+        self, photo: PhotoInput, intr: Intrinsics, world_from_camera: np.ndarray
+    ) -> tuple[Intrinsics, np.ndarray, str]:
+        """The pose to publish: refined by the model's outlines when that explains the photo better."""
+        lookup = self.depth_lookup
+        wanted = self.config.model_align and (photo.camera_id is not None or self.config.model_align_phones)
+        if not wanted or not isinstance(lookup, MeshDepthLookup):
+            return intr, world_from_camera, ""
+        try:
+            res = refine_pose(
+                lookup.view,
+                photo.image.gray(),
+                intr,
+                world_from_camera,
+                lookup.elements(photo.capture_time_ns),
+                lookup.ground_height_m,
+                self.config.align,
+            )
+        except (RuntimeError, ValueError) as e:  # no GL context, a degenerate render: publish as solved
+            return intr, world_from_camera, f"model outline not checked: {e}"
+        if not res.accepted:
+            return intr, world_from_camera, ""
+        return res.intrinsics, res.world_from_camera, f"polished by the model outline ({res.reason})"
 
     def _failed(self, photo: PhotoInput, reason: str, t0: float) -> Registration:
         return self._registration(photo, "failed", "", None, None, 0, 0.0, reason, t0)

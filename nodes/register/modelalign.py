@@ -1,0 +1,404 @@
+"""Pose refinement by the model's edges: the BIM's outlines, rendered at a registered pose, pulled onto the photo's
+intensity edges (pure: arrays, :class:`~constructaide.modelview.ModelView` renders; no bus).
+
+A registration from features and clicks can sit a few pixels (a phone photo anchored by a few clicks, a frame whose
+lens drifted in the adjustments: up to ~1 % of the width) off the building it overlays. The model's own outlines say
+where the building should be: element silhouettes, depth steps and creases (face normals turning by more than
+``crease_deg``) in an ID / depth render at the current pose, at the photo's date (the elements the schedule says
+stand) and over the ground plane. Each edge sample (a world point on the edge, ``point_in_world_m`` (N, 3), and the
+edge's normal in the image) looks along that normal for the nearest strong intensity edge of the photo (moving-edge
+search, as in model-based tracking) and a robust (Tukey) Gauss-Newton over the pose (rotation and translation in the
+camera frame) and optionally the focal length (log scale, with a prior) moves the samples onto their edges; the
+search range shrinks round by round, and the model is rendered again at the refined pose between rounds.
+
+The result is kept only when it explains the photo better: the share of samples with a photo edge within
+``support_px`` (at the work resolution) must grow by ``min_support_gain`` and the pose must stay within
+``max_rotation_deg`` / ``max_shift_rel`` of where it started. Everything the refinement did is in
+:class:`AlignResult` for the caller to publish or log.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import msgspec
+import numpy as np
+from numpy.typing import NDArray
+
+from constructaide import camera as cam
+from constructaide.modelview import GROUND_INDEX, ModelView, normals_from_depth
+from schemas.messages import Intrinsics
+
+F64 = NDArray[np.float64]
+
+
+class AlignParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """Parameters of :func:`refine_pose` (pixels at the work resolution unless named otherwise)."""
+
+    work_width_px: int = 960
+    """Photo and render are read at this width (aspect kept; smaller photos at their own size)."""
+    sample_step_px: float = 4.0
+    """One edge sample per cell of this size."""
+    max_samples: int = 3000
+    min_samples: int = 60
+    crease_deg: float = 35.0
+    """A face normal turning by more than this between neighbouring pixels of one element is an edge."""
+    depth_step_rel: float = 0.02
+    """A relative depth jump above this between neighbouring pixels is an edge (one element folding behind itself)."""
+    search_px: tuple[float, ...] = (20.0, 10.0, 5.0, 3.0)
+    """Search half-range of each round (the model is rendered again at the start of each round)."""
+    iterations: int = 4
+    """Gauss-Newton steps per round (the samples search again after each)."""
+    min_gradient: float = 12.0
+    """Least intensity gradient (Sobel of the 0-255 grey image, blurred with sigma 1 px) along the normal that counts
+    as a photo edge."""
+    relative_gradient: float = 0.3
+    """... and at least this share of the strongest gradient along the sample's search line."""
+    tukey_c: float = 4.685
+    min_sigma_px: float = 0.7
+    refine_focal: bool = True
+    focal_sigma_rel: float = 0.03
+    """Prior on the focal length's change (relative standard deviation)."""
+    rotation_sigma_deg: float = 0.5
+    shift_sigma_rel: float = 0.01
+    """Priors on the pose's change (per axis; the translation's as a share of the samples' median depth): a
+    registration is close, and along the directions the outlines hardly fix (a narrow view turning and sliding
+    together) the pose stays where the features and clicks put it."""
+    match: str = "nearest"
+    """Which photo edge a sample takes: ``nearest`` peak or ``strongest`` peak on its search line."""
+    support_px: float = 1.5
+    min_support_gain: float = 0.03
+    """The refinement is kept when the supported share grows by at least this (absolute)."""
+    max_rotation_deg: float = 3.0
+    max_shift_rel: float = 0.05
+    """Largest camera-centre move as a share of the median depth of the samples."""
+    max_image_shift_rel: float = 0.005
+    """Largest mean move of the samples' projections as a share of the image width: the refinement polishes a
+    registration, it does not replace one (a larger pull comes from texture or clutter mistaken for the outline)."""
+
+
+@dataclass
+class EdgeSamples:
+    """Model edge samples seen from one camera: world points (N, 3) m and unit image normals (N, 2)."""
+
+    point_in_world_m: F64
+    normal_px: F64
+
+
+@dataclass
+class AlignResult:
+    """Outcome of :func:`refine_pose`."""
+
+    world_from_camera: F64
+    intrinsics: Intrinsics
+    accepted: bool
+    reason: str
+    samples: int = 0
+    support_before: float = 0.0
+    support_after: float = 0.0
+    rotation_deg: float = 0.0
+    shift_m: float = 0.0
+    focal_change_rel: float = 0.0
+    image_shift_rel: float = 0.0
+    """Mean move of the samples' projections (share of the image width)."""
+    residual_px: float = float("nan")
+    """Robust scale of the final residuals (work pixels)."""
+    history: list[tuple[float, float]] = field(default_factory=list)
+    """(search range, supported share) after each round."""
+
+
+def work_size(intr: Intrinsics, work_width_px: int) -> tuple[int, int]:
+    w = min(int(intr.width_px), int(work_width_px))
+    return w, max(1, int(round(intr.height_px * w / intr.width_px)))
+
+
+def edge_samples(
+    view: ModelView,
+    intr: Intrinsics,
+    world_from_camera: F64,
+    elements: set[str] | None,
+    ground_z_m: float | None,
+    params: AlignParams,
+    rng: np.random.Generator | None = None,
+) -> EdgeSamples:
+    """Edges of the model as the camera ``intr`` (work resolution, distortion ignored for the render: edges are
+    points in the world) at ``world_from_camera`` (4, 4) sees them, one sample per ``sample_step_px`` cell."""
+    pin = msgspec.structs.replace(intr, k1=0.0, k2=0.0)
+    wfc = np.asarray(world_from_camera, np.float64)
+    res = view.rasterizer.render_undistorted(view.scene, pin, wfc, view.visible(elements), ground_z_m)
+    ids = res.ids.astype(np.int64)
+    depth = np.where(res.depth_m > 0, res.depth_m, np.inf).astype(np.float32)
+    pts, n = normals_from_depth(depth, pin)
+    h, w = ids.shape
+    edge = np.zeros((h, w), bool)
+    for axis in (0, 1):
+        a = (slice(None, -1), slice(None)) if axis == 0 else (slice(None), slice(None, -1))
+        b = (slice(1, None), slice(None)) if axis == 0 else (slice(None), slice(1, None))
+        za, zb = depth[a], depth[b]
+        fin = np.isfinite(za) & np.isfinite(zb)
+        with np.errstate(invalid="ignore"):
+            step = fin & (np.abs(za - zb) > params.depth_step_rel * np.minimum(za, zb))
+        crease = fin & (ids[a] == ids[b]) & (np.sum(n[a] * n[b], axis=-1) < np.cos(np.radians(params.crease_deg)))
+        # the ground's far rim against the sky is no edge of anything
+        rim = ((ids[a] == GROUND_INDEX) & (ids[b] == 0)) | ((ids[a] == 0) & (ids[b] == GROUND_INDEX))
+        e = ((ids[a] != ids[b]) & ~rim) | step | crease
+        edge[a] |= e
+        edge[b] |= e
+    edge[[0, -1], :] = False
+    edge[:, [0, -1]] = False
+    # the point on an edge is on its near side: the smallest depth of the 3x3 neighbourhood
+    near = cv2.erode(depth, np.ones((3, 3), np.uint8))
+    edge &= np.isfinite(near)
+    # the edge's normal: the structure tensor of the blurred edge map (its main axis is across the edge)
+    em = cv2.GaussianBlur(edge.astype(np.float32), (0, 0), 1.5)
+    gx = cv2.Sobel(em, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(em, cv2.CV_32F, 0, 1, ksize=3)
+    jxx = cv2.GaussianBlur(gx * gx, (0, 0), 2.0)
+    jxy = cv2.GaussianBlur(gx * gy, (0, 0), 2.0)
+    jyy = cv2.GaussianBlur(gy * gy, (0, 0), 2.0)
+    v, u = np.nonzero(edge)
+    if len(u) == 0:
+        return EdgeSamples(np.zeros((0, 3)), np.zeros((0, 2)))
+    # one sample per cell (the first in random order)
+    rng = rng or np.random.default_rng(0)
+    order = rng.permutation(len(u))
+    u, v = u[order], v[order]
+    cell = (v // params.sample_step_px).astype(np.int64) * (w + 1) + (u // params.sample_step_px).astype(np.int64)
+    _, first = np.unique(cell, return_index=True)
+    u, v = u[first], v[first]
+    a, b, c = jxx[v, u], jxy[v, u], jyy[v, u]
+    theta = 0.5 * np.arctan2(2.0 * b, a - c)  # main axis of [[a, b], [b, c]]
+    lam1 = 0.5 * (a + c) + np.sqrt(0.25 * (a - c) ** 2 + b**2)
+    lam2 = 0.5 * (a + c) - np.sqrt(0.25 * (a - c) ** 2 + b**2)
+    straight = lam1 > 3.0 * np.maximum(lam2, 1e-12)  # corners and clutter have no single normal
+    u, v, theta = u[straight], v[straight], theta[straight]
+    if len(u) > params.max_samples:
+        keep = rng.choice(len(u), params.max_samples, replace=False)
+        u, v, theta = u[keep], v[keep], theta[keep]
+    z = near[v, u].astype(np.float64)
+    xy = cam.pixels_to_normalized(pin, np.c_[u, v].astype(np.float64))
+    p_cam = np.c_[xy, np.ones(len(xy))] * z[:, None]
+    p_world = p_cam @ wfc[:3, :3].T + wfc[:3, 3]
+    return EdgeSamples(p_world, np.c_[np.cos(theta), np.sin(theta)])
+
+
+def _gradients(gray: NDArray[np.uint8] | NDArray[np.float32]) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    g = cv2.GaussianBlur(np.asarray(gray, np.float32), (0, 0), 1.0)
+    return cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3) / 4.0, cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3) / 4.0
+
+
+def search_edges(
+    gx: NDArray[np.float32],
+    gy: NDArray[np.float32],
+    pixels_px: F64,
+    normals: F64,
+    half_range_px: float,
+    params: AlignParams,
+) -> F64:
+    """Signed offset (N,) along each normal from ``pixels_px`` (N, 2) to the nearest photo edge within
+    ``half_range_px`` (NaN where none): a local maximum of |gradient . normal| at least ``min_gradient`` and
+    ``relative_gradient`` of the line's strongest."""
+    n = len(pixels_px)
+    out = np.full(n, np.nan)
+    if n == 0:
+        return out
+    r = int(np.ceil(half_range_px))
+    s = np.arange(-r, r + 1, dtype=np.float32)
+    px = pixels_px.astype(np.float32)
+    nn = normals.astype(np.float32)
+    mx = px[:, 0:1] + s[None, :] * nn[:, 0:1]
+    my = px[:, 1:2] + s[None, :] * nn[:, 1:2]
+    sx = cv2.remap(gx, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    sy = cv2.remap(gy, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    g = np.abs(sx * nn[:, 0:1] + sy * nn[:, 1:2])
+    peak = np.zeros_like(g, dtype=bool)
+    peak[:, 1:-1] = (g[:, 1:-1] >= g[:, :-2]) & (g[:, 1:-1] > g[:, 2:])
+    strong = g >= np.maximum(params.min_gradient, params.relative_gradient * g.max(axis=1, keepdims=True))
+    ok = peak & strong & (np.abs(s)[None, :] <= half_range_px)
+    if params.match == "strongest":
+        dist = np.where(ok, -g + 1e-3 * np.abs(s)[None, :], np.inf)
+    else:
+        dist = np.where(ok, np.abs(s)[None, :], np.inf)
+    k = np.argmin(dist, axis=1)
+    found = np.isfinite(dist[np.arange(n), k])
+    rows = np.nonzero(found)[0]
+    kk = k[rows]
+    # sub-pixel: the parabola through the peak and its neighbours
+    g0, g1, g2 = g[rows, kk - 1], g[rows, kk], g[rows, kk + 1]
+    den = g0 - 2.0 * g1 + g2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        frac = np.where(np.abs(den) > 1e-6, 0.5 * (g0 - g2) / den, 0.0)
+    out[rows] = s[kk] + np.clip(frac, -0.5, 0.5)
+    return out
+
+
+def _project(intr: Intrinsics, cfw: F64, pts: F64, x: F64) -> F64:
+    """Pixels (N, 2) of ``pts`` (N, 3) with the update ``x`` = (rotation vector (3), translation (3), log focal
+    scale) applied in the camera frame."""
+    R = cam.rodrigues_to_matrix(x[:3])
+    p = (pts @ cfw[:3, :3].T + cfw[:3, 3]) @ R.T + x[3:6]
+    f = float(np.exp(x[6]))
+    i2 = msgspec.structs.replace(intr, f_px=intr.f_px * f)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xy = p[:, :2] / p[:, 2:3]
+    xy[p[:, 2] <= 0] = np.nan
+    return cam.normalized_to_pixels(i2, xy)
+
+
+def _tukey(r: F64, c: float) -> F64:
+    return np.where(np.abs(r) < c, (1.0 - (r / c) ** 2) ** 2, 0.0)
+
+
+def _solve(
+    intr: Intrinsics,
+    cfw: F64,
+    samples: EdgeSamples,
+    gx: NDArray[np.float32],
+    gy: NDArray[np.float32],
+    half: float,
+    params: AlignParams,
+    x: F64,
+    depth_m: float,
+) -> tuple[F64, float, float]:
+    """Gauss-Newton steps from ``x`` (7,) at one search range; returns (x, supported share, residual scale)."""
+    pts, nrm = samples.point_in_world_m, samples.normal_px
+    n_par = 7 if params.refine_focal else 6
+    sigma = max(half / 2.0, params.min_sigma_px)
+    for _ in range(params.iterations):
+        p0 = _project(intr, cfw, pts, x)
+        off = search_edges(gx, gy, p0, nrm, half, params)
+        ok = np.isfinite(off) & np.isfinite(p0).all(axis=1)
+        if ok.sum() < params.min_samples:
+            break
+        target = p0[ok] + off[ok, None] * nrm[ok]
+        mad = 1.4826 * float(np.median(np.abs(off[ok])))
+        sigma = max(mad, params.min_sigma_px)
+        w = _tukey(off[ok] / sigma, params.tukey_c)
+        r0 = -off[ok]  # residual = normal . (projection - target)
+        J = np.zeros((int(ok.sum()), n_par))
+        eps = 1e-6
+        for k in range(n_par):
+            dx = np.zeros(7)
+            dx[k] = eps
+            pk = _project(intr, cfw, pts[ok], x + dx)
+            J[:, k] = np.sum((pk - p0[ok]) * nrm[ok], axis=1) / eps
+        A = J.T @ (w[:, None] * J)
+        g = J.T @ (w * r0)
+        prior = [np.radians(params.rotation_sigma_deg)] * 3 + [params.shift_sigma_rel * depth_m] * 3
+        prior += [params.focal_sigma_rel] if params.refine_focal else []
+        for k, sd in enumerate(prior):
+            lam = (sigma / sd) ** 2
+            A[k, k] += lam
+            g[k] += lam * x[k]
+        A += 1e-9 * np.eye(n_par) * max(float(np.trace(A)), 1.0)
+        try:
+            step = -np.linalg.solve(A, g)
+        except np.linalg.LinAlgError:
+            break
+        x = x.copy()
+        x[:n_par] += step
+        del target
+        if np.max(np.abs(step[:3])) < 1e-6 and np.max(np.abs(step[3:6])) < 1e-5:
+            break
+    return x, support(intr, cfw, samples, gx, gy, x, params), sigma
+
+
+def support(
+    intr: Intrinsics,
+    cfw: F64,
+    samples: EdgeSamples,
+    gx: NDArray[np.float32],
+    gy: NDArray[np.float32],
+    x: F64,
+    params: AlignParams,
+) -> float:
+    """Share of the samples with a photo edge within ``support_px`` of their projection."""
+    if len(samples.point_in_world_m) == 0:
+        return 0.0
+    p = _project(intr, cfw, samples.point_in_world_m, x)
+    off = search_edges(gx, gy, p, samples.normal_px, params.support_px, params)
+    return float(np.mean(np.isfinite(off)))
+
+
+def refine_pose(
+    view: ModelView,
+    gray: NDArray[np.uint8],
+    intr: Intrinsics,
+    world_from_camera: F64,
+    elements: set[str] | None = None,
+    ground_z_m: float | None = None,
+    params: AlignParams | None = None,
+) -> AlignResult:
+    """Refine ``world_from_camera`` (4, 4) and the focal of ``intr`` (the photo's full-resolution camera) so that the
+    model's edges (``elements`` standing; None: all) fall on the intensity edges of ``gray`` (H, W) (the photo,
+    any resolution of the same aspect)."""
+    p = params or AlignParams()
+    wfc0 = np.asarray(world_from_camera, np.float64)
+    ww, wh = work_size(intr, p.work_width_px)
+    wi = cam.scaled_intrinsics(intr, ww, wh)
+    img = gray if gray.shape[1] == ww else cv2.resize(gray, (ww, wh), interpolation=cv2.INTER_AREA)
+    gx, gy = _gradients(img)
+    x = np.zeros(7)
+    cfw0 = cam.invert_rigid(wfc0)
+    samples = edge_samples(view, wi, wfc0, elements, ground_z_m, p)
+    result = AlignResult(wfc0, intr, False, "", samples=len(samples.point_in_world_m))
+    if len(samples.point_in_world_m) < p.min_samples:
+        result.reason = f"only {len(samples.point_in_world_m)} model edge samples in view (< {p.min_samples})"
+        return result
+    result.support_before = support(wi, cfw0, samples, gx, gy, x, p)
+    z = (samples.point_in_world_m @ cfw0[:3, :3].T + cfw0[:3, 3])[:, 2]
+    depth_m = float(np.median(z[z > 0])) if np.any(z > 0) else 1.0
+    sigma = float("nan")
+    sup = result.support_before
+    for k, half in enumerate(p.search_px):
+        if k:  # render again at the refined pose (visibility, new edges)
+            wfc_k = _compose(cfw0, x)
+            samples = edge_samples(view, _focal_scaled(wi, x), wfc_k, elements, ground_z_m, p)
+            if len(samples.point_in_world_m) < p.min_samples:
+                break
+        x, sup, sigma = _solve(wi, cfw0, samples, gx, gy, half, p, x, depth_m)
+        result.history.append((half, sup))
+    wfc = _compose(cfw0, x)
+    result.rotation_deg = cam.rotation_angle_deg(wfc[:3, :3], wfc0[:3, :3])
+    result.shift_m = float(np.linalg.norm(wfc[:3, 3] - wfc0[:3, 3]))
+    result.focal_change_rel = float(np.exp(x[6]) - 1.0)
+    result.residual_px = sigma
+    # compare on the same footing: the final render's samples at the start pose and at the refined one
+    before = support(wi, cfw0, samples, gx, gy, np.zeros(7), p) if len(samples.point_in_world_m) else 0.0
+    result.support_before = min(result.support_before, before) if before else result.support_before
+    result.support_after = sup
+    if len(samples.point_in_world_m):
+        moved = _project(wi, cfw0, samples.point_in_world_m, x) - _project(
+            wi, cfw0, samples.point_in_world_m, np.zeros(7)
+        )
+        result.image_shift_rel = float(np.nanmean(np.linalg.norm(moved, axis=1))) / ww
+    if result.rotation_deg > p.max_rotation_deg:
+        result.reason = f"rotated {result.rotation_deg:.2f} deg (> {p.max_rotation_deg})"
+    elif result.shift_m > p.max_shift_rel * depth_m:
+        result.reason = f"moved {result.shift_m:.2f} m (> {p.max_shift_rel:.0%} of the {depth_m:.1f} m depth)"
+    elif result.image_shift_rel > p.max_image_shift_rel:
+        result.reason = (
+            f"outline moved {100 * result.image_shift_rel:.2f} % of the width (> {100 * p.max_image_shift_rel:.2f} %)"
+        )
+    elif sup < result.support_before + p.min_support_gain:
+        result.reason = f"edge support {result.support_before:.3f} -> {sup:.3f} (gain < {p.min_support_gain})"
+    else:
+        result.accepted = True
+        result.reason = f"edge support {result.support_before:.3f} -> {sup:.3f}"
+        result.world_from_camera = wfc
+        result.intrinsics = _focal_scaled(intr, x)
+    return result
+
+
+def _compose(cfw0: F64, x: F64) -> F64:
+    """world_from_camera after the camera-frame update ``x``."""
+    cfw = np.eye(4)
+    R = cam.rodrigues_to_matrix(x[:3])
+    cfw[:3, :3] = R @ cfw0[:3, :3]
+    cfw[:3, 3] = R @ cfw0[:3, 3] + x[3:6]
+    return cam.invert_rigid(cfw)
+
+
+def _focal_scaled(intr: Intrinsics, x: F64) -> Intrinsics:
+    return msgspec.structs.replace(intr, f_px=float(intr.f_px * np.exp(x[6])))
