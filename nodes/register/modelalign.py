@@ -133,18 +133,18 @@ def edge_samples(
     h, w = ids.shape
     edge = np.zeros((h, w), bool)
     for axis in (0, 1):
-        a = (slice(None, -1), slice(None)) if axis == 0 else (slice(None), slice(None, -1))
-        b = (slice(1, None), slice(None)) if axis == 0 else (slice(None), slice(1, None))
-        za, zb = depth[a], depth[b]
+        sa = (slice(None, -1), slice(None)) if axis == 0 else (slice(None), slice(None, -1))
+        sb = (slice(1, None), slice(None)) if axis == 0 else (slice(None), slice(1, None))
+        za, zb = depth[sa], depth[sb]
         fin = np.isfinite(za) & np.isfinite(zb)
         with np.errstate(invalid="ignore"):
             step = fin & (np.abs(za - zb) > params.depth_step_rel * np.minimum(za, zb))
-        crease = fin & (ids[a] == ids[b]) & (np.sum(n[a] * n[b], axis=-1) < np.cos(np.radians(params.crease_deg)))
+        crease = fin & (ids[sa] == ids[sb]) & (np.sum(n[sa] * n[sb], axis=-1) < np.cos(np.radians(params.crease_deg)))
         # the ground's far rim against the sky is no edge of anything
-        rim = ((ids[a] == GROUND_INDEX) & (ids[b] == 0)) | ((ids[a] == 0) & (ids[b] == GROUND_INDEX))
-        e = ((ids[a] != ids[b]) & ~rim) | step | crease
-        edge[a] |= e
-        edge[b] |= e
+        rim = ((ids[sa] == GROUND_INDEX) & (ids[sb] == 0)) | ((ids[sa] == 0) & (ids[sb] == GROUND_INDEX))
+        e = ((ids[sa] != ids[sb]) & ~rim) | step | crease
+        edge[sa] |= e
+        edge[sb] |= e
     edge[[0, -1], :] = False
     edge[:, [0, -1]] = False
     # the point on an edge is on its near side: the smallest depth of the 3x3 neighbourhood
@@ -183,9 +183,11 @@ def edge_samples(
     return EdgeSamples(p_world, np.c_[np.cos(theta), np.sin(theta)])
 
 
-def _gradients(gray: NDArray[np.uint8] | NDArray[np.float32]) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+def _gradients(gray: NDArray[np.generic]) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     g = cv2.GaussianBlur(np.asarray(gray, np.float32), (0, 0), 1.0)
-    return cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3) / 4.0, cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3) / 4.0
+    gx = np.asarray(cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3), np.float32) / np.float32(4.0)
+    gy = np.asarray(cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3), np.float32) / np.float32(4.0)
+    return gx, gy
 
 
 def search_edges(
