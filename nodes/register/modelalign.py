@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 
 from constructaide import camera as cam
 from constructaide.modelview import GROUND_INDEX, ModelView, normals_from_depth
+from nodes.register.bimdepth import MeshDepthLookup
 from schemas.messages import Intrinsics
 
 F64 = NDArray[np.float64]
@@ -404,3 +405,24 @@ def _compose(cfw0: F64, x: F64) -> F64:
 
 def _focal_scaled(intr: Intrinsics, x: F64) -> Intrinsics:
     return msgspec.structs.replace(intr, f_px=float(intr.f_px * np.exp(x[6])))
+
+
+def polish(
+    lookup: MeshDepthLookup,
+    gray: NDArray[np.uint8],
+    intr: Intrinsics,
+    world_from_camera: F64,
+    capture_time_ns: int,
+    params: AlignParams | None = None,
+) -> AlignResult:
+    """:func:`refine_pose` on the register node's BIM view: the elements the schedule says stand at the capture
+    time, over the terrain plane."""
+    return refine_pose(
+        lookup.view,
+        gray,
+        intr,
+        world_from_camera,
+        lookup.elements(capture_time_ns),
+        lookup.ground_height_m,
+        params,
+    )

@@ -39,7 +39,7 @@ from nodes.register.densify import DensifyParams, densify_reconstruction
 from nodes.register.fastpath import FastPath, FastPathConfig
 from nodes.register.features import extract_features, homography_inlier_ratio
 from nodes.register.matching import Vocabulary, match_image
-from nodes.register.modelalign import AlignParams, refine_pose
+from nodes.register.modelalign import AlignParams, polish
 from nodes.register.photo import FrameImage, PhotoInput
 from nodes.register.pose import rotation_deviation
 from nodes.register.recon import (
@@ -728,15 +728,7 @@ class StreamingRegistrar:
         if not wanted or not isinstance(lookup, MeshDepthLookup):
             return intr, world_from_camera, ""
         try:
-            res = refine_pose(
-                lookup.view,
-                photo.image.gray(),
-                intr,
-                world_from_camera,
-                lookup.elements(photo.capture_time_ns),
-                lookup.ground_height_m,
-                self.config.align,
-            )
+            res = polish(lookup, photo.image.gray(), intr, world_from_camera, photo.capture_time_ns, self.config.align)
         except (RuntimeError, ValueError) as e:  # no GL context, a degenerate render: publish as solved
             return intr, world_from_camera, f"model outline not checked: {e}"
         if not res.accepted:
