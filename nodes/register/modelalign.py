@@ -71,7 +71,7 @@ class AlignParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     support_px: float = 1.5
     min_support_gain: float = 0.03
     """The refinement is kept when the supported share grows by at least this (absolute)."""
-    max_rotation_deg: float = 3.0
+    max_rotation_deg: float = 0.7
     max_shift_rel: float = 0.05
     """Largest camera-centre move as a share of the median depth of the samples."""
     max_image_shift_rel: float = 0.005
