@@ -29,6 +29,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
+import msgspec  # noqa: E402
 from _report import code_version, table, write_section  # noqa: E402
 
 from constructaide import camera as cam  # noqa: E402
@@ -37,7 +38,7 @@ from constructaide.synth.truth import load_cameras, load_depth, load_ids, true_c
 from nodes.progress.batch import read_inputs  # noqa: E402
 from nodes.register.bimdepth import MeshDepthLookup  # noqa: E402
 from nodes.register.bimsite import BimMeshes  # noqa: E402
-from nodes.register.modelalign import polish  # noqa: E402
+from nodes.register.modelalign import AlignParams, polish  # noqa: E402
 
 
 def bim_error_pct(intr_t, wfc_t, intr_e, wfc_e, depth_m: np.ndarray) -> float:  # noqa: ANN001
@@ -54,7 +55,9 @@ def bim_error_pct(intr_t, wfc_t, intr_e, wfc_e, depth_m: np.ndarray) -> float:  
     return 100.0 * float(np.nanmean(np.linalg.norm(pe - px, axis=1))) / w
 
 
-def run(size: str, seed: int, recording: Path, cache: Path) -> list[tuple[bool, float, float, bool, float]]:
+def run(
+    size: str, seed: int, recording: Path, cache: Path, params: AlignParams
+) -> list[tuple[bool, float, float, bool, float]]:
     """(fixed camera?, error before, error after, accepted, seconds) per registered photo."""
     site = ensure_site(size, seed, cache)
     cams = load_cameras(site)
@@ -75,7 +78,7 @@ def run(size: str, seed: int, recording: Path, cache: Path) -> list[tuple[bool, 
             gray = cv2.imread(str(site / "photos" / rel), cv2.IMREAD_GRAYSCALE)
             wfc = np.asarray(reg.world_from_camera, np.float64).reshape(4, 4)
             t0 = time.perf_counter()
-            res = polish(lookup, gray, reg.intrinsics, wfc, reg.capture_time_ns)
+            res = polish(lookup, gray, reg.intrinsics, wfc, reg.capture_time_ns, params)
             secs = time.perf_counter() - t0
             intr_t, wfc_t = true_camera(site, rel, cams)
             depth = load_depth(site, rel) * (load_ids(site, rel) > 0)
@@ -110,13 +113,17 @@ def main() -> int:
     ap.add_argument("--run", action="append", required=True, help="SIZE:SEED:RECORDING (repeatable)")
     ap.add_argument("--cache", type=Path, default=ROOT / ".cache" / "synth")
     ap.add_argument("--no-write", action="store_true")
+    ap.add_argument(
+        "--set", default="{}", help="AlignParams fields to override, JSON (e.g. '{\"max_rotation_deg\": 3}')"
+    )
     args = ap.parse_args()
+    params = msgspec.convert(msgspec.json.decode(args.set), AlignParams)
     rows: list[list[object]] = []
     pooled: dict[bool, list] = {True: [], False: []}
     names = []
     for spec in args.run:
         size, seed, rec = spec.split(":", 2)
-        res = run(size, int(seed), Path(rec), args.cache)
+        res = run(size, int(seed), Path(rec), args.cache, params)
         names.append(f"{size} seed {seed}: `{Path(rec).name}`")
         for fixed in (True, False):
             part = [r for r in res if r[0] == fixed]
@@ -138,7 +145,9 @@ def main() -> int:
     body = (
         f"Code: git {code_version()}. Recordings: {'; '.join(names)}. Error: mean reprojection on the photo's truly"
         " visible BIM pixels, % of the width (see the script's docstring); before = the registration the register"
-        " node published, after = `modelalign.polish` of it (the node's default parameters).\n\n" + table(headers, rows)
+        " node published, after = `modelalign.polish` of it"
+        f" ({'the node default parameters' if args.set == '{}' else 'parameters ' + args.set}).\n\n"
+        + table(headers, rows)
     )
     print(body)
     if not args.no_write:

@@ -69,7 +69,7 @@ class AlignParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     match: str = "nearest"
     """Which photo edge a sample takes: ``nearest`` peak or ``strongest`` peak on its search line."""
     support_px: float = 1.5
-    min_support_gain: float = 0.03
+    min_support_gain: float = 0.05
     """The refinement is kept when the supported share grows by at least this (absolute)."""
     max_rotation_deg: float = 0.7
     max_shift_rel: float = 0.05
