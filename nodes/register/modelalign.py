@@ -1,20 +1,23 @@
-"""Pose refinement by the model's edges: the BIM's outlines, rendered at a registered pose, pulled onto the photo's
-intensity edges (pure: arrays, :class:`~constructaide.modelview.ModelView` renders; no bus).
+"""Pose polish by the model's outlines: the BIM's edges, rendered at a registered pose, pulled onto the photo's
+intensity edges (pure: arrays and :class:`~constructaide.modelview.ModelView` renders; no bus).
 
-A registration from features and clicks can sit a few pixels (a phone photo anchored by a few clicks, a frame whose
-lens drifted in the adjustments: up to ~1 % of the width) off the building it overlays. The model's own outlines say
-where the building should be: element silhouettes, depth steps and creases (face normals turning by more than
-``crease_deg``) in an ID / depth render at the current pose, at the photo's date (the elements the schedule says
-stand) and over the ground plane. Each edge sample (a world point on the edge, ``point_in_world_m`` (N, 3), and the
-edge's normal in the image) looks along that normal for the nearest strong intensity edge of the photo (moving-edge
-search, as in model-based tracking) and a robust (Tukey) Gauss-Newton over the pose (rotation and translation in the
-camera frame) and optionally the focal length (log scale, with a prior) moves the samples onto their edges; the
-search range shrinks round by round, and the model is rendered again at the refined pose between rounds.
+A registration from features and clicks can sit a few pixels off the building it overlays (anchor clicks in the
+middle of a far view trade focal against distance; a frame's lens drifts in the adjustments). The model's own
+outlines say where the building is: element silhouettes, depth steps and creases (an element's faces turning,
+seen as a change of their flat shades) in an ID / depth render at the current pose, of the elements the schedule
+says stand at the photo's date, over the terrain plane. Each edge sample (a world point on the edge and the edge's
+normal in the image) looks along that normal for the nearest strong intensity edge of the photo (the moving-edge
+search of model-based tracking); a robust (Tukey) Gauss-Newton over the pose (rotation and translation in the
+camera frame) and the focal length (log scale), each with a prior around the registration, moves the samples onto
+their edges. The search range shrinks round by round and the model is rendered again at the refined pose between
+rounds.
 
-The result is kept only when it explains the photo better: the share of samples with a photo edge within
-``support_px`` (at the work resolution) must grow by ``min_support_gain`` and the pose must stay within
-``max_rotation_deg`` / ``max_shift_rel`` of where it started. Everything the refinement did is in
-:class:`AlignResult` for the caller to publish or log.
+The result is kept only when it explains the photo clearly better and stays a polish: the share of samples with a
+photo edge within ``support_px`` grows by at least ``min_support_gain``, the camera turns by at most
+``max_rotation_deg``, its centre moves by at most ``max_shift_rel`` of the depth and the outline by at most
+``max_image_shift_rel`` of the width. Otherwise the registration stands as solved; :class:`AlignResult` says why.
+On close-ups of heavy texture (brick, printed hoarding) the search locks onto texture as often as onto outlines
+(BENCHMARKS 'model outline polish'), which is why the register node polishes fixed cameras' frames only by default.
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from constructaide import camera as cam
-from constructaide.modelview import GROUND_INDEX, ModelView, normals_from_depth
+from constructaide.modelview import GROUND_INDEX, ModelView
 from nodes.register.bimdepth import MeshDepthLookup
 from schemas.messages import Intrinsics
 
@@ -43,8 +46,9 @@ class AlignParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     """One edge sample per cell of this size."""
     max_samples: int = 3000
     min_samples: int = 60
-    crease_deg: float = 35.0
-    """A face normal turning by more than this between neighbouring pixels of one element is an edge."""
+    crease_shade: float = 0.02
+    """Neighbouring pixels of one element whose flat face shades differ by more than this lie on a crease (an edge
+    where the element's faces turn)."""
     depth_step_rel: float = 0.02
     """A relative depth jump above this between neighbouring pixels is an edge (one element folding behind itself)."""
     search_px: tuple[float, ...] = (20.0, 10.0, 5.0, 3.0)
@@ -130,7 +134,7 @@ def edge_samples(
     res = view.rasterizer.render_undistorted(view.scene, pin, wfc, view.visible(elements), ground_z_m)
     ids = res.ids.astype(np.int64)
     depth = np.where(res.depth_m > 0, res.depth_m, np.inf).astype(np.float32)
-    pts, n = normals_from_depth(depth, pin)
+    shade = res.shade
     h, w = ids.shape
     edge = np.zeros((h, w), bool)
     for axis in (0, 1):
@@ -140,7 +144,8 @@ def edge_samples(
         fin = np.isfinite(za) & np.isfinite(zb)
         with np.errstate(invalid="ignore"):
             step = fin & (np.abs(za - zb) > params.depth_step_rel * np.minimum(za, zb))
-        crease = fin & (ids[sa] == ids[sb]) & (np.sum(n[sa] * n[sb], axis=-1) < np.cos(np.radians(params.crease_deg)))
+        # faces turning within one element: their flat shades differ (two-sided Lambert under a fixed light)
+        crease = fin & (ids[sa] == ids[sb]) & (np.abs(shade[sa] - shade[sb]) > params.crease_shade)
         # the ground's far rim against the sky is no edge of anything
         rim = ((ids[sa] == GROUND_INDEX) & (ids[sb] == 0)) | ((ids[sa] == 0) & (ids[sb] == GROUND_INDEX))
         e = ((ids[sa] != ids[sb]) & ~rim) | step | crease
