@@ -232,7 +232,12 @@ class RegisterNode:
         if self.registrar.depth_error:
             self.ctx.error("bim", self.registrar.depth_error)
             self.registrar.depth_error = ""
-        self.ctx.publish(keys.key(keys.REGISTRATION, site=self.ctx.site, camera=reg.camera_id, photo=reg.photo_id), reg)
+        key = keys.key(keys.REGISTRATION, site=self.ctx.site, camera=reg.camera_id, photo=reg.photo_id)
+        self.ctx.publish(key, reg)
+        if reg.status != "failed":
+            polished = self.registrar.polish_registration(reg)  # the BIM's outlines: an update that follows
+            if polished is not None:
+                self.ctx.publish(key, polished)
         if out.needs_anchor is not None and ask:
             self._publish_needs_anchor(reg.photo_id, out.needs_anchor, out.num_matched_tracks)
         if self.config.publish_viewpoints:

@@ -100,8 +100,8 @@ class StreamConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     mapper: MapperConfig = STREAM_MAPPER
     model_align: bool = True
     """Polish each published pose of a fixed camera's frame by the BIM's outlines (:mod:`nodes.register.modelalign`;
-    needs the BIM depth lookup) before it is published. The map keeps the pose the features and clicks gave; only
-    the published registration moves."""
+    needs the BIM depth lookup). The map keeps the pose the features and clicks gave; only the published
+    registration moves."""
     model_align_phones: bool = False
     """... phone photos too (off: on close-ups of brick and printed hoarding the outlines lock onto texture as often
     as they help; see BENCHMARKS 'model outline polish')."""
@@ -163,6 +163,8 @@ class StreamingRegistrar:
         self._tried: dict[int, set[int]] = {}
         self._last_try: dict[int, tuple[int, int]] = {}
         self._new_since_global = 0
+        self._polish_next: PhotoInput | None = None
+        """The photo of the latest successful registration, for :meth:`polish_registration`."""
 
     # -- queries -----------------------------------------------------------
 
@@ -700,9 +702,8 @@ class StreamingRegistrar:
         t0: float,
         residuals: tuple[float, ...] = (),
     ) -> Registration:
-        note = ""
-        if status != "failed" and intr is not None and world_from_camera is not None:
-            intr, world_from_camera, note = self._polish(photo, intr, world_from_camera)
+        if status != "failed":
+            self._polish_next = photo
         return Registration(
             site=self.site,
             photo_id=photo.photo_id,
@@ -715,26 +716,40 @@ class StreamingRegistrar:
             num_inliers=int(num_inliers),
             reprojection_rms_px=float(rms) if np.isfinite(rms) else 0.0,
             anchor_residuals_px=residuals,
-            message=f"{message}; {note}" if message and note else message or note,
+            message=message,
             processing_ms=(time.perf_counter() - t0) * 1000.0,
         )
 
-    def _polish(
-        self, photo: PhotoInput, intr: Intrinsics, world_from_camera: np.ndarray
-    ) -> tuple[Intrinsics, np.ndarray, str]:
-        """The pose to publish: the solved one polished by the BIM's outlines (:func:`nodes.register.modelalign.polish`)
-        when the polish is accepted, with a note for the message; else as solved. The map keeps the solved pose."""
+    def polish_registration(self, reg: Registration) -> Registration | None:
+        """The latest registration polished by the BIM's outlines (:func:`nodes.register.modelalign.polish`), or None
+        when it is not polished (off, a phone photo, no BIM, or the polish refused). Called after the solved
+        registration is published: the solved pose goes out at once, the polished one follows as its update. The
+        map keeps the solved pose."""
+        photo, self._polish_next = getattr(self, "_polish_next", None), None  # (state saved before it existed)
         lookup = self.depth_lookup
+        if photo is None or photo.photo_id != reg.photo_id or reg.intrinsics is None or not reg.world_from_camera:
+            return None
         wanted = self.config.model_align and (photo.camera_id is not None or self.config.model_align_phones)
         if not wanted or not isinstance(lookup, MeshDepthLookup):
-            return intr, world_from_camera, ""
+            return None
+        t0 = time.perf_counter()
+        pose = cam.pose_from_tuple(reg.world_from_camera)
         try:
-            res = polish(lookup, photo.image.gray(), intr, world_from_camera, photo.capture_time_ns, self.config.align)
+            res = polish(lookup, photo.image.gray(), reg.intrinsics, pose, photo.capture_time_ns, self.config.align)
         except (RuntimeError, ValueError) as e:  # no GL context, a degenerate render: the solved pose stands
-            return intr, world_from_camera, f"model outline not checked: {e}"
+            self.depth_error = f"model outline polish of {reg.photo_id} failed: {e}"
+            return None
         if not res.accepted:
-            return intr, world_from_camera, ""
-        return res.intrinsics, res.world_from_camera, f"polished by the model outline ({res.reason})"
+            return None
+        note = f"polished by the model outline ({res.reason})"
+        return msgspec.structs.replace(
+            reg,
+            intrinsics=res.intrinsics,
+            world_from_camera=cam.pose_to_tuple(res.world_from_camera),
+            method=f"{reg.method}+outline",
+            message=f"{reg.message}; {note}" if reg.message else note,
+            processing_ms=reg.processing_ms + (time.perf_counter() - t0) * 1000.0,
+        )
 
     def _failed(self, photo: PhotoInput, reason: str, t0: float) -> Registration:
         return self._registration(photo, "failed", "", None, None, 0, 0.0, reason, t0)
