@@ -143,7 +143,7 @@ def main() -> int:
         "s per photo (median)",
     ]
     body = (
-        f"Code: git {code_version()}. Recordings: {'; '.join(names)}. Error: mean reprojection on the photo's truly"
+        f"Code: {code_version()}. Recordings: {'; '.join(names)}. Error: mean reprojection on the photo's truly"
         " visible BIM pixels, % of the width (see the script's docstring); before = the registration the register"
         " node published, after = `modelalign.polish` of it"
         f" ({'the node default parameters' if args.set == '{}' else 'parameters ' + args.set}).\n\n"
