@@ -16,12 +16,14 @@ once its task's planned finish has passed, on time.
   hours), for elements a fixed camera sees (in the population of a fixed-camera photo) finished between the first
   and last photo; a missing detection counts as wrong;
 - deviation class at the last photo: late elements should be `behind` (or `not_built` if truly still absent),
-  early ones `ahead`, the never-built one `not_built`, on-time ones `on_time`. The schedule gives task dates only,
-  while the truth's classes are per-element slots inside a task, so the table also scores the classes against
-  each element's own task window (late = finished after its task's planned finish, early = before its planned
-  start), which is what any system reading this schedule can resolve; "resolvable by the photos" is the share of
-  each class for which some photo the element is visible in was taken while it deviated (absent after its task's
-  planned finish, standing before its planned start): the ceiling of any reading of these photos;
+  early ones `ahead`, the never-built one `not_built`, on-time ones `on_time`. The truth's classes are against
+  each element's planned slot, which the site's IFC holds as a sub-task nested in its trade task (generator v10;
+  before, the IFC held trade tasks only); the "(task)" rows score the classes against the trade task's window
+  instead (late = finished after the trade task's planned finish, early = before its planned start), what a
+  schedule without element slots can resolve. "Resolvable by the photos" is the share of each class for which
+  some photo the element is visible in was taken while it deviated (absent after its planned finish, standing
+  before its planned start; the element's slot for the truth classes, the trade task's for "(task)"): the ceiling
+  of any reading of these photos;
 - evidence time per photo (the engine's `process`: decode, layers render, cues, fusion update), median, 1920x1080
   photos when the site has them.
 """
@@ -43,6 +45,7 @@ from pathlib import Path
 from zoneinfo import ZoneInfo
 
 import cv2
+import msgspec
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -54,7 +57,7 @@ from pipeline import run_demo  # noqa: E402
 
 from constructaide.bimgeom import glb_to_meshes  # noqa: E402
 from constructaide.camera import project_points, scaled_intrinsics  # noqa: E402
-from constructaide.schedule4d import element_windows  # noqa: E402
+from constructaide.schedule4d import element_windows, task_ancestors  # noqa: E402
 from constructaide.synth import ensure_site  # noqa: E402
 from constructaide.synth.truth import element_states, load_cameras, load_depth, true_camera  # noqa: E402
 from nodes.progress.batch import read_inputs  # noqa: E402
@@ -171,6 +174,13 @@ def score(site: Path, recording: Path, out: Path) -> dict:
     gids = [e.global_id for e in inputs.model.elements]
     meshes = glb_to_meshes(inputs.model.geometry_glb)
     windows = element_windows(inputs.model.tasks)
+    # Each element under its outermost summary task's window (the trade task; "(task)" classes below).
+    anc, by_tid = task_ancestors(inputs.model.tasks), {t.task_id: t for t in inputs.model.tasks}
+    trade_windows = element_windows(
+        msgspec.structs.replace(by_tid[(t.task_id, *anc[t.task_id])[-1]], element_ids=t.element_ids)
+        for t in inputs.model.tasks
+        if t.element_ids
+    )
     renderer = LayerRenderer()
     renderer.set_model(gids, meshes)
     obs = {(r["photo_id"], r["global_id"]): r for r in read_csv(out / "observations.csv")}
@@ -218,14 +228,14 @@ def score(site: Path, recording: Path, out: Path) -> dict:
         af = parse(e["actual_finish"])
         absent_at_end = af is None or af.timestamp() * 1e9 > t_last
         ours = els[g]["deviation"]
-        w = windows.get(g)
+        w, tw = windows.get(g), trade_windows.get(g)
         ok = {
             "late": ("behind", "not_built") if absent_at_end else ("behind",),
             "early": ("ahead",),
             "never_built": ("not_built",),
             "on_time": ("on_time",),
         }[e["deviation"]]
-        for cls, right in ((e["deviation"], ok), (_task_class(af, w, t_last), None)):
+        for cls, right, win in ((e["deviation"], ok, w), (_task_class(af, tw, t_last), None, tw)):
             if cls is None:
                 continue
             if right is None:
@@ -239,7 +249,7 @@ def score(site: Path, recording: Path, out: Path) -> dict:
             d[0] += 1
             d[1] += ours in right
             d[2] += "on_time" in right
-            d[3] += _resolvable(cls, af, w, seen_at.get(g, []))
+            d[3] += _resolvable(cls, af, win, seen_at.get(g, []))
     big = [
         ms
         for pid, ms in summary["evidence_ms_per_photo"].items()

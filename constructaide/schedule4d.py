@@ -174,3 +174,28 @@ def standing_elements(tasks: Iterable[ScheduleTask], element_ids: Iterable[str])
         return {gid for gid in ids if stands(windows.get(gid), t_ns)}
 
     return elements_at
+
+
+def task_ancestors(tasks: Iterable[ScheduleTask]) -> dict[str, tuple[str, ...]]:
+    """Per task id, the summary tasks it is nested in (``parent_id``), nearest first."""
+    parent = {t.task_id: t.parent_id for t in tasks}
+    out: dict[str, tuple[str, ...]] = {}
+    for tid in parent:
+        chain: list[str] = []
+        p = parent.get(tid)
+        while p is not None and p in parent and p not in chain and p != tid:
+            chain.append(p)
+            p = parent.get(p)
+        out[tid] = tuple(chain)
+    return out
+
+
+def task_elements(tasks: Iterable[ScheduleTask]) -> dict[str, tuple[str, ...]]:
+    """Per task id, the elements it and its nested sub-tasks name (a summary task's progress rolls them up)."""
+    tasks = tuple(tasks)
+    ancestors = task_ancestors(tasks)
+    out: dict[str, dict[str, None]] = {t.task_id: dict.fromkeys(t.element_ids) for t in tasks}
+    for t in tasks:
+        for a in ancestors[t.task_id]:
+            out[a].update(dict.fromkeys(t.element_ids))
+    return {k: tuple(v) for k, v in out.items()}

@@ -101,6 +101,8 @@ class ScheduleTask(_Base, frozen=True, kw_only=True):
     predecessor_ids: tuple[str, ...] = ()
     # "construction" builds its elements, "demolition" removes them, "temporary" both.
     task_type: Literal["construction", "demolition", "temporary", "other"] = "construction"
+    # The summary task this one is nested in (IfcRelNests); a summary's progress rolls up its sub-tasks'.
+    parent_id: str | None = None
 
 
 class ViewpointNeighbour(_Base, frozen=True, kw_only=True):

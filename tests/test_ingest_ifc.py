@@ -328,7 +328,7 @@ def test_synthetic_site_ifc_elements_and_schedule(tmp_path: Path) -> None:
     try:
         from constructaide.synth.building import design_building
         from constructaide.synth.config import SIZES, TZ
-        from constructaide.synth.ifcwrite import write_ifc
+        from constructaide.synth.ifcwrite import _local_iso, write_ifc
         from constructaide.synth.schedule import make_schedule
     except ImportError as exc:  # the synthetic site generator is optional for this test
         pytest.skip(f"synthetic site generator not available: {exc}")
@@ -338,7 +338,11 @@ def test_synthetic_site_ifc_elements_and_schedule(tmp_path: Path) -> None:
     guids = write_ifc(building, schedule, tmp_path / "building.ifc", 0)
     site = load_site_model([tmp_path / "building.ifc"], tz=TZ)
     assert set(site.elements) == set(guids.values())
-    assert len(site.tasks) == len(schedule.tasks)
+    # A summary task per building step, a sub-task per element nested in it (the element's planned slot).
+    assert len(site.tasks) == len(schedule.tasks) + len(building.elements)
+    by_id = {t.task_id: t for t in site.tasks}
+    summaries = [t for t in site.tasks if t.parent_id is None]
+    assert len(summaries) == len(schedule.tasks) and all(not t.element_ids for t in summaries)
     # Dates as the IFC file states them (IfcTaskTime, local time of the site zone), read directly.
     from zoneinfo import ZoneInfo
 
@@ -364,8 +368,14 @@ def test_synthetic_site_ifc_elements_and_schedule(tmp_path: Path) -> None:
         lo, hi = e.vertices_m.min(axis=0), e.vertices_m.max(axis=0)
         assert np.allclose(el.bbox_min_m, lo, atol=1e-4) and np.allclose(el.bbox_max_m, hi, atol=1e-4)
         (task,) = [t for t in site.tasks if gid in t.element_ids]
-        assert task.name == task_names[e.task]
+        assert task.element_ids == (gid,) and task.parent_id is not None
+        assert by_id[task.parent_id].name == task_names[e.task]
         start_ns, finish_ns = ifc_window[gid]
+        slot = schedule.windows[e.key]
+        assert (start_ns, finish_ns) == (
+            ns_of(_local_iso(slot.planned_start_h)),
+            ns_of(_local_iso(slot.planned_finish_h)),
+        )
         win = site.windows[gid]
         assert (win.build_start_ns, win.build_finish_ns) == (start_ns, finish_ns), e.key
         assert site.planned_state(gid, start_ns - 1) == "not_started"

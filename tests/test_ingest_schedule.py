@@ -11,9 +11,9 @@ from zoneinfo import ZoneInfo
 
 import pytest
 
-from constructaide.schedule4d import element_windows, planned_state, schedule_status
+from constructaide.schedule4d import element_windows, planned_state, schedule_status, task_ancestors, task_elements
 from nodes.ingest.ifc import element_index, load_site_model
-from nodes.ingest.schedule import ScheduleError, load_schedule, tasks_from_msproject_xml
+from nodes.ingest.schedule import ScheduleError, load_schedule, tasks_from_msproject_xml, validate_tasks
 from schemas.messages import ScheduleTask
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -195,6 +195,33 @@ def test_state_logic_demolition_and_temporary() -> None:
     assert [planned_state(w["scaffold"], t) for t in (29, 35, 40)] == ["not_started", "under_construction", "removed"]
     assert planned_state(w.get("other"), 0) == "unscheduled"
     assert schedule_status(w["wall"], 15) == "unknown"
+
+
+def test_nested_tasks_roll_up_and_bad_nesting_is_refused() -> None:
+    def task(tid: str, s: int, f: int, parent: str | None = None, els: tuple[str, ...] = ()) -> ScheduleTask:
+        return ScheduleTask(
+            task_id=tid, name=tid, planned_start_ns=s, planned_finish_ns=f, element_ids=els, parent_id=parent
+        )
+
+    tasks = [
+        task("frame", 0, 100),
+        task("columns", 0, 50, "frame"),
+        task("c1", 0, 20, "columns", ("col1",)),
+        task("c2", 20, 50, "columns", ("col2",)),
+        task("slab", 50, 100, "frame", ("slab",)),
+    ]
+    validate_tasks(tasks)
+    assert task_ancestors(tasks)["c2"] == ("columns", "frame") and task_ancestors(tasks)["frame"] == ()
+    roll = task_elements(tasks)
+    assert set(roll["frame"]) == {"col1", "col2", "slab"} and set(roll["columns"]) == {"col1", "col2"}
+    assert roll["c1"] == ("col1",)
+    # each element keeps its own sub-task's window: a summary names no element, so it does not blur them
+    w = element_windows(tasks)
+    assert (w["col2"].build_start_ns, w["col2"].build_finish_ns) == (20, 50)
+    with pytest.raises(ScheduleError, match="unknown parent 'nowhere'"):
+        validate_tasks([*tasks, task("x", 0, 1, "nowhere")])
+    with pytest.raises(ScheduleError, match="nested in itself"):
+        validate_tasks([task("a", 0, 1, "b"), task("b", 0, 1, "a")])
 
 
 P6_XML = """<?xml version="1.0" encoding="UTF-8"?>

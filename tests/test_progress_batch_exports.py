@@ -116,6 +116,27 @@ def test_ifc_export_reread_by_our_ingest(tiny: tuple[Path, Path], tmp_path: Path
     assert written > 0
 
 
+def test_summary_tasks_roll_up_their_element_sub_tasks(tiny: tuple[Path, Path]) -> None:
+    """The synthetic IFC nests one sub-task per element in each trade task: a trade task's progress counts its
+    sub-tasks' elements, and BCF topics group behind elements by trade task."""
+    _, rec = tiny
+    engine = batch.run_engine(batch.read_inputs(rec), progress=False)
+    summaries = [t for t in engine.tasks.values() if t.parent_id is None]
+    subs = [t for t in engine.tasks.values() if t.parent_id is not None]
+    assert summaries and len(subs) == len(engine.global_ids)
+    for s in summaries:
+        kids = [engine.task_progress(t) for t in subs if t.parent_id == s.task_id]
+        tp = engine.task_progress(s)
+        assert not s.element_ids and kids and tp.num_elements == sum(k.num_elements for k in kids)
+        assert tp.num_built == sum(k.num_built for k in kids) and tp.num_observed == sum(k.num_observed for k in kids)
+    names = {s.name for s in summaries}
+    groups = exports.issue_groups(engine)
+    assert groups and all(title.split(":")[0] in names for title, _, _ in groups if not title.startswith("Needs"))
+    # a photo's update carries the trade task of each element it touched, beside the element's sub-task
+    upd = engine.update_message([subs[0].element_ids[0]])
+    assert {t.task_id for t in upd.tasks} == {subs[0].task_id, subs[0].parent_id}
+
+
 @pytest.mark.parametrize("version", ["3.0", "2.1"])
 def test_bcf_export_round_trip(tiny: tuple[Path, Path], tmp_path: Path, version: str) -> None:
     site, rec = tiny

@@ -85,6 +85,30 @@ def test_fusion_places_the_change_and_the_evidence_overrules_the_plan() -> None:
     assert estimate(tr, tr.posterior(params), 15 * D, params).deviation == "unknown"
 
 
+def test_a_deviation_needs_one_photo_that_shows_it() -> None:
+    """Many weak looks add up to a confident late change, but ``behind`` / ``ahead`` are only said when one photo
+    shows the element absent after its planned finish (or standing before its start) by itself: a pile of weak
+    cues must not raise a false alarm on an element that is on time."""
+    weak = [Observation(f"p{d}", d * D, llr_state=-0.6 if d < 12 else 0.6) for d in range(6, 16)]
+    window = ElementWindow(build_start_ns=4 * D, build_finish_ns=5 * D)
+    for proof, want in ((0.0, "behind"), (1.0, "on_time")):
+        params = FusionParams(proof_llr=proof)
+        tr = track(window, weak)
+        e = estimate(tr, tr.posterior(params), 15 * D, params)
+        assert e.state == "built" and e.deviation == want, proof
+    # one clear look at the empty slot on day 9 is enough
+    params = FusionParams(proof_llr=1.0)
+    tr = track(window, [*weak, Observation("clear", 9 * D + 1, llr_state=-1.5)])
+    assert estimate(tr, tr.posterior(params), 15 * D, params).deviation == "behind"
+    # and for ahead: standing on day 2, planned from day 9
+    early = [Observation(f"p{d}", d * D, llr_state=-0.6 if d < 2 else 0.6) for d in range(0, 12)]
+    window = ElementWindow(build_start_ns=9 * D, build_finish_ns=10 * D)
+    tr = track(window, early)
+    assert estimate(tr, tr.posterior(params), 12 * D, params).deviation == "on_time"
+    tr = track(window, [*early, Observation("clear", 3 * D, llr_state=2.0)])
+    assert estimate(tr, tr.posterior(params), 12 * D, params).deviation == "ahead"
+
+
 def test_fusion_is_incremental_and_order_free() -> None:
     """A track's posterior depends on its observations only, not on the order they arrived in."""
     obs = daily(9, range(1, 15))

@@ -123,7 +123,7 @@ def write_ifc(building: Building, schedule: Schedule, path: Path, seed: int) -> 
         if ents:
             ifcopenshell.api.material.assign_material(f, products=ents, type="IfcMaterial", material=materials[k])
 
-    # Schedule: one work schedule, a construction task per building step, outputs = elements.
+    # Schedule: one work schedule, a construction task per building step, a sub-task per element.
     first = min(t.start_h for t in schedule.tasks)
     ws = ifcopenshell.api.sequence.add_work_schedule(f, name="Construction schedule", predefined_type="PLANNED")
     ws.CreationDate = _local_iso(first)
@@ -152,8 +152,28 @@ def write_ifc(building: Building, schedule: Schedule, path: Path, seed: int) -> 
     for t in schedule.tasks:
         task_times[t.key].ScheduleStart = _local_iso(t.start_h)
         task_times[t.key].ScheduleFinish = _local_iso(t.finish_h)
+    # Each element has its own planned slot inside its task (the plan the truth's deviations are measured
+    # against): a sub-task nested in the task (IfcRelNests), the element its output, as 4D tools export an
+    # element-level sequence.
+    by_task: dict[str, list] = {}
     for e in building.elements:
-        ifcopenshell.api.sequence.assign_product(f, relating_product=products[e.key], related_object=task_ents[e.task])
+        by_task.setdefault(e.task, []).append(e)
+    for t in schedule.tasks:
+        for i, e in enumerate(
+            sorted(by_task.get(t.key, ()), key=lambda e: (schedule.windows[e.key].planned_start_h, e.key))
+        ):
+            w = schedule.windows[e.key]
+            sub = ifcopenshell.api.sequence.add_task(
+                f,
+                parent_task=task_ents[t.key],
+                name=f"{t.name}: {e.key}",
+                identification=f"{t.identification}.{i + 1:03d}",
+                predefined_type="CONSTRUCTION",
+            )
+            stt = ifcopenshell.api.sequence.add_task_time(f, task=sub)
+            stt.ScheduleStart = _local_iso(w.planned_start_h)
+            stt.ScheduleFinish = _local_iso(w.planned_finish_h)
+            ifcopenshell.api.sequence.assign_product(f, relating_product=products[e.key], related_object=sub)
 
     # Deterministic GlobalIds (ifcopenshell assigns random ones) in creation order; elements keyed by name.
     for ent in f.by_type("IfcRoot"):

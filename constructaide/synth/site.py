@@ -30,7 +30,7 @@ from .sun import sun_azimuth_elevation_deg, sun_direction_world
 from .textures import make_textures, site_ground
 from .truth import truth_rel
 
-GENERATOR_VERSION = 9
+GENERATOR_VERSION = 10
 """Bump whenever outputs change; part of the ``ensure_site`` cache key."""
 
 _MATERIAL_RGBA = {

@@ -167,6 +167,14 @@ def validate_tasks(tasks: Iterable[ScheduleTask], source: str = "schedule") -> t
         for p in t.predecessor_ids:
             if p not in ids:
                 raise ScheduleError(f"{source}: task {t.task_id!r} ({t.name!r}) has unknown predecessor {p!r}")
+        if t.parent_id is not None and t.parent_id not in ids:
+            raise ScheduleError(f"{source}: task {t.task_id!r} ({t.name!r}) has unknown parent {t.parent_id!r}")
+        seen, p_id = {t.task_id}, t.parent_id
+        while p_id is not None:
+            if p_id in seen:
+                raise ScheduleError(f"{source}: task {t.task_id!r} ({t.name!r}) is nested in itself")
+            seen.add(p_id)
+            p_id = ids[p_id].parent_id if p_id in ids else None
     cycle = find_cycle(out)
     if cycle:
         names = " -> ".join(f"{c} ({ids[c].name})" for c in cycle)
@@ -300,6 +308,8 @@ def tasks_from_ifc(
         if parent is not None and parent.is_a("IfcTask"):
             children.setdefault(parent.id(), []).extend(o.id() for o in rel.RelatedObjects or () if o.is_a("IfcTask"))
 
+    parent_of = {c: p for p, cs in children.items() for c in cs}
+
     # predecessors
     preds: dict[int, list[str]] = {}
     for rel in f.by_type("IfcRelSequence"):
@@ -364,6 +374,7 @@ def tasks_from_ifc(
                 element_ids=tuple(sorted(elements)),
                 predecessor_ids=tuple(preds.get(t.id(), ())),
                 task_type=_TASK_TYPES.get(predefined, "construction"),
+                parent_id=gid_of.get(parent_of.get(t.id(), -1)),
             )
         )
     return validate_tasks(out, source)

@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 from constructaide.bimgeom import glb_to_meshes, load_bim_model_glb
 from constructaide.camera import invert_rigid, pose_from_tuple, registered_camera, scaled_intrinsics
 from constructaide.imagecodec import decode_rgb, mask_of_message
-from constructaide.schedule4d import ElementWindow, element_windows
+from constructaide.schedule4d import ElementWindow, element_windows, task_ancestors, task_elements
 from constructaide.sparsecloud import SparseArrays, decode_sparse_cloud
 from nodes.progress.evidence import ElementCue, EvidenceParams, MaterialModel, colour_bins, photo_evidence, to_lab
 from nodes.progress.fusion import (
@@ -179,6 +179,8 @@ class ProgressEngine:
         self.windows: dict[str, ElementWindow] = {}
         self.tasks: dict[str, ScheduleTask] = {}
         self.element_tasks: dict[str, tuple[str, ...]] = {}
+        self.task_elements: dict[str, tuple[str, ...]] = {}
+        self.task_ancestors: dict[str, tuple[str, ...]] = {}
         self.tracks: dict[str, ElementTrack] = {}
         self.posteriors: dict[str, Posterior] = {}
         """Posterior per element with its supports' and dependants' beliefs (what the engine uses)."""
@@ -243,6 +245,8 @@ class ProgressEngine:
         self.storey_of = {e.global_id: e.storey for e in els}
         self.windows = element_windows(self.model.tasks)
         self.tasks = {t.task_id: t for t in self.model.tasks}
+        self.task_elements = task_elements(self.model.tasks)
+        self.task_ancestors = task_ancestors(self.model.tasks)
         by_el: dict[str, list[str]] = {}
         for t in self.model.tasks:
             for g in t.element_ids:
@@ -722,7 +726,7 @@ class ProgressEngine:
 
     def task_progress(self, task: ScheduleTask, as_of_ns: int | None = None) -> TaskProgress:
         t = self.as_of_ns if as_of_ns is None else as_of_ns
-        ests = [self.estimate(g, t) for g in task.element_ids if g in self.tracks]
+        ests = [self.estimate(g, t) for g in self.task_elements.get(task.task_id, task.element_ids) if g in self.tracks]
         observed = [e for e in ests if e.num_observations]
         built = [e for e in ests if e.state == "built"]
         n = len(ests)
@@ -781,7 +785,8 @@ class ProgressEngine:
 
     def update_message(self, touched: list[str], photo_id: str = "") -> ProgressUpdate:
         gids = list(dict.fromkeys(touched))
-        task_ids = dict.fromkeys(tid for g in gids for tid in self.element_tasks.get(g, ()))
+        direct = [tid for g in gids for tid in self.element_tasks.get(g, ())]
+        task_ids = dict.fromkeys(a for tid in direct for a in (tid, *self.task_ancestors.get(tid, ())))
         self._estimates = {}
         try:
             return self._update_message(gids, task_ids, photo_id)

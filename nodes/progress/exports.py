@@ -145,13 +145,14 @@ def bcf_camera(reg: Registration, offset_m: tuple[float, float, float]) -> dict[
 
 
 def issue_groups(engine: ProgressEngine) -> list[tuple[str, str, list[str]]]:
-    """(title, description, element GlobalIds): per task, its behind / not-built elements; per needs-review
-    annotation, its elements."""
+    """(title, description, element GlobalIds): per task (the outermost summary of an element's sub-task), its
+    behind / not-built elements; per needs-review annotation, its elements."""
     groups: dict[str, list[str]] = {}
     for gid in engine.global_ids:
         ep = engine.element_progress(gid)
         if ep.deviation in ("behind", "not_built"):
-            key = ep.task_ids[0] if ep.task_ids else "(no task)"
+            tid = ep.task_ids[0] if ep.task_ids else "(no task)"
+            key = (tid, *engine.task_ancestors.get(tid, ()))[-1]  # the outermost summary task
             groups.setdefault(key, []).append(gid)
     out = []
     for tid, gids in groups.items():

@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 
 from constructaide.modelscene import GROUND_INDEX, BimScene
 from constructaide.modelview import GLRasterizer, RasterResult
-from constructaide.schedule4d import ElementWindow, element_windows, planned_state, stands
+from constructaide.schedule4d import ElementWindow, element_windows, planned_state, stands, task_elements
 from nodes.render.scene import filter_mask
 from schemas.messages import Annotation, BimModel, ElementFilter, ElementProgress, Intrinsics, LegendEntry
 
@@ -68,7 +68,7 @@ class ScheduleView:
         w = element_windows(model.tasks)
         return cls(
             windows=[None, *(w.get(g) for g in scene.global_ids)],
-            task_elements={t.task_id: t.element_ids for t in model.tasks},
+            task_elements=task_elements(model.tasks),  # a summary task selects its sub-tasks' elements
         )
 
     def built(self, at_ns: int, basis: str = "actual") -> NDArray[np.bool_]:
