@@ -250,6 +250,20 @@ def score(site: Path, recording: Path, out: Path) -> dict:
             d[1] += ours in right
             d[2] += "on_time" in right
             d[3] += _resolvable(cls, af, win, seen_at.get(g, []))
+    # our deviation flags at the last photo: how many are right (precision; the classes above are recall)
+    flags = {"behind": [0, 0], "ahead": [0, 0], "not_built": [0, 0]}
+    for g, e in st["elements"].items():
+        f = els[g]["deviation"]
+        if f in flags:
+            af = parse(e["actual_finish"])
+            absent_at_end = af is None or af.timestamp() * 1e9 > t_last
+            truth = e["deviation"]
+            flags[f][0] += 1
+            flags[f][1] += {
+                "behind": truth == "late",
+                "ahead": truth == "early",
+                "not_built": truth == "never_built" or (truth == "late" and absent_at_end),
+            }[f]
     big = [
         ms
         for pid, ms in summary["evidence_ms_per_photo"].items()
@@ -260,6 +274,7 @@ def score(site: Path, recording: Path, out: Path) -> dict:
         "built": built,
         "finish": (errs_ours, errs_sched),
         "deviation": dict(dev),
+        "flags": flags,
         "ms_1080p": statistics.median(big) if big else float("nan"),
         "ms_all": statistics.median(all_ms) if all_ms else float("nan"),
         "n_1080p": len(big),
@@ -317,9 +332,10 @@ def report(res: dict, label: str) -> tuple[str, str]:
         [label, cls, n, right / n if n else float("nan"), sched / n if n else float("nan"), res_ / n if n else 0.0]
         for cls, (n, right, sched, res_) in sorted(res["deviation"].items())
     ]
+    g_rows = [[label, f, n, right, right / n if n else float("nan")] for f, (n, right) in res["flags"].items()]
     t_rows = [[label, res["photos_processed"], res["photos"], res["n_1080p"], res["ms_1080p"], res["ms_all"]]]
-    return "\n".join(map(str, (b_rows, f_rows, d_rows, t_rows))), json.dumps(
-        {"b": b_rows, "f": f_rows, "d": d_rows, "t": t_rows}, default=float
+    return "\n".join(map(str, (b_rows, f_rows, d_rows, g_rows, t_rows))), json.dumps(
+        {"b": b_rows, "f": f_rows, "d": d_rows, "g": g_rows, "t": t_rows}, default=float
     )
 
 
@@ -352,6 +368,10 @@ def tables(all_rows: list[dict]) -> str:
         ["run", "truth class", "elements", "ours right", "schedule right", "resolvable by the photos"],
         [r for x in all_rows for r in x["d"]],
     )
+    g = table(
+        ["run", "our flag", "elements flagged", "right", "share right"],
+        [r for x in all_rows for r in x.get("g", [])],
+    )
     t = table(
         [
             "run",
@@ -365,7 +385,8 @@ def tables(all_rows: list[dict]) -> str:
     )
     return (
         f"Built per (photo, element):\n\n{b}\n\nFinish dates:\n\n{f}\n\nDeviation at the last photo:\n\n{d}\n\n"
-        f"Evidence step time:\n\n{t}\n"
+        f"Our deviation flags at the last photo (right = behind: truly late; ahead: truly early; not built: never "
+        f"built or late and still absent):\n\n{g}\n\nEvidence step time:\n\n{t}\n"
     )
 
 
@@ -411,7 +432,8 @@ def main(argv: list[str] | None = None) -> int:
         body = f"""Synthetic sites ({ran_all}), then `constructaide progress --recording` on each recording (the
 progress node's engine; registrations, masks and sparse points as the streaming pipeline published them, every
 NeedsAnchor answered by the demo's simulated user). Scoring reads `truth/` only; the baseline in the same runs is
-the schedule the system reads (task dates from the IFC). See `bench/progress.py` for the definitions.
+the schedule the system reads (since generator v10 the IFC holds each element's planned slot as a sub-task of its
+trade task). See `bench/progress.py` for the definitions.
 
 {tables(runs)}"""
         write_section("progress", body, command="python bench/progress.py --size SIZE --seed SEED (one run per row)")
