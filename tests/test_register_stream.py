@@ -436,6 +436,15 @@ def test_fixed_camera_registrations_are_published_polished_by_the_model_outline(
                     T_pub, i_pub = T_map, i_map
                 assert reg.polish_registration(solved) is None  # one polish per registration
                 assert np.allclose(reg.poses["a0"].world_from_camera, T_map)  # the map keeps the solved pose
+                # a later frame of the same camera and view gets the same polish, not one of its own
+                out1 = reg.register_anchor(PhotoInput("a1", FrameImage(jpeg), camera_id="cam-a"), clicks, pts)
+                r1 = reg.polish_registration(out1.registration)
+                if on and r is not None:
+                    assert r1 is not None and "this camera view's polish" in r1.message
+                    assert np.allclose(cam.pose_from_tuple(r1.world_from_camera), T_pub, atol=1e-6)
+                    assert r1.intrinsics == i_pub
+                else:
+                    assert r1 is None  # off, or the view's polish was refused: its frames stay as solved
                 published[on] = (
                     r is not None,
                     _corner_error_px(meshes, INTR, T, i_pub, T_pub),

@@ -34,6 +34,7 @@ from constructaide.recording import RecordingError, decoded_messages
 from nodes.progress.engine import EngineParams, ProgressEngine
 from nodes.progress.evidence import EvidenceParams
 from nodes.progress.fusion import FusionParams
+from nodes.progress.registrations import ignores_polish
 from schemas.messages import (
     Annotation,
     BimModel,
@@ -96,7 +97,8 @@ def read_inputs(path: Path) -> RecordedInputs:
         elif isinstance(msg, Photo):
             out.photos[msg.photo_id] = msg
         elif isinstance(msg, Registration):
-            out.registrations[msg.photo_id] = msg
+            if not ignores_polish(out.registrations.get(msg.photo_id), msg):
+                out.registrations[msg.photo_id] = msg
         elif isinstance(msg, OcclusionMask):
             out.masks[(msg.photo_id, msg.kind)] = msg
         elif isinstance(msg, SparseCloud):

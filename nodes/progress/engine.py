@@ -41,6 +41,7 @@ from nodes.progress.fusion import (
 from nodes.progress.modelview import LayerRenderer, Layers, Mesh
 from nodes.progress.occlusion import fixed_camera_hiding, union_of
 from nodes.progress.plates import ReferencePlate, same_segment
+from nodes.progress.registrations import ignores_polish
 from nodes.progress.support import dependants_of, mesh_boxes, support_graph
 from schemas.messages import (
     SPARSE_POINT_FROM_MODEL,
@@ -278,11 +279,14 @@ class ProgressEngine:
     def add_photo(self, photo: Photo) -> None:
         self.photos[photo.photo_id] = photo
 
-    def add_registration(self, reg: Registration) -> None:
+    def add_registration(self, reg: Registration) -> bool:
+        """Take a photo's registration; returns whether it changed (see :func:`ignores_polish`)."""
+        if ignores_polish(self.registrations.get(reg.photo_id), reg):
+            return False
         if registered_camera(reg) is None:
-            self.registrations.pop(reg.photo_id, None)
-            return
+            return self.registrations.pop(reg.photo_id, None) is not None
         self.registrations[reg.photo_id] = reg
+        return True
 
     def add_mask(self, mask: OcclusionMask) -> None:
         self.masks.setdefault(mask.photo_id, {})[mask.kind] = mask

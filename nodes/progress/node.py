@@ -79,8 +79,8 @@ class ProgressNode:
         self._try(msg.photo_id)
 
     def on_registration(self, msg: m.Registration, key: str) -> None:
-        self.engine.add_registration(msg)
-        self._read_again(msg.photo_id)
+        if self.engine.add_registration(msg):
+            self._read_again(msg.photo_id)
 
     def on_occlusion(self, msg: m.OcclusionMask, key: str) -> None:
         self.engine.add_mask(msg)

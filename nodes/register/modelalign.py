@@ -81,6 +81,10 @@ class AlignParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     max_image_shift_rel: float = 0.005
     """Largest mean move of the samples' projections as a share of the image width: the refinement polishes a
     registration, it does not replace one (a larger pull comes from texture or clutter mistaken for the outline)."""
+    same_view_deg: float = 0.1
+    same_view_m: float = 0.1
+    """Two registrations of one fixed camera within this turn and centre move (and 1 % of focal) are one view: its
+    frames share the first frame's polish (:func:`same_view`)."""
 
 
 @dataclass
@@ -431,3 +435,18 @@ def polish(
         lookup.ground_height_m,
         params,
     )
+
+
+def same_view(
+    world_from_camera_a: F64, intr_a: Intrinsics, world_from_camera_b: F64, intr_b: Intrinsics, params: AlignParams
+) -> bool:
+    """Whether two registrations (4x4 world_from_camera, m) are one fixed camera's one view: within
+    ``params.same_view_deg``, ``params.same_view_m`` and 1 % of the focal, with the same image size."""
+    if (intr_a.width_px, intr_a.height_px) != (intr_b.width_px, intr_b.height_px):
+        return False
+    if abs(intr_a.f_px / intr_b.f_px - 1.0) > 0.01:
+        return False
+    r = world_from_camera_a[:3, :3].T @ world_from_camera_b[:3, :3]
+    turn_deg = float(np.degrees(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0))))
+    shift_m = float(np.linalg.norm(world_from_camera_a[:3, 3] - world_from_camera_b[:3, 3]))
+    return turn_deg <= params.same_view_deg and shift_m <= params.same_view_m

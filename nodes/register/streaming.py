@@ -28,6 +28,7 @@ from typing import Literal
 
 import msgspec
 import numpy as np
+from numpy.typing import NDArray
 
 from constructaide import camera as cam
 from constructaide.geo import horizontal_distance_m
@@ -39,7 +40,7 @@ from nodes.register.densify import DensifyParams, densify_reconstruction
 from nodes.register.fastpath import FastPath, FastPathConfig
 from nodes.register.features import extract_features, homography_inlier_ratio
 from nodes.register.matching import Vocabulary, match_image
-from nodes.register.modelalign import AlignParams, polish
+from nodes.register.modelalign import AlignParams, polish, same_view
 from nodes.register.photo import FrameImage, PhotoInput
 from nodes.register.pose import rotation_deviation
 from nodes.register.recon import (
@@ -734,18 +735,42 @@ class StreamingRegistrar:
             return None
         t0 = time.perf_counter()
         pose = cam.pose_from_tuple(reg.world_from_camera)
-        try:
-            res = polish(lookup, photo.image.gray(), reg.intrinsics, pose, photo.capture_time_ns, self.config.align)
-        except (RuntimeError, ValueError) as e:  # no GL context, a degenerate render: the solved pose stands
-            self.depth_error = f"model outline polish of {reg.photo_id} failed: {e}"
-            return None
-        if not res.accepted:
-            return None
-        note = f"polished by the model outline ({res.reason})"
+        # A fixed camera's frames of one view share one polish (the first frame's): frames polished one by one
+        # would each move a little differently while the camera stood still, and what compares a camera's
+        # frames (the progress node's change cue) would see the model slide.
+        cache: dict[str, tuple[NDArray[np.float64], Intrinsics, NDArray[np.float64] | None, Intrinsics | None, str]]
+        cache = self.__dict__.setdefault("_polish_of_camera", {})
+        seen = cache.get(photo.camera_id) if photo.camera_id is not None else None
+        if seen is not None and same_view(seen[0], seen[1], pose, reg.intrinsics, self.config.align):
+            solved0, _, polished0, intr0, note0 = seen
+            if polished0 is None or intr0 is None:
+                return None
+            world_from_camera = polished0 @ cam.invert_rigid(solved0) @ pose
+            intrinsics = intr0  # same_view: the same image size and focal within 1 %
+            note = f"{note0} (this camera view's polish)"
+        else:
+            try:
+                res = polish(lookup, photo.image.gray(), reg.intrinsics, pose, photo.capture_time_ns, self.config.align)
+            except (RuntimeError, ValueError) as e:  # no GL context, a degenerate render: the solved pose stands
+                self.depth_error = f"model outline polish of {reg.photo_id} failed: {e}"
+                return None
+            ok = res.accepted
+            if photo.camera_id is not None:
+                cache[photo.camera_id] = (
+                    pose,
+                    reg.intrinsics,
+                    res.world_from_camera if ok else None,
+                    res.intrinsics if ok else None,
+                    f"polished by the model outline ({res.reason})",
+                )
+            if not ok:
+                return None
+            world_from_camera, intrinsics = res.world_from_camera, res.intrinsics
+            note = f"polished by the model outline ({res.reason})"
         return msgspec.structs.replace(
             reg,
-            intrinsics=res.intrinsics,
-            world_from_camera=cam.pose_to_tuple(res.world_from_camera),
+            intrinsics=intrinsics,
+            world_from_camera=cam.pose_to_tuple(world_from_camera),
             method=f"{reg.method}+outline",
             message=f"{reg.message}; {note}" if reg.message else note,
             processing_ms=reg.processing_ms + (time.perf_counter() - t0) * 1000.0,
