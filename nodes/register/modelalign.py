@@ -446,7 +446,6 @@ def same_view(
         return False
     if abs(intr_a.f_px / intr_b.f_px - 1.0) > 0.01:
         return False
-    r = world_from_camera_a[:3, :3].T @ world_from_camera_b[:3, :3]
-    turn_deg = float(np.degrees(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0))))
+    turn_deg = cam.rotation_angle_deg(world_from_camera_a[:3, :3], world_from_camera_b[:3, :3])
     shift_m = float(np.linalg.norm(world_from_camera_a[:3, 3] - world_from_camera_b[:3, 3]))
     return turn_deg <= params.same_view_deg and shift_m <= params.same_view_m

@@ -40,7 +40,7 @@ from nodes.register.densify import DensifyParams, densify_reconstruction
 from nodes.register.fastpath import FastPath, FastPathConfig
 from nodes.register.features import extract_features, homography_inlier_ratio
 from nodes.register.matching import Vocabulary, match_image
-from nodes.register.modelalign import AlignParams, polish, same_view
+from nodes.register.modelalign import AlignParams, AlignResult, polish, same_view
 from nodes.register.photo import FrameImage, PhotoInput
 from nodes.register.pose import rotation_deviation
 from nodes.register.recon import (
@@ -133,6 +133,16 @@ class Outcome:
     num_matched_tracks: int = 0
     viewpoint_changed: list[str] = field(default_factory=list)
     map_changed: bool = False
+
+
+@dataclass(frozen=True)
+class _ViewPolish:
+    """The outline polish of a fixed camera's view: its first frame's solved pose (4x4) and intrinsics, and the
+    accepted polish (None: refused)."""
+
+    solved: NDArray[np.float64]
+    solved_intrinsics: Intrinsics
+    result: AlignResult | None
 
 
 class StreamingRegistrar:
@@ -735,35 +745,25 @@ class StreamingRegistrar:
             return None
         t0 = time.perf_counter()
         pose = cam.pose_from_tuple(reg.world_from_camera)
-        # A fixed camera's frames of one view share one polish (the first frame's): frames polished one by one
-        # would each move a little differently while the camera stood still, and what compares a camera's
-        # frames (the progress node's change cue) would see the model slide.
-        cache: dict[str, tuple[NDArray[np.float64], Intrinsics, NDArray[np.float64] | None, Intrinsics | None, str]]
-        cache = self.__dict__.setdefault("_polish_of_camera", {})
-        seen = cache.get(photo.camera_id) if photo.camera_id is not None else None
-        if seen is not None and same_view(seen[0], seen[1], pose, reg.intrinsics, self.config.align):
-            solved0, _, polished0, intr0, note0 = seen
-            if polished0 is None or intr0 is None:
+        # A fixed camera's frames of one view share the first frame's polish (or its refusal): polished one by one
+        # they would each move a little while the camera stood still, and its time-lapse overlays would jitter.
+        views: dict[str, _ViewPolish] = self.__dict__.setdefault("_polish_of_view", {})  # (state saved before it)
+        seen = views.get(photo.camera_id) if photo.camera_id is not None else None
+        if seen is not None and same_view(seen.solved, seen.solved_intrinsics, pose, reg.intrinsics, self.config.align):
+            if seen.result is None:
                 return None
-            world_from_camera = polished0 @ cam.invert_rigid(solved0) @ pose
-            intrinsics = intr0  # same_view: the same image size and focal within 1 %
-            note = f"{note0} (this camera view's polish)"
+            world_from_camera = seen.result.world_from_camera @ cam.invert_rigid(seen.solved) @ pose
+            intrinsics = seen.result.intrinsics  # same_view: the same image size and focal within 1 %
+            note = f"polished by the model outline ({seen.result.reason}; this camera view's polish)"
         else:
             try:
                 res = polish(lookup, photo.image.gray(), reg.intrinsics, pose, photo.capture_time_ns, self.config.align)
             except (RuntimeError, ValueError) as e:  # no GL context, a degenerate render: the solved pose stands
                 self.depth_error = f"model outline polish of {reg.photo_id} failed: {e}"
                 return None
-            ok = res.accepted
             if photo.camera_id is not None:
-                cache[photo.camera_id] = (
-                    pose,
-                    reg.intrinsics,
-                    res.world_from_camera if ok else None,
-                    res.intrinsics if ok else None,
-                    f"polished by the model outline ({res.reason})",
-                )
-            if not ok:
+                views[photo.camera_id] = _ViewPolish(pose, reg.intrinsics, res if res.accepted else None)
+            if not res.accepted:
                 return None
             world_from_camera, intrinsics = res.world_from_camera, res.intrinsics
             note = f"polished by the model outline ({res.reason})"
