@@ -129,29 +129,35 @@ def render_geometry(intr: Intrinsics, margin_px: int = 4) -> RenderGeometry:
     if intr.k1 == 0.0 and intr.k2 == 0.0:
         return RenderGeometry(render_intrinsics=intr, lookup_flat=None)
     w, h = intr.width_px, intr.height_px
-    xy = undistorted_grid(intr).reshape(-1, 2)
+    grid = undistorted_grid(intr)
+    # per coordinate on contiguous arrays (reductions along a length-2 axis are slow at this size)
+    x, y = np.ascontiguousarray(grid[..., 0]).ravel(), np.ascontiguousarray(grid[..., 1]).ravel()
     fx, fy = focal_xy(intr)
     # the canvas covers the photo's rays within three times the pinhole field of view (an estimated distortion can
     # fold the undistortion outwards); rays beyond it, or where the inversion fails, show nothing
     half = np.array([w / fx, h / fy])
     centre = np.array([intr.cx_px / fx, intr.cy_px / fy])
     lo, hi = -centre - half, -centre + 2.0 * half
-    inside = np.all(np.isfinite(xy), axis=1) & np.all((xy >= lo) & (xy <= hi), axis=1)
+    with np.errstate(invalid="ignore"):
+        inside = (x >= lo[0]) & (x <= hi[0]) & (y >= lo[1]) & (y <= hi[1])  # False where NaN
     if not inside.any():
         raise ValueError(f"distortion k1={intr.k1}, k2={intr.k2} maps no pixel of the image to a usable ray")
-    xy = np.where(inside[:, None], xy, np.clip(np.nan_to_num(xy, nan=0.0), lo, hi))
-    xmin, ymin = xy[inside].min(0)
-    xmax, ymax = xy[inside].max(0)
+    if not inside.all():
+        x = np.where(inside, x, np.clip(np.nan_to_num(x, nan=0.0), lo[0], hi[0]))
+        y = np.where(inside, y, np.clip(np.nan_to_num(y, nan=0.0), lo[1], hi[1]))
+    xin, yin = x[inside], y[inside]
+    xmin, ymin, xmax, ymax = xin.min(), yin.min(), xin.max(), yin.max()
     # Principal point on an integer pixel of the render grid.
     cx = float(np.floor(-xmin * fx) + margin_px)
     cy = float(np.floor(-ymin * fy) + margin_px)
     rw = int(np.ceil((xmax - xmin) * fx)) + 2 * margin_px + 2
     rh = int(np.ceil((ymax - ymin) * fy)) + 2 * margin_px + 2
-    ru = np.clip(np.rint(xy[:, 0] * fx + cx).astype(np.int64), 0, rw - 1)
-    rv = np.clip(np.rint(xy[:, 1] * fy + cy).astype(np.int64), 0, rh - 1)
+    u, v = x * fx + cx, y * fy + cy
+    ru = np.clip(np.rint(u).astype(np.int64), 0, rw - 1)
+    rv = np.clip(np.rint(v).astype(np.int64), 0, rh - 1)
     r_intr = Intrinsics(width_px=rw, height_px=rh, f_px=fx, cx_px=cx, cy_px=cy, fy_over_fx=intr.fy_over_fx)
-    map_x = np.where(inside, xy[:, 0] * fx + cx, -1.0).astype(np.float32).reshape(h, w)
-    map_y = np.where(inside, xy[:, 1] * fy + cy, -1.0).astype(np.float32).reshape(h, w)
+    map_x = np.where(inside, u, -1.0).astype(np.float32).reshape(h, w)
+    map_y = np.where(inside, v, -1.0).astype(np.float32).reshape(h, w)
     outside = None if inside.all() else ~inside.reshape(h, w)
     return RenderGeometry(r_intr, rv * rw + ru, map_x, map_y, outside)
 
