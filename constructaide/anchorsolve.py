@@ -222,15 +222,65 @@ def _consensus_outliers(
     floor_px: float,
 ) -> tuple[np.ndarray, float] | None:
     """Clicks (N,) that one camera does not explain, and the distance (px) beyond which a click is out: RANSAC over
-    PnP samples within ``thr_px`` at the focal ``f0`` (and, without a known focal, at 0.5-2x it) for a start, then
-    a robust fit of pose (, focal) and radial k1 to all clicks; a click further than max(``floor_px``, 4 sigmas of
-    the click noise) from it is out. Several gross mis-clicks mask each other in a leave-one-out test (each is
-    predicted by a solve the others bend); a robust fit is not bent by them. None (no decision) unless RANSAC agrees
-    on >= max(6, 0.6 N) clicks and as many stay in."""
+    PnP samples (:func:`_pnp_consensus`) within twice ``floor_px``, else within ``thr_px``, for a start; then a fit
+    of pose (, focal) and radial k1 to the tight consensus's clicks, or a robust fit to all clicks after a loose
+    one; a click further than max(``floor_px``, 4 sigmas of the click noise) from it is out. Several gross
+    mis-clicks mask each other in a leave-one-out test (each is predicted by a solve the others bend); neither fit
+    is bent by them. None (no decision) unless RANSAC agrees on >= max(6, 0.6 N) clicks and as many stay in."""
     n = len(px)
     need = max(MIN_CLICKS_FOR_FOCAL, 0.6 * n)
     if n < MIN_CLICKS_FOR_FOCAL + 1:
         return None
+    best: tuple[np.ndarray, float, np.ndarray] | None = None
+    tight = False
+    # The tight consensus first (twice the noise floor): at the loose threshold (room for a lens's distortion) two
+    # or three mis-clicks in one strip of the photo can agree with a wrong camera bent towards them, and a robust
+    # fit with a free k1 then bends the lens to them too. When enough clicks agree within the tight threshold, the
+    # camera is fitted to those alone and the others are judged by it.
+    for thr in (2.0 * floor_px, thr_px) if 2.0 * floor_px < thr_px else (thr_px,):
+        best = _pnp_consensus(px, pts, c, f0, focal_known, thr)
+        if best is not None and len(best[2]) >= need:
+            tight = thr < thr_px
+            break
+    if best is None or len(best[2]) < need:
+        return None
+    x0, f_r, inl = best
+    solve_f = not focal_known and not _is_planar(pts)
+    use = np.zeros(n, bool)
+    use[inl] = True
+    if not tight:
+        use[:] = True
+
+    def res(x: np.ndarray, sel: np.ndarray = use) -> np.ndarray:
+        ff = float(np.exp(np.clip(x[6], -20.0, 20.0))) if solve_f else f_r
+        r = _distorted_residuals(x[:6], pts[sel], px[sel], c, ff, float(x[-1]), 0.0)
+        return np.r_[r, x[-1] / DISTORTION_PRIOR_SIGMA]
+
+    # A robust fit (to the tight consensus's clicks, else to all) from the consensus pose, with radial k1 under its
+    # weak prior (a lens's distortion is not a mis-click): the mis-clicks barely pull it. Graduated: a wide Cauchy
+    # loss from the consensus pose, then a bounded (arctan) one at the noise floor, under which a mis-click's pull
+    # fades with the square of its distance.
+    x = np.r_[x0, [np.log(f_r)] if solve_f else [], 0.0]
+    for loss, scale in (("cauchy", thr_px), ("arctan", floor_px)):
+        x = least_squares(res, x, method="trf", loss=loss, f_scale=scale, x_scale="jac", max_nfev=200).x
+    r_px = np.linalg.norm(res(x, np.ones(n, bool))[:-1].reshape(-1, 2), axis=1)
+    # 4 sigmas of the clicks' noise per axis, from the median residual of the clicks fitted (Rayleigh: median =
+    # 1.1774 sigma), corrected for the parameters the fit spends on them.
+    p = 7 + int(solve_f)
+    m = int(use.sum())
+    sigma = float(np.median(r_px[use])) / 1.1774 * np.sqrt(2 * m / max(2 * m - p, 1))
+    threshold = max(floor_px, 4.0 * sigma)
+    out = r_px > threshold
+    if n - out.sum() < need:
+        return None
+    return out, threshold
+
+
+def _pnp_consensus(
+    px: np.ndarray, pts: np.ndarray, c: np.ndarray, f0: float, focal_known: bool, thr_px: float
+) -> tuple[np.ndarray, float, np.ndarray] | None:
+    """RANSAC over PnP samples within ``thr_px`` at the focal ``f0`` (and, without a known focal, at 0.5-2x it):
+    the best (rvec|tvec (6,), focal, inlier indices), or None."""
     best: tuple[np.ndarray, float, np.ndarray] | None = None
     for scale in (1.0,) if focal_known else (1.0, 0.7, 1.4, 0.5, 2.0):
         f = f0 * scale
@@ -250,33 +300,7 @@ def _consensus_outliers(
             continue
         if ok and inl is not None and (best is None or len(inl) > len(best[2])):
             best = (np.r_[np.ravel(rvec), np.ravel(tvec)], f, inl.ravel())
-    if best is None or len(best[2]) < need:
-        return None
-    x0, f_r, _ = best
-    solve_f = not focal_known and not _is_planar(pts)
-
-    def res(x: np.ndarray) -> np.ndarray:
-        ff = float(np.exp(np.clip(x[6], -20.0, 20.0))) if solve_f else f_r
-        r = _distorted_residuals(x[:6], pts, px, c, ff, float(x[-1]), 0.0)
-        return np.r_[r, x[-1] / DISTORTION_PRIOR_SIGMA]
-
-    # A robust fit (Cauchy loss at the click noise floor) from the consensus pose, with radial k1 under its weak
-    # prior (a lens's distortion is not a mis-click): the mis-clicks barely pull it.
-    # Graduated: a wide Cauchy loss from the consensus pose, then a bounded (arctan) one at the noise floor, under
-    # which a mis-click's pull fades with the square of its distance.
-    x = np.r_[x0, [np.log(f_r)] if solve_f else [], 0.0]
-    for loss, scale in (("cauchy", thr_px), ("arctan", floor_px)):
-        x = least_squares(res, x, method="trf", loss=loss, f_scale=scale, x_scale="jac", max_nfev=200).x
-    r_px = np.linalg.norm(res(x)[:-1].reshape(-1, 2), axis=1)
-    # 4 sigmas of the clicks' noise per axis, from the median residual (Rayleigh: median = 1.1774 sigma), corrected
-    # for the parameters the fit spends on them.
-    p = 7 + int(solve_f)
-    sigma = float(np.median(r_px)) / 1.1774 * np.sqrt(2 * n / max(2 * n - p, 1))
-    threshold = max(floor_px, 4.0 * sigma)
-    out = r_px > threshold
-    if n - out.sum() < need:
-        return None
-    return out, threshold
+    return best
 
 
 def _validate(pixels_px, points_in_world) -> tuple[np.ndarray, np.ndarray]:
