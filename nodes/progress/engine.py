@@ -498,9 +498,9 @@ class ProgressEngine:
         touched: list[str] = []
         layers = None
         # candidates the belief finds unlikely are read after the likelier ones (nodes.progress.passes)
-        late = {int(i) for i in np.nonzero(cand & (present < self.params.defer_probability))[0]}
-        passes = self.params.peel_passes + 1 + int(bool(late))
-        cand[list(late)] = False
+        deferred = {int(i) for i in np.nonzero(cand & (present < self.params.defer_probability))[0]}
+        passes = self.params.peel_passes + 1 + int(bool(deferred))
+        cand[list(deferred)] = False
         held: tuple[NDArray[np.uint32], list[ElementCue]] | None = None
         for k in range(passes):
             layers = self.renderer.render(intr, T, built, cand)
@@ -521,27 +521,29 @@ class ProgressEngine:
                 confirmed,
                 self._stood_at,
             )
-            if held is None and late:
+            if held is None and deferred:
                 # hold this reading until the deferred candidates, drawn in front where nearer, are read
                 held = (layers.ids_all, cues)
-                cand[list(late)] = True
+                cand[list(deferred)] = True
                 continue
             if held is not None:
-                mine = [c for c in cues if c.index in late]
+                mine = [c for c in cues if c.index in deferred]
                 touched += self._observe(photo_id, t, [c for c in mine if c.status == "seen"], reference is not None)
                 seen.update((c.index, c) for c in mine)
                 gid = self.global_ids
-                stands = [i for i in late if self.posterior(gid[i - 1]).present_at(t) >= self.params.peel_probability]
+                stands = [
+                    i for i in deferred if self.posterior(gid[i - 1]).present_at(t) >= self.params.peel_probability
+                ]
                 cover = covering(held[0], layers.ids_all)
-                cues = settle_deferred(held[1], cues, late, cover, set(stands).__contains__) + mine
+                cues = settle_deferred(held[1], cues, deferred, cover, set(stands).__contains__) + mine
                 held = None
             new = [c for c in cues if c.index not in seen or (seen[c.index].status != "seen" and c.status == "seen")]
             for c in new:
                 seen[c.index] = c
             touched += self._observe(
-                photo_id, t, [c for c in new if c.status == "seen" and c.index not in late], reference is not None
+                photo_id, t, [c for c in new if c.status == "seen" and c.index not in deferred], reference is not None
             )
-            late = set()
+            deferred = set()
             if k == passes - 1:
                 break
             # read again without what this photo now shows absent: what stands behind those shows through
