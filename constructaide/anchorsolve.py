@@ -222,9 +222,9 @@ def _consensus_outliers(
     floor_px: float,
 ) -> tuple[np.ndarray, float] | None:
     """Clicks (N,) that one camera does not explain, and the distance (px) beyond which a click is out: RANSAC over
-    PnP samples (:func:`_pnp_consensus`) within twice ``floor_px``, else within ``thr_px``, for a start; then a fit
-    of pose (, focal) and radial k1 to the tight consensus's clicks, or a robust fit to all clicks after a loose
-    one; a click further than max(``floor_px``, 4 sigmas of the click noise) from it is out. Several gross
+    PnP samples (:func:`_pnp_consensus`) within twice ``floor_px``, else within ``thr_px``, for a start; then a
+    robust fit of pose (, focal) and radial k1 to the tight consensus's clicks, or to all clicks after a loose one;
+    a click further than max(``floor_px``, 4 sigmas of the click noise) from it is out. Several gross
     mis-clicks mask each other in a leave-one-out test (each is predicted by a solve the others bend); neither fit
     is bent by them. None (no decision) unless RANSAC agrees on >= max(6, 0.6 N) clicks and as many stay in."""
     n = len(px)
@@ -246,10 +246,10 @@ def _consensus_outliers(
         return None
     x0, f_r, inl = best
     solve_f = not focal_known and not _is_planar(pts)
-    use = np.zeros(n, bool)
-    use[inl] = True
-    if not tight:
-        use[:] = True
+    use = np.ones(n, bool)  # the clicks fitted: the tight consensus's, else all
+    if tight:
+        use[:] = False
+        use[inl] = True
 
     def res(x: np.ndarray, sel: np.ndarray = use) -> np.ndarray:
         ff = float(np.exp(np.clip(x[6], -20.0, 20.0))) if solve_f else f_r

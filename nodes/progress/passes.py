@@ -17,8 +17,8 @@ from nodes.progress.modelview import Layers
 
 def covering(first_ids: NDArray[np.integer], later_ids: NDArray[np.integer]) -> dict[int, set[int]]:
     """For two (H, W) element-id layers of one photo (0: none), the elements that the later layer shows over each
-    element of the first: ``{first id: {later ids}}`` where they differ (0 in the set: the element left uncovered
-    pixels behind nothing, which does not count as covering)."""
+    element of the first: ``{first id: {later ids}}`` where they differ (pixels the later layer leaves empty do
+    not count)."""
     a, b = np.asarray(first_ids, np.int64).ravel(), np.asarray(later_ids, np.int64).ravel()
     m = (a > 0) & (a != b) & (b > 0)
     out: dict[int, set[int]] = {}
