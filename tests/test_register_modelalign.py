@@ -134,3 +134,60 @@ def test_too_few_outline_samples_is_said() -> None:
     finally:
         view.close()
     assert not res.accepted and "samples" in res.reason
+
+
+def _clicks(meshes, intr: Intrinsics, wfc: np.ndarray, seed: int, noise_px: float = 1.0):  # noqa: ANN001
+    """A person's clicks: up to 8 box corners in view (pixels (N, 2) with ``noise_px`` noise, model points (N, 3))."""
+    rng = np.random.default_rng(400 + seed)
+    pts = np.unique(np.concatenate([v for v, _ in meshes.values()]), axis=0)
+    px, z = cam.project_points(intr, cam.invert_rigid(wfc), pts)
+    inside = (z > 0) & (px[:, 0] > 20) & (px[:, 0] < intr.width_px - 20) & (px[:, 1] > 20) & (px[:, 1] < 520)
+    pick = rng.choice(np.nonzero(inside)[0], size=min(8, int(inside.sum())), replace=False)
+    return px[pick] + rng.normal(0.0, noise_px, (len(pick), 2)), pts[pick]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_an_anchors_clicks_replace_the_turn_bound(seed: int) -> None:
+    """An anchor off by more than the polish bound (a camera turned about its clicks): with its clicks fitted beside
+    the outlines the refinement is kept and lands on the building; without them it is refused."""
+    meshes = _scene(seed)
+    view = ModelView(meshes)
+    try:
+        wfc = _true_camera(seed)
+        photo = _photo(view, wfc, seed)
+        clicks = _clicks(meshes, INTR, wfc, seed)
+        start = _perturbed(wfc, seed, rot_deg=2.0, shift_m=0.3)
+        alone = refine_pose(view, photo, INTR, start, None, 0.0)
+        joint = refine_pose(view, photo, INTR, start, None, 0.0, clicks=clicks)
+    finally:
+        view.close()
+    before = _corner_error_px(meshes, INTR, wfc, INTR, start)
+    after = _corner_error_px(meshes, INTR, wfc, joint.intrinsics, joint.world_from_camera)
+    assert before > 0.005 * 960
+    assert not alone.accepted
+    assert joint.accepted, joint.reason
+    assert after < 1.5, (before, after)
+    assert joint.click_rms_px[1] < 3.0 and joint.click_rms_px[1] < joint.click_rms_px[0]
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_pull_off_the_clicks_is_refused(seed: int) -> None:
+    """The photo shows the building from a camera 2 m and 1 deg away from the one the clicks fit: the joint fit
+    trades click RMS for outline support, and where the clicks would leave ``click_gate_px`` the start stands, with
+    the reason; a looser gate takes the compromise."""
+    meshes = _scene(seed)
+    view = ModelView(meshes)
+    try:
+        wfc = _true_camera(seed)
+        elsewhere = _perturbed(wfc, seed, rot_deg=1.0, shift_m=2.0)
+        clicks = _clicks(meshes, INTR, wfc, seed, noise_px=0.5)
+        photo = _photo(view, elsewhere, seed)
+        tight = refine_pose(view, photo, INTR, wfc, None, 0.0, AlignParams(click_gate_px=1.0), clicks=clicks)
+        loose = refine_pose(view, photo, INTR, wfc, None, 0.0, AlignParams(click_gate_px=6.0), clicks=clicks)
+    finally:
+        view.close()
+    assert not tight.accepted
+    assert "clicks" in tight.reason, tight.reason
+    assert np.array_equal(tight.world_from_camera, wfc)
+    assert loose.accepted, loose.reason
+    assert 1.0 < loose.click_rms_px[1] < 6.0

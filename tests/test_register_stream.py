@@ -398,15 +398,17 @@ def test_fixed_camera_registrations_are_published_polished_by_the_model_outline(
     out as solved; its polish by the model's outlines (boxes in a photo with texture strokes:
     tests/test_register_modelalign.py) follows as an update when the polish is accepted, and is then no worse; the
     map keeps the pose the clicks gave either way. With ``model_align`` off the published pose is the
-    map's; a phone photo is published as solved (``model_align_phones`` off). Over six seeds the polish must
-    help where it acts."""
+    map's. A phone photo is polished only when anchored, with its clicks held (``model_align_anchored_phones``),
+    and published as solved with that off (``model_align_phones`` off). Over six seeds the polish must help where it
+    acts."""
     import cv2
     from test_register_modelalign import INTR, _corner_error_px, _photo, _scene, _true_camera
 
     from constructaide.modelview import ModelView
     from nodes.register.bimdepth import MeshDepthLookup
 
-    gains = []
+    gains: list[float] = []
+    phone_polished: list[int] = []
     for seed in range(6):
         meshes = _scene(seed)
         lookup = MeshDepthLookup(meshes, ground_height_m=0.0)
@@ -451,7 +453,18 @@ def test_fixed_camera_registrations_are_published_polished_by_the_model_outline(
                     _corner_error_px(meshes, INTR, T, i_map, T_map),
                 )
                 out_p = reg.register_anchor(PhotoInput("p0", FrameImage(jpeg), camera_id=None), clicks, pts)
-                assert reg.polish_registration(out_p.registration) is None  # phones: model_align_phones off
+                r_p = reg.polish_registration(out_p.registration)
+                if r_p is not None:  # an anchored phone photo: polished with its clicks held
+                    assert on and "clicks" in r_p.message, r_p.message
+                    T_p = cam.pose_from_tuple(r_p.world_from_camera)
+                    err_p = _corner_error_px(meshes, INTR, T, r_p.intrinsics, T_p)
+                    solved_p = out_p.registration
+                    assert err_p <= _corner_error_px(meshes, INTR, T, solved_p.intrinsics, pose_of(out_p)) + 0.2
+                    phone_polished.append(seed)
+            off = StreamConfig(model_align_anchored_phones=False)
+            no_phones = StreamingRegistrar(off, depth_lookup=lookup, site="t")
+            out_p = no_phones.register_anchor(PhotoInput("p0", FrameImage(jpeg), camera_id=None), clicks, pts)
+            assert no_phones.polish_registration(out_p.registration) is None  # phones: both switches off
         finally:
             view.close()
             lookup.close()
@@ -462,3 +475,4 @@ def test_fixed_camera_registrations_are_published_polished_by_the_model_outline(
             assert pub_on <= map_on + 0.2, (seed, map_on, pub_on)
             gains.append(map_on - pub_on)
     assert len(gains) >= 2 and max(gains) > 1.0, gains  # where it acts, it pulls the overlay onto the building
+    assert phone_polished, "no anchored phone photo was polished on six seeds"

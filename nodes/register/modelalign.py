@@ -17,7 +17,14 @@ photo edge within ``support_px`` grows by at least ``min_support_gain``, the cam
 ``max_rotation_deg``, its centre moves by at most ``max_shift_rel`` of the depth and the outline by at most
 ``max_image_shift_rel`` of the width. Otherwise the registration stands as solved; :class:`AlignResult` says why.
 On close-ups of heavy texture (brick, printed hoarding) the search locks onto texture as often as onto outlines
-(BENCHMARKS 'model outline polish'), which is why the register node polishes fixed cameras' frames only by default.
+(BENCHMARKS 'model outline polish'), which is why the register node polishes fixed cameras' frames and, of the phone
+photos, only anchored ones, with their clicks.
+
+An anchored photo's accepted clicks can be fitted together with the edges (``clicks``): each click a residual over
+``click_sigma_px``, the edge samples capped to ``edge_effective_samples`` independent ones. A dozen clicks in a strip
+of a close-up leave the camera free to turn about them (1-3 deg on the synthetic sites' phones); the outlines
+elsewhere in the photo pin that turn, while the clicks keep the texture from pulling the pose away from what the
+user clicked. The clicks' RMS then bounds the result (``click_gate_px``) instead of the turn and shift limits.
 """
 
 from __future__ import annotations
@@ -81,6 +88,15 @@ class AlignParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     max_image_shift_rel: float = 0.005
     """Largest mean move of the samples' projections as a share of the image width: the refinement polishes a
     registration, it does not replace one (a larger pull comes from texture or clutter mistaken for the outline)."""
+    click_sigma_px: float = 2.0
+    """With anchor clicks (:func:`refine_pose` ``clicks``): a click's standard deviation per axis (full-resolution
+    pixels)."""
+    edge_effective_samples: float = 100.0
+    """With anchor clicks: the edge samples together weigh as this many independent ones (neighbouring samples of
+    one outline err together; without this cap a few thousand samples would outvote a dozen clicks)."""
+    click_gate_px: float = 4.0
+    """With anchor clicks: the refinement is kept only when the clicks' RMS stays within this (full-resolution
+    pixels; or within their RMS at the start when that is larger); the turn and shift bounds do not apply."""
     same_view_deg: float = 0.1
     same_view_m: float = 0.1
     """Two registrations of one fixed camera within this turn and centre move (and 1 % of focal) are one view: its
@@ -115,6 +131,8 @@ class AlignResult:
     """Robust scale of the final residuals (work pixels)."""
     history: list[tuple[float, float]] = field(default_factory=list)
     """(search range, supported share) after each round."""
+    click_rms_px: tuple[float, float] = (float("nan"), float("nan"))
+    """With clicks: their RMS (full-resolution px) at the start and at the refined camera."""
 
 
 def work_size(intr: Intrinsics, work_width_px: int) -> tuple[int, int]:
@@ -272,8 +290,10 @@ def _solve(
     params: AlignParams,
     x: F64,
     depth_m: float,
+    clicks: tuple[F64, F64, float] | None = None,
 ) -> tuple[F64, float, float]:
-    """Gauss-Newton steps from ``x`` (7,) at one search range; returns (x, supported share, residual scale)."""
+    """Gauss-Newton steps from ``x`` (7,) at one search range; returns (x, supported share, residual scale).
+    ``clicks``: (pixels (N, 2) at the work resolution, world points (N, 3), sigma px) fitted beside the edges."""
     pts, nrm = samples.point_in_world_m, samples.normal_px
     n_par = 7 if params.refine_focal else 6
     sigma = max(half / 2.0, params.min_sigma_px)
@@ -299,8 +319,14 @@ def _solve(
         g = J.T @ (w * r0)
         prior = [np.radians(params.rotation_sigma_deg)] * 3 + [params.shift_sigma_rel * depth_m] * 3
         prior += [params.focal_sigma_rel] if params.refine_focal else []
+        if clicks is not None:
+            # normalised units (each residual over its sigma); the edges weigh as edge_effective_samples samples
+            scale = min(1.0, params.edge_effective_samples / max(float(np.sum(w)), 1.0)) / sigma**2
+            A, g = A * scale, g * scale
+            Ac, gc = _click_normal(intr, cfw, clicks, x, n_par)
+            A, g = A + Ac, g + gc
         for k, sd in enumerate(prior):
-            lam = (sigma / sd) ** 2
+            lam = (sigma / sd) ** 2 if clicks is None else 1.0 / sd**2
             A[k, k] += lam
             g[k] += lam * x[k]
         A += 1e-9 * np.eye(n_par) * max(float(np.trace(A)), 1.0)
@@ -314,6 +340,29 @@ def _solve(
         if np.max(np.abs(step[:3])) < 1e-6 and np.max(np.abs(step[3:6])) < 1e-5:
             break
     return x, support(intr, cfw, samples, gx, gy, x, params), sigma
+
+
+def _click_normal(intr: Intrinsics, cfw: F64, clicks: tuple[F64, F64, float], x: F64, n_par: int) -> tuple[F64, F64]:
+    """Normal equations (n_par, n_par), (n_par,) of the clicks' reprojection residuals over their sigma."""
+    px, pts, sigma_px = clicks
+    p0 = _project(intr, cfw, pts, x)
+    r = (p0 - px).ravel() / sigma_px
+    ok = np.isfinite(r)
+    J = np.zeros((len(r), n_par))
+    eps = 1e-6
+    for k in range(n_par):
+        dx = np.zeros(7)
+        dx[k] = eps
+        J[:, k] = (_project(intr, cfw, pts, x + dx) - p0).ravel() / sigma_px / eps
+    J, r = J[ok], r[ok]
+    return J.T @ J, J.T @ r
+
+
+def click_rms_px(intr: Intrinsics, world_from_camera: F64, clicks: tuple[F64, F64]) -> float:
+    """RMS (px) of the clicks (pixels (N, 2), world points (N, 3)) under the camera."""
+    px, pts = clicks
+    proj, _ = cam.project_points(intr, cam.invert_rigid(world_from_camera), pts)
+    return float(np.sqrt(np.mean(np.sum((proj - px) ** 2, axis=1))))
 
 
 def support(
@@ -341,10 +390,13 @@ def refine_pose(
     elements: set[str] | None = None,
     ground_z_m: float | None = None,
     params: AlignParams | None = None,
+    clicks: tuple[F64, F64] | None = None,
 ) -> AlignResult:
     """Refine ``world_from_camera`` (4, 4) and the focal of ``intr`` (the photo's full-resolution camera) so that the
     model's edges (``elements`` standing; None: all) fall on the intensity edges of ``gray`` (H, W) (the photo,
-    any resolution of the same aspect)."""
+    any resolution of the same aspect). ``clicks``: an anchored photo's accepted clicks (pixels (N, 2) at full
+    resolution, model points (N, 3) m), fitted together with the edges; they then bound the result instead of the
+    turn and shift limits (``click_gate_px``)."""
     p = params or AlignParams()
     wfc0 = np.asarray(world_from_camera, np.float64)
     ww, wh = work_size(intr, p.work_width_px)
@@ -353,6 +405,11 @@ def refine_pose(
     gx, gy = _gradients(img)
     x = np.zeros(7)
     cfw0 = cam.invert_rigid(wfc0)
+    work_clicks = None
+    if clicks is not None:
+        s = ww / intr.width_px
+        cpx, cpts = np.asarray(clicks[0], np.float64), np.asarray(clicks[1], np.float64)
+        work_clicks = (s * (cpx + 0.5) - 0.5, cpts, p.click_sigma_px * s)
     samples = edge_samples(view, wi, wfc0, elements, ground_z_m, p)
     result = AlignResult(wfc0, intr, False, "", samples=len(samples.point_in_world_m))
     if len(samples.point_in_world_m) < p.min_samples:
@@ -369,7 +426,7 @@ def refine_pose(
             samples = edge_samples(view, _focal_scaled(wi, x), wfc_k, elements, ground_z_m, p)
             if len(samples.point_in_world_m) < p.min_samples:
                 break
-        x, sup, sigma = _solve(wi, cfw0, samples, gx, gy, half, p, x, depth_m)
+        x, sup, sigma = _solve(wi, cfw0, samples, gx, gy, half, p, x, depth_m, work_clicks)
         result.history.append((half, sup))
     wfc = _compose(cfw0, x)
     result.rotation_deg = cam.rotation_angle_deg(wfc[:3, :3], wfc0[:3, :3])
@@ -385,7 +442,20 @@ def refine_pose(
             wi, cfw0, samples.point_in_world_m, np.zeros(7)
         )
         result.image_shift_rel = float(np.nanmean(np.linalg.norm(moved, axis=1))) / ww
-    if result.rotation_deg > p.max_rotation_deg:
+    if clicks is not None:
+        rms0 = click_rms_px(intr, wfc0, clicks)
+        rms1 = click_rms_px(_focal_scaled(intr, x), wfc, clicks)
+        result.click_rms_px = (rms0, rms1)
+        if not rms1 <= max(p.click_gate_px, rms0):
+            result.reason = f"clicks {rms0:.2f} -> {rms1:.2f} px (> {max(p.click_gate_px, rms0):.2f})"
+        elif sup < result.support_before + p.min_support_gain:
+            result.reason = f"edge support {result.support_before:.3f} -> {sup:.3f} (gain < {p.min_support_gain})"
+        else:
+            result.accepted = True
+            result.reason = f"edge support {result.support_before:.3f} -> {sup:.3f}, clicks {rms0:.2f} -> {rms1:.2f} px"
+            result.world_from_camera = wfc
+            result.intrinsics = _focal_scaled(intr, x)
+    elif result.rotation_deg > p.max_rotation_deg:
         result.reason = f"rotated {result.rotation_deg:.2f} deg (> {p.max_rotation_deg})"
     elif result.shift_m > p.max_shift_rel * depth_m:
         result.reason = f"moved {result.shift_m:.2f} m (> {p.max_shift_rel:.0%} of the {depth_m:.1f} m depth)"
@@ -423,6 +493,7 @@ def polish(
     world_from_camera: F64,
     capture_time_ns: int,
     params: AlignParams | None = None,
+    clicks: tuple[F64, F64] | None = None,
 ) -> AlignResult:
     """:func:`refine_pose` on the register node's BIM view: the elements the schedule says stand at the capture
     time, over the terrain plane."""
@@ -434,6 +505,7 @@ def polish(
         lookup.elements(capture_time_ns),
         lookup.ground_height_m,
         params,
+        clicks,
     )
 
 

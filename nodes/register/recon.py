@@ -100,6 +100,14 @@ class ImageState:
         return self.world_from_camera
 
     @property
+    def accepted_clicks(self) -> Clicks | None:
+        """An anchor's clicks its solve accepted (pixels (N, 2), model points (N, 3)); None when not an anchor."""
+        if self.status != "anchor" or self.clicks is None:
+            return None
+        keep = self.click_inliers if self.click_inliers is not None else np.ones(len(self.clicks[0]), bool)
+        return np.asarray(self.clicks[0])[keep], np.asarray(self.clicks[1])[keep]
+
+    @property
     def registered(self) -> bool:
         return self.status in ("anchor", "auto")
 

@@ -106,6 +106,10 @@ class StreamConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     model_align_phones: bool = False
     """... phone photos too (off: on close-ups of brick and printed hoarding the outlines lock onto texture as often
     as they help; see BENCHMARKS 'model outline polish')."""
+    model_align_anchored_phones: bool = True
+    """... anchored phone photos, the outlines fitted together with the photo's accepted clicks, which hold the
+    polish where the user clicked (:func:`nodes.register.modelalign.refine_pose` ``clicks``): a dozen clicks in a
+    strip of a close-up leave the camera free to turn about them, the outlines elsewhere in the photo pin it."""
     align: AlignParams = AlignParams()
 
 
@@ -740,7 +744,12 @@ class StreamingRegistrar:
         lookup = self.depth_lookup
         if photo is None or photo.photo_id != reg.photo_id or reg.intrinsics is None or not reg.world_from_camera:
             return None
-        wanted = self.config.model_align and (photo.camera_id is not None or self.config.model_align_phones)
+        im = self.recon.images[self.recon.index(photo.photo_id)] if photo.photo_id in self.recon else None
+        clicks = im.accepted_clicks if im is not None and photo.camera_id is None else None
+        anchored_phone = clicks is not None and self.config.model_align_anchored_phones
+        wanted = self.config.model_align and (
+            photo.camera_id is not None or self.config.model_align_phones or anchored_phone
+        )
         if not wanted or not isinstance(lookup, MeshDepthLookup):
             return None
         t0 = time.perf_counter()
@@ -757,7 +766,15 @@ class StreamingRegistrar:
             note = f"polished by the model outline ({seen.result.reason}; this camera view's polish)"
         else:
             try:
-                res = polish(lookup, photo.image.gray(), reg.intrinsics, pose, photo.capture_time_ns, self.config.align)
+                res = polish(
+                    lookup,
+                    photo.image.gray(),
+                    reg.intrinsics,
+                    pose,
+                    photo.capture_time_ns,
+                    self.config.align,
+                    clicks if anchored_phone else None,
+                )
             except (RuntimeError, ValueError) as e:  # no GL context, a degenerate render: the solved pose stands
                 self.depth_error = f"model outline polish of {reg.photo_id} failed: {e}"
                 return None
