@@ -64,7 +64,8 @@ class DynamicParams:
     """Tuning of :func:`dynamic_mask`. Filter sizes are in working-resolution pixels."""
 
     threshold: float = 0.08  # the paper's 0.05 is for the median score (vote_quantile=None)
-    weak_ratio: float = 0.25  # hysteresis: grow from strong pixels through pixels above threshold * weak_ratio
+    weak_ratio: float = 0.25  # hysteresis: grow from strong pixels through pixels above threshold * weak_ratio ...
+    max_grow_px: int | None = 8  # ... by at most this many pixels (None: the whole weak component)
     fill_holes: bool = True
     ghost_ratio: float = 1.0  # 0 disables ghost removal (see remove_ghosts)
     temporal_guard: bool = True  # the photo must also differ from its nearest earlier and later neighbours
@@ -392,12 +393,24 @@ def background_and_difference(
     return np.clip(background, 0.0, 1.0), score, count
 
 
-def hysteresis_mask(score: F32, strong: float, weak: float) -> U8:
-    """0/255 mask of pixels with ``score`` (h, w) above ``weak`` that are 8-connected to a pixel above ``strong``."""
+def hysteresis_mask(score: F32, strong: float, weak: float, max_grow_px: int | None = None) -> U8:
+    """0/255 mask of pixels with ``score`` (h, w) above ``weak`` that are 8-connected to a pixel above ``strong``,
+    through at most ``max_grow_px`` weak pixels (None: any number). A bound keeps the growth to an occluder's own
+    outskirts: a slight day-to-day change of a saturated surface (the hoarding's green under another sky) passes the
+    weak threshold along its whole length, and an occluder standing in front of it would flood it."""
     strong_px = score > strong
     if weak >= strong:
         return strong_px.astype(np.uint8) * 255
     weak_px = (score > weak) | strong_px
+    if max_grow_px is not None:
+        grown = strong_px
+        kernel = np.ones((3, 3), np.uint8)
+        for _ in range(max_grow_px):
+            step = (cv2.dilate(grown.astype(np.uint8), kernel) > 0) & weak_px
+            if np.array_equal(step, grown):
+                break
+            grown = step
+        return grown.astype(np.uint8) * 255
     n, labels = cv2.connectedComponents(weak_px.astype(np.uint8), connectivity=8)
     seeded = np.zeros(n, bool)
     seeded[np.unique(labels[strong_px])] = True
@@ -551,7 +564,7 @@ def dynamic_mask(
         res = DynamicResult("not_enough_views", np.zeros((h, w), np.uint8), None, stack.num_views)
         return with_appearance(res, photo_full, photo_small, appearance, params)
     background, score, count = background_and_difference(photo_small, stack, params, progress_region)
-    small = hysteresis_mask(score, params.threshold, params.threshold * params.weak_ratio)
+    small = hysteresis_mask(score, params.threshold, params.threshold * params.weak_ratio, params.max_grow_px)
     if params.ignore_sky:
         small[open_sky(photo_small.astype(np.float32) * np.float32(1.0 / 255.0))] = 0
     small = remove_small_components(small, int(params.min_component_frac * small.size))
