@@ -630,3 +630,22 @@ def test_colour_pixel_veto_drops_a_shadow_and_needs_a_model_that_recognises_its_
     assert plain.recall(0.2, 20.0) < 0.7
     kept = dynamic_mask(images[1], small, stack, DynamicParams(), None, plain)
     assert np.count_nonzero(kept.mask[shadows[1]]) > 0.8 * shadows[1].sum()
+
+
+def test_hysteresis_growth_is_bounded_by_the_strong_blobs_hulls() -> None:
+    """A strong ring on a long weak band: unbounded hysteresis floods the band; bounded, the growth fills the ring's
+    inside (its convex hull) and stops ``max_grow_px`` beyond it."""
+    from nodes.occlude.dynamic import hysteresis_mask
+
+    score = np.zeros((60, 300), np.float32)
+    score[20:40, :] = 0.03  # weak band across the image
+    score[22:38, 10:30] = 0.2  # strong blob at its left end ...
+    score[26:34, 14:26] = 0.03  # ... with a weak inside
+    flooded = hysteresis_mask(score, 0.08, 0.02) > 0
+    bounded = hysteresis_mask(score, 0.08, 0.02, max_grow_px=8) > 0
+    assert flooded[20:40, :].all()
+    assert bounded[22:38, 10:30].all()  # the inside is filled
+    cols = np.nonzero(bounded.any(axis=0))[0]
+    assert cols.min() == 2 and cols.max() == 29 + 8
+    assert not bounded[:20].any() and not bounded[40:].any()
+    assert np.array_equal(hysteresis_mask(score, 0.08, 0.02, max_grow_px=1000) > 0, flooded)

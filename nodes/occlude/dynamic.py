@@ -16,8 +16,10 @@ Steps, all at working resolution except the last:
    between days is not taken for an occluder (a neighbour's own mask does not take it out of the
    guard, see :func:`vote_score`); changes between sky-like pixels (clouds) are ignored
    and pixels of the photo's open sky (sky-like, connected to the top border) are never occluders;
-6. the mask grows by hysteresis through pixels above a weaker threshold, enclosed holes are filled
-   (an occluder's colour may match the background in places), and blobs whose outline is a
+6. the mask grows by hysteresis through pixels above a weaker threshold, but only within ``max_grow_px`` of the
+   convex hulls of the strong blobs (beyond the paper: unbounded, an occluder in front of a saturated surface
+   whose colour shifts a little from day to day, the green hoarding, flooded its whole length), enclosed holes
+   are filled (an occluder's colour may match the background in places), and blobs whose outline is a
    contrast edge of the background rather than of the photo are ghosts of a neighbour's occluder
    and dropped (see :func:`remove_ghosts`);
 7. colour model (beyond the paper, ``appearance``; :class:`nodes.occlude.colour.ColourModel`): HSV histograms of every
@@ -65,7 +67,7 @@ class DynamicParams:
 
     threshold: float = 0.08  # the paper's 0.05 is for the median score (vote_quantile=None)
     weak_ratio: float = 0.25  # hysteresis: grow from strong pixels through pixels above threshold * weak_ratio ...
-    max_grow_px: int | None = 8  # ... by at most this many pixels (None: the whole weak component)
+    max_grow_px: int | None = 24  # ... within this distance of the strong blobs' convex hulls (None: anywhere)
     fill_holes: bool = True
     ghost_ratio: float = 1.0  # 0 disables ghost removal (see remove_ghosts)
     temporal_guard: bool = True  # the photo must also differ from its nearest earlier and later neighbours
@@ -394,23 +396,24 @@ def background_and_difference(
 
 
 def hysteresis_mask(score: F32, strong: float, weak: float, max_grow_px: int | None = None) -> U8:
-    """0/255 mask of pixels with ``score`` (h, w) above ``weak`` that are 8-connected to a pixel above ``strong``,
-    through at most ``max_grow_px`` weak pixels (None: any number). A bound keeps the growth to an occluder's own
-    outskirts: a slight day-to-day change of a saturated surface (the hoarding's green under another sky) passes the
-    weak threshold along its whole length, and an occluder standing in front of it would flood it."""
+    """0/255 mask of pixels with ``score`` (h, w) above ``weak`` that are 8-connected to a pixel above ``strong``;
+    with ``max_grow_px``, only through weak pixels within that distance of the convex hull of a blob of strong
+    pixels. An occluder's inside may match the background in places and is filled (it lies in its outline's hull),
+    but the growth does not run off along the scene: a slight day-to-day change of a saturated surface (the
+    hoarding's green under another sky) passes the weak threshold along its whole length, and an occluder standing
+    in front of it would flood it."""
     strong_px = score > strong
     if weak >= strong:
         return strong_px.astype(np.uint8) * 255
     weak_px = (score > weak) | strong_px
     if max_grow_px is not None:
-        grown = strong_px
-        kernel = np.ones((3, 3), np.uint8)
-        for _ in range(max_grow_px):
-            step = (cv2.dilate(grown.astype(np.uint8), kernel) > 0) & weak_px
-            if np.array_equal(step, grown):
-                break
-            grown = step
-        return grown.astype(np.uint8) * 255
+        hull = np.zeros(score.shape, np.uint8)
+        contours, _ = cv2.findContours(strong_px.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+        for c in contours:
+            cv2.fillConvexPoly(hull, cv2.convexHull(c), 1)
+        if max_grow_px > 0:
+            hull = cv2.dilate(hull, np.ones((2 * max_grow_px + 1, 2 * max_grow_px + 1), np.uint8))
+        weak_px &= hull > 0
     n, labels = cv2.connectedComponents(weak_px.astype(np.uint8), connectivity=8)
     seeded = np.zeros(n, bool)
     seeded[np.unique(labels[strong_px])] = True

@@ -83,9 +83,9 @@ class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=Tr
     max_unstored_inputs: int = 64
     max_time_gap_days: float = 0.0  # 0: no limit on the time between a photo and its neighbours
     dynamic_threshold: float = 0.08  # smoothed squared HSV difference, any channel (paper: 0.05 for the median score)
-    # the dynamic mask grows from the pixels above the threshold through weaker ones by at most this many working
-    # pixels (None: without bound, as before 2026-12-06)
-    dynamic_max_grow_px: int | None = 8
+    # the dynamic mask grows from the pixels above the threshold through weaker ones only within this many working
+    # pixels of the convex hulls of the strong blobs (None: without bound, as before 2026-12-06)
+    dynamic_max_grow_px: int | None = 24
     dynamic_score: str = "vote"  # "vote": must differ from most neighbours; "median": from the median (paper)
     fixed_alignment: str = "homography"  # a fixed camera's frames: "homography" (SIFT) or "shift"
     # colour model learnt from the time-lapse masks (dynamic.ColourModel): "all" labels photos without a stack and
