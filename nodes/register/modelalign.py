@@ -442,32 +442,30 @@ def refine_pose(
             wi, cfw0, samples.point_in_world_m, np.zeros(7)
         )
         result.image_shift_rel = float(np.nanmean(np.linalg.norm(moved, axis=1))) / ww
+    refusal = ""
+    note = ""
     if clicks is not None:
         rms0 = click_rms_px(intr, wfc0, clicks)
         rms1 = click_rms_px(_focal_scaled(intr, x), wfc, clicks)
         result.click_rms_px = (rms0, rms1)
+        note = f", clicks {rms0:.2f} -> {rms1:.2f} px"
         if not rms1 <= max(p.click_gate_px, rms0):
-            result.reason = f"clicks {rms0:.2f} -> {rms1:.2f} px (> {max(p.click_gate_px, rms0):.2f})"
-        elif sup < result.support_before + p.min_support_gain:
-            result.reason = f"edge support {result.support_before:.3f} -> {sup:.3f} (gain < {p.min_support_gain})"
-        else:
-            result.accepted = True
-            result.reason = f"edge support {result.support_before:.3f} -> {sup:.3f}, clicks {rms0:.2f} -> {rms1:.2f} px"
-            result.world_from_camera = wfc
-            result.intrinsics = _focal_scaled(intr, x)
+            refusal = f"clicks {rms0:.2f} -> {rms1:.2f} px (> {max(p.click_gate_px, rms0):.2f})"
     elif result.rotation_deg > p.max_rotation_deg:
-        result.reason = f"rotated {result.rotation_deg:.2f} deg (> {p.max_rotation_deg})"
+        refusal = f"rotated {result.rotation_deg:.2f} deg (> {p.max_rotation_deg})"
     elif result.shift_m > p.max_shift_rel * depth_m:
-        result.reason = f"moved {result.shift_m:.2f} m (> {p.max_shift_rel:.0%} of the {depth_m:.1f} m depth)"
+        refusal = f"moved {result.shift_m:.2f} m (> {p.max_shift_rel:.0%} of the {depth_m:.1f} m depth)"
     elif result.image_shift_rel > p.max_image_shift_rel:
-        result.reason = (
+        refusal = (
             f"outline moved {100 * result.image_shift_rel:.2f} % of the width (> {100 * p.max_image_shift_rel:.2f} %)"
         )
-    elif sup < result.support_before + p.min_support_gain:
-        result.reason = f"edge support {result.support_before:.3f} -> {sup:.3f} (gain < {p.min_support_gain})"
+    if not refusal and sup < result.support_before + p.min_support_gain:
+        refusal = f"edge support {result.support_before:.3f} -> {sup:.3f} (gain < {p.min_support_gain})"
+    if refusal:
+        result.reason = refusal
     else:
         result.accepted = True
-        result.reason = f"edge support {result.support_before:.3f} -> {sup:.3f}"
+        result.reason = f"edge support {result.support_before:.3f} -> {sup:.3f}{note}"
         result.world_from_camera = wfc
         result.intrinsics = _focal_scaled(intr, x)
     return result
