@@ -411,9 +411,10 @@ def hysteresis_mask(score: F32, strong: float, weak: float, max_grow_px: int | N
         contours, _ = cv2.findContours(strong_px.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
         for c in contours:
             cv2.fillConvexPoly(hull, cv2.convexHull(c), 1)
+        near = hull
         if max_grow_px > 0:
-            hull = cv2.dilate(hull, np.ones((2 * max_grow_px + 1, 2 * max_grow_px + 1), np.uint8))
-        weak_px &= hull > 0
+            near = np.asarray(cv2.dilate(hull, np.ones((2 * max_grow_px + 1, 2 * max_grow_px + 1), np.uint8)))
+        weak_px &= near > 0
     n, labels = cv2.connectedComponents(weak_px.astype(np.uint8), connectivity=8)
     seeded = np.zeros(n, bool)
     seeded[np.unique(labels[strong_px])] = True
