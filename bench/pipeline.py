@@ -82,28 +82,23 @@ def site_photos(site: Path) -> dict[str, str]:
     return out
 
 
-def final_outputs(recording: Path) -> tuple[dict, dict, dict]:
-    """Last Registration, last OcclusionMask per kind and last state4d Overlay, per photo id."""
+def final_outputs(recording: Path) -> tuple[dict, dict, dict, dict]:
+    """Last Registration, last Registration as solved (before the outline polish's update, method ``...+outline``),
+    last OcclusionMask per kind and last state4d Overlay, per photo id; one pass over the recording."""
     regs: dict[str, Registration] = {}
+    solved: dict[str, Registration] = {}
     masks: dict[str, dict[str, OcclusionMask]] = defaultdict(dict)
     overlays: dict[str, Overlay] = {}
     for _key, msg in decoded_messages(recording, (Registration, OcclusionMask, Overlay), allow_truncated=True):
         if isinstance(msg, Registration):
             regs[msg.photo_id] = msg
+            if not msg.method.endswith("+outline"):
+                solved[msg.photo_id] = msg
         elif isinstance(msg, OcclusionMask):
             masks[msg.photo_id][msg.kind] = msg
         elif isinstance(msg, Overlay) and msg.mode == "state4d":
             overlays[msg.photo_id] = msg
-    return regs, masks, overlays
-
-
-def solved_registrations(recording: Path) -> dict[str, Registration]:
-    """Last registration per photo id as solved, before the outline polish's update (method ``...+outline``)."""
-    out: dict[str, Registration] = {}
-    for _key, msg in decoded_messages(recording, (Registration,), allow_truncated=True):
-        if isinstance(msg, Registration) and not msg.method.endswith("+outline"):
-            out[msg.photo_id] = msg
-    return out
+    return regs, solved, masks, overlays
 
 
 def mask_of(msg: OcclusionMask | None, shape: tuple[int, int]) -> np.ndarray:
@@ -146,8 +141,7 @@ def score(site: Path, recording: Path) -> dict:
     """Per-group registration, mask and footprint figures of one recording."""
     by_id = site_photos(site)
     cams = load_cameras(site)
-    regs, masks, overlays = final_outputs(recording)
-    solved = solved_registrations(recording)
+    regs, solved, masks, overlays = final_outputs(recording)
     acc: dict[str, dict[str, list]] = defaultdict(lambda: defaultdict(list))
     for pid, rel in by_id.items():
         for g in (group_of(rel), "overall"):
