@@ -31,7 +31,7 @@ import json, resource, sys, time
 mode, out_path, paths = sys.argv[1], sys.argv[2], sys.argv[3:]
 out = {}
 if mode == "ingest":
-    from nodes.ingest.ifc import load_site_model
+    from constructaide.bim.ifc import load_site_model
     from nodes.ingest.revisions import to_bim_model
     from schemas import codec
     t0 = time.perf_counter()
@@ -62,7 +62,7 @@ elif mode == "iterator":
                     break
     out = {"load_s": time.perf_counter() - t0, "shapes": n}
 else:
-    import ifcopenshell, ifcopenshell.geom, trimesh, nodes.ingest.ifc  # noqa: F401
+    import ifcopenshell, ifcopenshell.geom, trimesh, constructaide.bim.ifc  # noqa: F401
 out["maxrss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 print(json.dumps(out))
 """

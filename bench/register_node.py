@@ -32,11 +32,11 @@ from _report import code_version, table, write_section  # noqa: E402
 from register_stream import score  # noqa: E402
 
 from constructaide import sitedir  # noqa: E402
+from constructaide.bim.ifc import load_site_model  # noqa: E402
 from constructaide.runtime import start_node  # noqa: E402
 from constructaide.runtime.local import LocalBus  # noqa: E402
 from constructaide.synth import ensure_site  # noqa: E402
 from constructaide.synth.truth import load_cameras  # noqa: E402
-from nodes.ingest.ifc import load_site_model  # noqa: E402
 from nodes.ingest.revisions import to_bim_model  # noqa: E402
 from nodes.register.node import SPEC, Config  # noqa: E402
 from schemas import keys  # noqa: E402

@@ -88,7 +88,7 @@ def load_site(size: str = "small"):
     cams = load_cameras(site)
     anchors = {a["image"]: a for a in json.loads((site / "anchors.json").read_text())["anchors"]}
     meta = tomllib.loads((site / "site.toml").read_text())
-    from nodes.ingest.ifc import load_site_model
+    from constructaide.bim.ifc import load_site_model
 
     model = load_site_model([site / meta["paths"]["ifc"]], tz=meta["site"]["tz"])
     meshes = glb_to_meshes((site / meta["paths"]["glb"]).read_bytes())

@@ -43,8 +43,10 @@ import statistics
 import sys
 import tempfile
 import time
+import tomllib
 from collections.abc import Callable
 from pathlib import Path
+from typing import NamedTuple
 
 import msgspec
 import numpy as np
@@ -85,6 +87,18 @@ from schemas.messages import Intrinsics  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 PYCOLMAP_GT = "pycolmap, GT similarity"
 PYCOLMAP_ANCHOR = "pycolmap, anchor similarity"
+
+
+NO_POLISH = "no outline polish"
+"""Variant label: the synthetic sites' IFC not given to ``run_batch`` (the poses as solved; an ablation)."""
+
+
+class BimInput(NamedTuple):
+    """What ``run_batch`` gets of a synthetic site's model (``--bim``, ``--tz``, ``--terrain-height-m``)."""
+
+    paths: tuple[Path, ...]
+    tz: str
+    terrain_height_m: float | None
 
 
 def write_anchor_file(
@@ -210,6 +224,7 @@ def run_ours(
     cfg: MapperConfig,
     densify: bool = False,
     camera_folders: bool = False,
+    bim: BimInput | None = None,
 ):
     """Our batch registration timed without densification; with ``densify`` the default densification is then run
     on the result and timed on its own (what the default ``run_batch`` does after registering); ``camera_folders``:
@@ -225,6 +240,9 @@ def run_ours(
         show_progress=False,
         densify_params=None,
         camera_folders=camera_folders,
+        bim_paths=bim.paths if bim is not None else (),
+        tz=bim.tz if bim is not None else "UTC",
+        terrain_height_m=bim.terrain_height_m if bim is not None else None,
     )
     secs = time.perf_counter() - t0
     est = {im.name: (im.intrinsics, im.world_from_camera) for im in recon.images if im.registered}
@@ -393,6 +411,7 @@ def bench_set(
     pycolmap_runs: int = 3,
     first_draw: int = 0,
     camera_folders: bool = False,
+    bim: BimInput | None = None,
 ):
     """Rows for one set: for each anchor protocol (who clicks what: ``protocols`` label -> writer) and variant
     (``cfgs``), ours over ``runs`` click-noise draws (run r: draw first_draw + r); pycolmap (no clicks) in the first
@@ -425,8 +444,9 @@ def bench_set(
                 for k, label in enumerate(cfgs):
                     out = tmp / f"ours_{p_label.replace(' ', '_')}_{k}_{r}"
                     first = not densify_times or len(densify_times) < r + 1
+                    polished = bim if label != NO_POLISH else None
                     est, secs, report, dsecs = run_ours(
-                        images_dir, anchor_file, out, max_side, cfgs[label], first, camera_folders
+                        images_dir, anchor_file, out, max_side, cfgs[label], first, camera_folders, polished
                     )
                     times[(p_label, label)].append(secs)
                     if first:
@@ -521,9 +541,9 @@ def synth_rows(
 
         protocols[label] = write
     name = f"synthetic {size} (seed {seed})"
-    rows = bench_set(
-        name, cams, site / "photos", None, runs, cfgs, protocols, X, pycolmap_runs, first_draw, camera_folders=True
-    )
+    doc = tomllib.loads((site / "site.toml").read_text())
+    bim = BimInput((site / doc["paths"]["ifc"],), doc["site"]["tz"], doc["site"].get("terrain_height_m"))
+    rows = bench_set(name, cams, site / "photos", None, runs, cfgs, protocols, X, pycolmap_runs, first_draw, True, bim)
     return rows, synth_note(size, seed)
 
 
@@ -797,6 +817,7 @@ def main(argv: list[str] | None = None) -> int:
         "pp refined, anchors free": MapperConfig(refine_principal_point=True, fix_anchor_poses=False),
         "accuracy target 5 mm": MapperConfig(target_centre_sigma=0.005),
         "no relative-pose bootstrap": MapperConfig(bootstrap=False),
+        NO_POLISH: MapperConfig(),
         **EXTRA_VARIANTS,
     }
     cfgs = {"default": all_cfgs["default"]}

@@ -68,8 +68,8 @@ def _pyrender_baseline(scene, intr, wfc, runs: int) -> float:
 
 
 def _synthetic_case(quick: bool):
+    from constructaide.bim.ifc import load_site_model
     from constructaide.synth import ensure_site, truth
-    from nodes.ingest.ifc import load_site_model
     from nodes.ingest.revisions import to_bim_model
 
     size = "small" if quick else "default"
@@ -86,7 +86,7 @@ def _synthetic_case(quick: bool):
 
 
 def _ifc_case(path: Path):
-    from nodes.ingest.ifc import load_site_model
+    from constructaide.bim.ifc import load_site_model
     from nodes.ingest.revisions import to_bim_model
 
     model = to_bim_model(load_site_model([path]), "b", "r1")

@@ -21,10 +21,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import constructaide  # noqa: E402,F401  (sets PYOPENGL_PLATFORM)
+from constructaide.bim.ifc import load_site_model  # noqa: E402
 from constructaide.modelscene import scene_from_model  # noqa: E402
 from constructaide.modelview import GLRasterizer  # noqa: E402
 from constructaide.synth import ensure_site, truth  # noqa: E402
-from nodes.ingest.ifc import load_site_model  # noqa: E402
 from nodes.ingest.revisions import to_bim_model  # noqa: E402
 from nodes.render.overlays import MODES, ScheduleView, composite, render_overlay  # noqa: E402
 from nodes.render.photoreal import PhotorealRenderer  # noqa: E402

@@ -9,9 +9,9 @@ import cv2
 import numpy as np
 
 import constructaide  # noqa: F401  (EGL platform)
+from constructaide.bim.ifc import load_site_model
 from constructaide.camera import centered_intrinsics, look_at
 from constructaide.synth.bigmodel import elements_per_storey, write_big_ifc
-from nodes.ingest.ifc import load_site_model
 from nodes.ingest.revisions import to_bim_model
 from nodes.render.engine import RenderEngine
 from schemas import codec

@@ -291,8 +291,8 @@ def test_dashboard_real_ifc_model_to_rrd(tmp_path: Path, ifc: str) -> None:
     """A real IFC model (ingest core -> BimModel) becomes one static mesh entity per element."""
     import logging
 
+    from constructaide.bim.ifc import load_site_model
     from nodes.dashboard.node import Config, DashboardNode, entity_path
-    from nodes.ingest.ifc import load_site_model
     from nodes.ingest.revisions import to_bim_model
 
     model = to_bim_model(load_site_model([DATA / "ifc" / ifc], tz="UTC", threads=1), SITE, "r1")

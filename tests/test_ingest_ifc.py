@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import trimesh
 
+from constructaide.bim.ifc import IfcLoadError, load_site_model
 from constructaide.bimgeom import glb_to_meshes, load_bim_model_glb
-from nodes.ingest.ifc import IfcLoadError, load_site_model
 from nodes.ingest.revisions import diff_models, to_bim_model
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -277,7 +277,7 @@ def test_bad_ifc_inputs_give_clear_errors(tmp_path: Path) -> None:
 
 @needs_data
 def test_ifc_cyclic_sequence_rejected(tmp_path: Path) -> None:
-    from nodes.ingest.schedule import ScheduleError
+    from constructaide.bim.schedule import ScheduleError
 
     text = BSI.read_text()
     # Add Wall #4 -> Slab #1, closing the loop Slab #1 -> Wall #1 -> ... -> Wall #4 -> Slab #1.

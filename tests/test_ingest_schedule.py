@@ -11,9 +11,9 @@ from zoneinfo import ZoneInfo
 
 import pytest
 
+from constructaide.bim.ifc import element_index, load_site_model
+from constructaide.bim.schedule import ScheduleError, load_schedule, tasks_from_msproject_xml, validate_tasks
 from constructaide.schedule4d import element_windows, planned_state, schedule_status, task_ancestors, task_elements
-from nodes.ingest.ifc import element_index, load_site_model
-from nodes.ingest.schedule import ScheduleError, load_schedule, tasks_from_msproject_xml, validate_tasks
 from schemas.messages import ScheduleTask
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"

@@ -17,11 +17,11 @@ import cv2
 import numpy as np
 import pytest
 
+from constructaide.bim.ifc import load_site_model
+from constructaide.bim.schedule import tasks_from_ifc, zone
 from constructaide.camera import pose_to_tuple
-from nodes.ingest.ifc import load_site_model
 from nodes.ingest.photos import photo_from_file
 from nodes.ingest.revisions import to_bim_model
-from nodes.ingest.schedule import tasks_from_ifc, zone
 from nodes.progress import batch, exports
 from nodes.recorder.mcapio import RecordingWriter
 from schemas import codec, keys

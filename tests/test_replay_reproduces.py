@@ -13,10 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
+from constructaide.bim.ifc import load_site_model
 from constructaide.photos import photo_from_file
 from constructaide.runtime import start_node
 from constructaide.runtime.local import LocalBus
-from nodes.ingest.ifc import load_site_model
 from nodes.ingest.revisions import to_bim_model
 from nodes.recorder import node as recorder_node
 from nodes.recorder.mcapio import iter_recording, replay

@@ -11,9 +11,9 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+from constructaide.bim.ifc import load_site_model
 from constructaide.runtime import Collector, start_node
 from constructaide.runtime.local import LocalBus
-from nodes.ingest.ifc import load_site_model
 from nodes.ingest.photos import photo_from_file
 from nodes.ingest.revisions import to_bim_model
 from nodes.register.node import SPEC as REGISTER

@@ -18,8 +18,8 @@ def _advance(bar: tqdm, name: str) -> None:
 
 def bim_summary_main(argv: list[str] | None = None) -> int:
     """Print element counts by class and storey, the schedule and element states at an instant."""
-    from nodes.ingest.ifc import load_site_model
-    from nodes.ingest.schedule import parse_time, zone
+    from constructaide.bim.ifc import load_site_model
+    from constructaide.bim.schedule import parse_time, zone
     from nodes.ingest.summary import format_summary, summarize
 
     p = argparse.ArgumentParser(prog="constructaide bim summary", description=bim_summary_main.__doc__)

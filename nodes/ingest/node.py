@@ -18,12 +18,12 @@ import threading
 import time
 from pathlib import Path
 
+from constructaide.bim.ifc import load_site_model
+from constructaide.bim.model import SiteModel
 from constructaide.photos import PhotoError, photo_from_bytes
 from constructaide.runtime import Input, NodeContext, NodeSpec, Output, run_node_cli
 from constructaide.sitedir import camera_of
 from nodes.ingest.config import Config
-from nodes.ingest.ifc import load_site_model
-from nodes.ingest.model import SiteModel
 from nodes.ingest.revisions import diff_models, revision_id, to_bim_model
 from nodes.ingest.watcher import FolderWatcher, SeenHashes, Signature, content_hash, file_signature, settled_change
 from schemas import keys

@@ -7,8 +7,8 @@ import hashlib
 from collections.abc import Iterable
 from pathlib import Path
 
+from constructaide.bim.model import SiteModel
 from constructaide.bimgeom import meshes_to_glb
-from nodes.ingest.model import SiteModel
 from schemas.messages import BimModel, BimUpdate
 
 

@@ -7,7 +7,7 @@ from collections import Counter
 from typing import Any
 from zoneinfo import ZoneInfo
 
-from nodes.ingest.model import SiteModel
+from constructaide.bim.model import SiteModel
 
 
 def _iso(ns: int, tz: ZoneInfo) -> str:

@@ -20,6 +20,7 @@ import math
 import statistics
 import sys
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import NamedTuple
@@ -30,13 +31,17 @@ import numpy as np
 from tqdm import tqdm
 
 from constructaide import camera as cam
+from constructaide.bim.ifc import load_site_model
 from constructaide.errors import UserError
 from constructaide.geo import exif_gps
 from constructaide.sitedir import camera_of
+from nodes.register.bimdepth import MeshDepthLookup
+from nodes.register.bimsite import BimMeshes
 from nodes.register.colmap_io import ColmapImage, ColmapModel, write_text_model
 from nodes.register.config import MapperConfig
 from nodes.register.densify import DensifyParams, densify_reconstruction
 from nodes.register.features import Features, extract_features
+from nodes.register.modelalign import AlignParams, PolishPolicy, ViewPolish, polish_registration
 from nodes.register.pose import epipolar_agreement
 from nodes.register.recon import Clicks, Reconstruction, add_image
 from nodes.register.sfm import reconstruct
@@ -44,6 +49,7 @@ from schemas.messages import GeoPoint
 
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp"}
 DEFAULT_DENSIFY = DensifyParams()
+DEFAULT_POLISH = AlignParams()
 # Longest image side (px) features are detected at, as COLMAP's default max_image_size: a 6 Mpx photo keeps its
 # full resolution.
 DEFAULT_MAX_SIDE_PX = 3200
@@ -307,6 +313,63 @@ def pair_consistency(recon: Reconstruction, cfg: MapperConfig) -> dict:
     }
 
 
+def load_bim_lookup(
+    bim_paths: tuple[Path, ...], tz: str = "UTC", terrain_height_m: float | None = None
+) -> MeshDepthLookup:
+    """The IFC file(s) as the register node's BIM view (the schedule's standing elements at a time, the terrain
+    plane at ``terrain_height_m``), read as the ingest node reads them. UserError on a file that cannot be used."""
+    try:
+        site_model = load_site_model(bim_paths, tz=tz)
+        bim = BimMeshes.from_site_model(site_model, terrain_height_m)
+        return MeshDepthLookup(bim.meshes, elements_at=bim.refs_at(), ground_height_m=terrain_height_m)
+    except ValueError as e:  # IfcLoadError, ScheduleError, a model without triangles
+        raise UserError(f"--bim: {e}") from e
+
+
+def polish_reconstruction(
+    recon: Reconstruction,
+    paths: dict[str, Path],
+    lookup: MeshDepthLookup,
+    params: AlignParams | None = None,
+    policy: PolishPolicy | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> dict[str, str]:
+    """Polish the registered images' poses and intrinsics by the model outline, in place, as the register node
+    polishes what it publishes (:func:`nodes.register.modelalign.polish_registration`: fixed cameras' frames, one
+    polish per view, and anchored phone photos with their accepted clicks), in capture order. Returns a note per
+    image: how it was polished, or why not."""
+    params = params or AlignParams()
+    views: dict[str, ViewPolish] = {}
+    order = sorted((im for im in recon.images if im.registered), key=lambda im: (im.capture_time_ns, im.name))
+    notes: dict[str, str] = {}
+    for k, im in enumerate(order):
+        path = paths[im.name]
+
+        def gray(path: Path = path) -> np.ndarray:
+            img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+            if img is None:
+                raise UserError(f"cannot read image {path}")
+            return img
+
+        clicks = im.accepted_clicks if im.camera_id is None else None
+        try:
+            out = polish_registration(
+                lookup, gray, im.camera, im.pose, im.capture_time_ns, im.camera_id, clicks, views, params, policy
+            )
+        except (RuntimeError, ValueError) as e:  # no GL context, a degenerate render: the solved pose stands
+            notes[im.name] = f"not polished: {e}"
+            out = None
+        if out is not None and out.world_from_camera is not None and out.intrinsics is not None:
+            im.world_from_camera, im.intrinsics = out.world_from_camera, out.intrinsics
+        if out is not None:
+            notes[im.name] = out.note
+        else:
+            notes.setdefault(im.name, "not polished (a phone photo without anchor clicks)")
+        if progress is not None:
+            progress(k + 1, len(order))
+    return notes
+
+
 def run_batch(
     images_dir: Path,
     anchors_path: Path,
@@ -319,6 +382,9 @@ def run_batch(
     show_progress: bool = True,
     densify_params: DensifyParams | None = DEFAULT_DENSIFY,
     camera_folders: bool = False,
+    tz: str = "UTC",
+    terrain_height_m: float | None = None,
+    polish_params: AlignParams | None = DEFAULT_POLISH,
 ) -> tuple[Reconstruction, dict]:
     """Register every image under ``images_dir``; write the COLMAP model and report.json to ``out_dir``.
 
@@ -328,13 +394,18 @@ def run_batch(
     and poses first, no relative pose at small parallax between its own frames).
 
     With ``densify_params`` (the default) the registered cloud is then densified by epipolar-guided matching
-    (:func:`densify_reconstruction`; ``None`` skips it); its time is reported separately (``timings_secs``)."""
+    (:func:`densify_reconstruction`; ``None`` skips it); its time is reported separately (``timings_secs``).
+
+    ``bim_paths`` (IFC files; ``tz`` for schedule dates without an offset, ``terrain_height_m`` the ground level in
+    the model frame): the registered poses are then polished by the model outline (:func:`polish_reconstruction`,
+    before the densification; ``polish_params`` None skips it) and written so."""
     t0 = time.perf_counter()
     cfg = cfg or MapperConfig()
     anchors, file_focal, on_request = load_anchor_file(anchors_path)
     for b in bim_paths:
         if not Path(b).exists():
             raise UserError(f"--bim {b} does not exist")
+    lookup = load_bim_lookup(tuple(bim_paths), tz, terrain_height_m) if bim_paths and polish_params else None
     named = find_images(images_dir)
     if not named:
         raise UserError(f"no images under {images_dir}")
@@ -381,6 +452,18 @@ def run_batch(
     )
     bar_m.close()
     bar_r.close()
+    polish_notes: dict[str, str] = {}
+    t_polish = time.perf_counter()
+    if lookup is not None:
+        bar_p = tqdm(total=0, desc="outline polish", unit="img", disable=not show_progress, file=sys.stderr)
+
+        def pprog(done: int, total: int) -> None:
+            bar_p.total, bar_p.n = total, done
+            bar_p.refresh()
+
+        polish_notes = polish_reconstruction(recon, dict(named), lookup, polish_params, progress=pprog)
+        bar_p.close()
+    polish_secs = time.perf_counter() - t_polish
     dense_stats = None
     if densify_params is not None:
         bar_d = tqdm(total=0, desc="densify", unit="pair", disable=not show_progress, file=sys.stderr)
@@ -412,10 +495,17 @@ def run_batch(
             {"image": im.name, "status": im.status, "reason": im.message} for im in recon.images if not im.registered
         ],
         "needs_anchor": [{"image": n, "reason": r, "num_matched_tracks": c} for n, r, c in recon.needs_anchor],
-        "images": image_report(recon),
+        "images": [
+            {**d, "polish": polish_notes[d["image"]]} if d["image"] in polish_notes else d for d in image_report(recon)
+        ],
         "densify": dense_stats,
         "pair_consistency": pair_consistency(recon, cfg),
-        "timings_secs": {"features": features_secs, **recon.timings_secs, "total": time.perf_counter() - t0},
+        "timings_secs": {
+            "features": features_secs,
+            **recon.timings_secs,
+            "outline_polish": polish_secs,
+            "total": time.perf_counter() - t0,
+        },
     }
     (out_dir / "report.json").write_text(json.dumps(report, indent=2))
     return recon, report
@@ -429,7 +519,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--images", required=True, type=Path, help="folder of photos (searched recursively)")
     ap.add_argument("--anchors", required=True, type=Path, help="anchor clicks JSON file")
     ap.add_argument("--out", required=True, type=Path, help="output folder for the COLMAP text model + report.json")
-    ap.add_argument("--bim", action="append", default=[], type=Path, help="BIM model file(s) (recorded in report)")
+    ap.add_argument(
+        "--bim",
+        action="append",
+        default=[],
+        type=Path,
+        help="IFC model file(s) in the anchor clicks' frame: the registered poses are polished by the model's outlines "
+        "(fixed cameras' frames with --camera-folders, and anchored photos with their clicks), as the streaming "
+        "node polishes what it publishes",
+    )
+    ap.add_argument("--tz", default="UTC", help="time zone of schedule dates without an offset (with --bim)")
+    ap.add_argument(
+        "--terrain-height-m", type=float, default=None, help="ground level in the model frame (with --bim; z up)"
+    )
+    ap.add_argument("--no-outline-polish", action="store_true", help="with --bim: keep the poses as solved")
     ap.add_argument("--focal-px", type=float, default=None, help="focal prior in pixels for every image")
     ap.add_argument(
         "--max-side",
@@ -498,6 +601,9 @@ def main(argv: list[str] | None = None) -> int:
         show_progress=not args.quiet,
         densify_params=None if args.no_densify else DEFAULT_DENSIFY,
         camera_folders=args.camera_folders,
+        tz=args.tz,
+        terrain_height_m=args.terrain_height_m,
+        polish_params=None if args.no_outline_polish else DEFAULT_POLISH,
     )
     print(
         f"registered {report['num_registered']}/{report['num_images']} images, {report['num_points']} points "

@@ -7,6 +7,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from constructaide.bim.model import SiteModel
 from constructaide.bimgeom import glb_to_meshes
 from constructaide.schedule4d import standing_elements
 from schemas.messages import BimModel, BimUpdate, ScheduleTask
@@ -26,6 +27,18 @@ class BimMeshes:
         self.ref_of = {e.global_id: (e.geometry_ref or e.global_id) for e in msg.elements}
         self.tasks = msg.tasks
         self.terrain_height_m = msg.terrain_height_m
+
+    @classmethod
+    def from_site_model(cls, site_model: SiteModel, terrain_height_m: float | None = None) -> BimMeshes:
+        """The model as read from its files (the batch command's ``--bim``), as :meth:`set_model` would hold it."""
+        out = cls()
+        out.ref_of = {e.global_id: (e.geometry_ref or e.global_id) for e in site_model.elements.values()}
+        out.meshes = {
+            ref: (m.vertices_m, m.faces) for ref in set(out.ref_of.values()) if (m := site_model.meshes.get(ref))
+        }
+        out.tasks = site_model.tasks
+        out.terrain_height_m = terrain_height_m
+        return out
 
     def apply_update(self, msg: BimUpdate) -> None:
         for gid in msg.removed:

@@ -29,7 +29,9 @@ user clicked. The clicks' RMS then bounds the result (``click_gate_px``) instead
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import cv2
 import msgspec
@@ -519,3 +521,69 @@ def same_view(
     turn_deg = cam.rotation_angle_deg(world_from_camera_a[:3, :3], world_from_camera_b[:3, :3])
     shift_m = float(np.linalg.norm(world_from_camera_a[:3, 3] - world_from_camera_b[:3, 3]))
     return turn_deg <= params.same_view_deg and shift_m <= params.same_view_m
+
+
+@dataclass
+class ViewPolish:
+    """The outline polish of a fixed camera's view: its first frame's solved pose (4x4) and intrinsics, and the
+    accepted polish (None: refused)."""
+
+    solved: F64
+    solved_intrinsics: Intrinsics
+    result: AlignResult | None
+
+
+class Polished(NamedTuple):
+    """What :func:`polish_registration` made of a registration: the polished pose (4x4 world_from_camera, m) and
+    intrinsics, or None for both when the polish refused (the registration stands as solved), and a note why."""
+
+    world_from_camera: F64 | None
+    intrinsics: Intrinsics | None
+    note: str
+
+
+class PolishPolicy(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """Which registrations :func:`polish_registration` polishes (the streaming node's ``stream.model_align*`` and
+    the batch command's ``--bim`` share it)."""
+
+    fixed_cameras: bool = True
+    phones: bool = False
+    anchored_phones: bool = True
+
+
+def polish_registration(
+    lookup: MeshDepthLookup,
+    gray: Callable[[], NDArray[np.uint8]],
+    intr: Intrinsics,
+    world_from_camera: F64,
+    capture_time_ns: int,
+    camera_id: str | None,
+    clicks: tuple[F64, F64] | None,
+    views: dict[str, ViewPolish],
+    params: AlignParams,
+    policy: PolishPolicy | None = None,
+) -> Polished | None:
+    """One registration (4x4 world_from_camera, m) polished by the model outline (:class:`Polished`, also when the
+    polish refuses), or None when the policy leaves it. A fixed camera's (``camera_id``) frames of one
+    view share the first frame's polish or refusal, kept in ``views`` (polished one by one they would each move a
+    little while the camera stood still, and its time-lapse overlays would jitter). A phone photo with ``clicks``
+    (accepted anchor clicks: pixels (N, 2), model points (N, 3) m) is polished with them. ``gray`` gives the photo
+    (H, W) uint8 when needed. Raises RuntimeError / ValueError when the model cannot be rendered."""
+    policy = policy or PolishPolicy()
+    anchored_phone = camera_id is None and clicks is not None and policy.anchored_phones
+    if not (policy.fixed_cameras if camera_id is not None else policy.phones or anchored_phone):
+        return None
+    seen = views.get(camera_id) if camera_id is not None else None
+    if seen is not None and same_view(seen.solved, seen.solved_intrinsics, world_from_camera, intr, params):
+        if seen.result is None:
+            return Polished(None, None, "not polished (this camera view's polish was refused)")
+        moved = seen.result.world_from_camera @ cam.invert_rigid(seen.solved) @ world_from_camera
+        # same_view: the same image size and focal within 1 %
+        note = f"polished by the model outline ({seen.result.reason}; this camera view's polish)"
+        return Polished(moved, seen.result.intrinsics, note)
+    res = polish(lookup, gray(), intr, world_from_camera, capture_time_ns, params, clicks if anchored_phone else None)
+    if camera_id is not None:
+        views[camera_id] = ViewPolish(world_from_camera, intr, res if res.accepted else None)
+    if not res.accepted:
+        return Polished(None, None, f"not polished: {res.reason}")
+    return Polished(res.world_from_camera, res.intrinsics, f"polished by the model outline ({res.reason})")

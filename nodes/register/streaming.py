@@ -28,7 +28,6 @@ from typing import Literal
 
 import msgspec
 import numpy as np
-from numpy.typing import NDArray
 
 from constructaide import camera as cam
 from constructaide.geo import horizontal_distance_m
@@ -40,7 +39,7 @@ from nodes.register.densify import DensifyParams, densify_reconstruction
 from nodes.register.fastpath import FastPath, FastPathConfig
 from nodes.register.features import extract_features, homography_inlier_ratio
 from nodes.register.matching import Vocabulary, match_image
-from nodes.register.modelalign import AlignParams, AlignResult, polish, same_view
+from nodes.register.modelalign import AlignParams, PolishPolicy, ViewPolish, polish_registration
 from nodes.register.photo import FrameImage, PhotoInput
 from nodes.register.pose import rotation_deviation
 from nodes.register.recon import (
@@ -139,14 +138,7 @@ class Outcome:
     map_changed: bool = False
 
 
-@dataclass(frozen=True)
-class _ViewPolish:
-    """The outline polish of a fixed camera's view: its first frame's solved pose (4x4) and intrinsics, and the
-    accepted polish (None: refused)."""
-
-    solved: NDArray[np.float64]
-    solved_intrinsics: Intrinsics
-    result: AlignResult | None
+_ViewPolish = ViewPolish  # the name register-node states saved before 2026-12-06 pickled it under
 
 
 class StreamingRegistrar:
@@ -746,44 +738,30 @@ class StreamingRegistrar:
             return None
         im = self.recon.images[self.recon.index(photo.photo_id)] if photo.photo_id in self.recon else None
         clicks = im.accepted_clicks if im is not None and photo.camera_id is None else None
-        anchored_phone = clicks is not None and self.config.model_align_anchored_phones
-        wanted = self.config.model_align and (
-            photo.camera_id is not None or self.config.model_align_phones or anchored_phone
-        )
-        if not wanted or not isinstance(lookup, MeshDepthLookup):
+        if not self.config.model_align or not isinstance(lookup, MeshDepthLookup):
             return None
         t0 = time.perf_counter()
-        pose = cam.pose_from_tuple(reg.world_from_camera)
-        # A fixed camera's frames of one view share the first frame's polish (or its refusal): polished one by one
-        # they would each move a little while the camera stood still, and its time-lapse overlays would jitter.
-        views: dict[str, _ViewPolish] = self.__dict__.setdefault("_polish_of_view", {})  # (state saved before it)
-        seen = views.get(photo.camera_id) if photo.camera_id is not None else None
-        if seen is not None and same_view(seen.solved, seen.solved_intrinsics, pose, reg.intrinsics, self.config.align):
-            if seen.result is None:
-                return None
-            world_from_camera = seen.result.world_from_camera @ cam.invert_rigid(seen.solved) @ pose
-            intrinsics = seen.result.intrinsics  # same_view: the same image size and focal within 1 %
-            note = f"polished by the model outline ({seen.result.reason}; this camera view's polish)"
-        else:
-            try:
-                res = polish(
-                    lookup,
-                    photo.image.gray(),
-                    reg.intrinsics,
-                    pose,
-                    photo.capture_time_ns,
-                    self.config.align,
-                    clicks if anchored_phone else None,
-                )
-            except (RuntimeError, ValueError) as e:  # no GL context, a degenerate render: the solved pose stands
-                self.depth_error = f"model outline polish of {reg.photo_id} failed: {e}"
-                return None
-            if photo.camera_id is not None:
-                views[photo.camera_id] = _ViewPolish(pose, reg.intrinsics, res if res.accepted else None)
-            if not res.accepted:
-                return None
-            world_from_camera, intrinsics = res.world_from_camera, res.intrinsics
-            note = f"polished by the model outline ({res.reason})"
+        policy = PolishPolicy(True, self.config.model_align_phones, self.config.model_align_anchored_phones)
+        views: dict[str, ViewPolish] = self.__dict__.setdefault("_polish_of_view", {})  # (state saved before it)
+        try:
+            out = polish_registration(
+                lookup,
+                photo.image.gray,
+                reg.intrinsics,
+                cam.pose_from_tuple(reg.world_from_camera),
+                photo.capture_time_ns,
+                photo.camera_id,
+                clicks,
+                views,
+                self.config.align,
+                policy,
+            )
+        except (RuntimeError, ValueError) as e:  # no GL context, a degenerate render: the solved pose stands
+            self.depth_error = f"model outline polish of {reg.photo_id} failed: {e}"
+            return None
+        if out is None or out.world_from_camera is None or out.intrinsics is None:
+            return None
+        world_from_camera, intrinsics, note = out.world_from_camera, out.intrinsics, out.note
         return msgspec.structs.replace(
             reg,
             intrinsics=intrinsics,

@@ -24,8 +24,8 @@ import ifcopenshell.util.unit as uu
 import msgspec
 import numpy as np
 
-from nodes.ingest.model import ElementMesh, MapConversion, SiteModel
-from nodes.ingest.schedule import load_schedule, resolve_elements, tasks_from_ifc, validate_tasks, zone
+from constructaide.bim.model import ElementMesh, MapConversion, SiteModel
+from constructaide.bim.schedule import load_schedule, resolve_elements, tasks_from_ifc, validate_tasks, zone
 from schemas.messages import BimElement, GeoPoint, ScheduleTask
 
 SUPPORTED_SCHEMAS = ("IFC2X3", "IFC4", "IFC4X3")

@@ -1,6 +1,6 @@
 """The in-memory site model: elements, meshes, geo-reference, schedule, grouping and 4D queries.
 
-Pure data (numpy + schemas); built by :mod:`nodes.ingest.ifc`, turned into bus messages by
+Pure data (numpy + schemas); built by :mod:`constructaide.bim.ifc`, turned into bus messages by
 :mod:`nodes.ingest.revisions`. Frames: vertices in site-local metres, z up, i.e. the IFC world
 frame minus ``origin_offset_m``.
 """
