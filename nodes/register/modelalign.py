@@ -83,13 +83,16 @@ class AlignParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     """Which photo edge a sample takes: ``nearest`` peak or ``strongest`` peak on its search line."""
     support_px: float = 1.5
     min_support_gain: float = 0.05
-    """The refinement is kept when the supported share grows by at least this (absolute)."""
-    max_rotation_deg: float = 0.7
-    max_shift_rel: float = 0.05
+    """The refinement is kept when the supported share grows by at least this (absolute) ..."""
+    free_image_shift_rel: float = 0.0025
+    """... and, for a larger move of the outline (mean, share of the image width), by that much more in proportion:
+    a larger pull needs clearer evidence (texture or clutter mistaken for the outline pulls far on little)."""
+    max_rotation_deg: float = 1.5
+    max_shift_rel: float = 0.1
     """Largest camera-centre move as a share of the median depth of the samples."""
-    max_image_shift_rel: float = 0.005
+    max_image_shift_rel: float = 0.01
     """Largest mean move of the samples' projections as a share of the image width: the refinement polishes a
-    registration, it does not replace one (a larger pull comes from texture or clutter mistaken for the outline)."""
+    registration, it does not replace one."""
     click_sigma_px: float = 2.0
     """With anchor clicks (:func:`refine_pose` ``clicks``): a click's standard deviation per axis (full-resolution
     pixels)."""
@@ -461,8 +464,9 @@ def refine_pose(
         refusal = (
             f"outline moved {100 * result.image_shift_rel:.2f} % of the width (> {100 * p.max_image_shift_rel:.2f} %)"
         )
-    if not refusal and sup < result.support_before + p.min_support_gain:
-        refusal = f"edge support {result.support_before:.3f} -> {sup:.3f} (gain < {p.min_support_gain})"
+    gain = p.min_support_gain * max(1.0, result.image_shift_rel / p.free_image_shift_rel) if clicks is None else None
+    if not refusal and sup < result.support_before + (gain or p.min_support_gain):
+        refusal = f"edge support {result.support_before:.3f} -> {sup:.3f} (gain < {gain or p.min_support_gain:.3f})"
     if refusal:
         result.reason = refusal
     else:
