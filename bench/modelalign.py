@@ -3,9 +3,10 @@ recordings, scored against the synthetic site's truth.
 
     python bench/modelalign.py --run SIZE:SEED:RECORDING [--run ...] [--no-write]
 
-For each registered photo of each recording: the pose the register node published (the recording must come from
-code without the polish, or from `model_align = false`, so that "before" is the unpolished pose) and the pose
-:func:`nodes.register.modelalign.polish` makes of it with the node's default parameters, on the recording's BIM
+For each registered photo of each recording: the pose the register node published as solved (its first
+registration of the photo that is not a polish update, ``...+outline``; recordings of code without the polish have
+only those) and the pose :func:`nodes.register.modelalign.polish` makes of it with the node's default parameters
+(``--ablation JSON``: also with those parameter overrides, rows labelled so), on the recording's BIM
 (elements the schedule says stand, terrain plane). Error = mean reprojection error on the photo's truly visible BIM
 pixels (every 16th pixel), % of the width: the true camera's pixel, back-projected with the true depth, projected
 by the estimate. Only this scoring reads `truth/`. Fixed-camera frames (polished by default) and phone photos
@@ -35,10 +36,11 @@ from _report import code_version, table, write_section  # noqa: E402
 from constructaide import camera as cam  # noqa: E402
 from constructaide.synth import ensure_site  # noqa: E402
 from constructaide.synth.truth import load_cameras, load_depth, load_ids, true_camera  # noqa: E402
-from nodes.progress.batch import read_inputs  # noqa: E402
+from nodes.progress.batch import iter_recording, read_inputs  # noqa: E402
 from nodes.register.bimdepth import MeshDepthLookup  # noqa: E402
 from nodes.register.bimsite import BimMeshes  # noqa: E402
 from nodes.register.modelalign import AlignParams, polish  # noqa: E402
+from schemas.messages import Registration  # noqa: E402
 
 
 def bim_error_pct(intr_t, wfc_t, intr_e, wfc_e, depth_m: np.ndarray) -> float:  # noqa: ANN001
@@ -56,9 +58,9 @@ def bim_error_pct(intr_t, wfc_t, intr_e, wfc_e, depth_m: np.ndarray) -> float:  
 
 
 def run(
-    size: str, seed: int, recording: Path, cache: Path, params: AlignParams
-) -> list[tuple[bool, float, float, bool, float]]:
-    """(fixed camera?, error before, error after, accepted, seconds) per registered photo."""
+    size: str, seed: int, recording: Path, cache: Path, params: list[AlignParams]
+) -> list[list[tuple[bool, float, float, bool, float]]]:
+    """Per parameter set: (fixed camera?, error before, error after, accepted, seconds) per registered photo."""
     site = ensure_site(size, seed, cache)
     cams = load_cameras(site)
     inputs = read_inputs(recording)
@@ -67,9 +69,13 @@ def run(
     bim.set_model(inputs.model)
     lookup = MeshDepthLookup(bim.meshes, elements_at=bim.refs_at(), ground_height_m=bim.terrain_height_m)
     rel_of = {p.photo_id: p.filename for p in inputs.photos.values()}
-    out = []
+    solved: dict[str, Registration] = {}
+    for msg in iter_recording(recording):
+        if isinstance(msg, Registration) and not msg.method.endswith("+outline"):
+            solved.setdefault(msg.photo_id, msg)
+    out: list[list[tuple[bool, float, float, bool, float]]] = [[] for _ in params]
     try:
-        for pid, reg in sorted(inputs.registrations.items(), key=lambda kv: kv[1].capture_time_ns):
+        for pid, reg in sorted(solved.items(), key=lambda kv: kv[1].capture_time_ns):
             if reg.status == "failed" or reg.intrinsics is None or pid not in rel_of:
                 continue
             rel = next((k for k in cams if k == rel_of[pid] or k.endswith("/" + rel_of[pid])), None)
@@ -77,14 +83,15 @@ def run(
                 continue
             gray = cv2.imread(str(site / "photos" / rel), cv2.IMREAD_GRAYSCALE)
             wfc = np.asarray(reg.world_from_camera, np.float64).reshape(4, 4)
-            t0 = time.perf_counter()
-            res = polish(lookup, gray, reg.intrinsics, wfc, reg.capture_time_ns, params)
-            secs = time.perf_counter() - t0
             intr_t, wfc_t = true_camera(site, rel, cams)
             depth = load_depth(site, rel) * (load_ids(site, rel) > 0)
             e0 = bim_error_pct(intr_t, wfc_t, reg.intrinsics, wfc, depth)
-            e1 = bim_error_pct(intr_t, wfc_t, res.intrinsics, res.world_from_camera, depth)
-            out.append((reg.camera_id is not None, e0, e1, res.accepted, secs))
+            for k, p in enumerate(params):
+                t0 = time.perf_counter()
+                res = polish(lookup, gray, reg.intrinsics, wfc, reg.capture_time_ns, p)
+                secs = time.perf_counter() - t0
+                e1 = bim_error_pct(intr_t, wfc_t, res.intrinsics, res.world_from_camera, depth)
+                out[k].append((reg.camera_id is not None, e0, e1, res.accepted, secs))
     finally:
         lookup.close()
     return out
@@ -116,21 +123,32 @@ def main() -> int:
     ap.add_argument(
         "--set", default="{}", help="AlignParams fields to override, JSON (e.g. '{\"max_rotation_deg\": 3}')"
     )
+    ap.add_argument(
+        "--ablation", default=None, help="also polish with these AlignParams overrides (JSON), rows labelled so"
+    )
+    ap.add_argument("--section", default="model outline polish", help="BENCHMARKS.md section to write")
     args = ap.parse_args()
-    params = msgspec.convert(msgspec.json.decode(args.set), AlignParams)
+    params = [msgspec.convert(msgspec.json.decode(args.set), AlignParams)]
+    tags = [""]
+    if args.ablation:
+        over = msgspec.json.decode(args.ablation)
+        params.append(msgspec.convert({**msgspec.json.decode(args.set), **over}, AlignParams))
+        tags.append(f" (ablation: {args.ablation})")
     rows: list[list[object]] = []
-    pooled: dict[bool, list] = {True: [], False: []}
+    pooled: dict[tuple[int, bool], list] = {(k, f): [] for k in range(len(params)) for f in (True, False)}
     names = []
     for spec in args.run:
         size, seed, rec = spec.split(":", 2)
-        res = run(size, int(seed), Path(rec), args.cache, params)
+        per_params = run(size, int(seed), Path(rec), args.cache, params)
         names.append(f"{size} seed {seed}: `{Path(rec).name}`")
         for fixed in (True, False):
-            part = [r for r in res if r[0] == fixed]
-            pooled[fixed] += part
-            rows.append(summary(part, f"{size} seed {seed}, {'fixed cameras' if fixed else 'phones'}"))
-    rows.append(summary(pooled[True], "all, fixed cameras (polished by default)"))
-    rows.append(summary(pooled[False], "all, phones (not polished by default)"))
+            for k, res in enumerate(per_params):
+                part = [r for r in res if r[0] == fixed]
+                pooled[(k, fixed)] += part
+                rows.append(summary(part, f"{size} seed {seed}, {'fixed cameras' if fixed else 'phones'}{tags[k]}"))
+    for k, tag in enumerate(tags):
+        rows.append(summary(pooled[(k, True)], f"all, fixed cameras (polished by default){tag}"))
+        rows.append(summary(pooled[(k, False)], f"all, phones (not polished without clicks){tag}"))
     headers = [
         "run",
         "photos",
@@ -145,13 +163,13 @@ def main() -> int:
     body = (
         f"Code: {code_version()}. Recordings: {'; '.join(names)}. Error: mean reprojection on the photo's truly"
         " visible BIM pixels, % of the width (see the script's docstring); before = the registration the register"
-        " node published, after = `modelalign.polish` of it"
+        " node published as solved, after = `modelalign.polish` of it"
         f" ({'the node default parameters' if args.set == '{}' else 'parameters ' + args.set}).\n\n"
         + table(headers, rows)
     )
     print(body)
     if not args.no_write:
-        write_section("model outline polish", body)
+        write_section(args.section, body)
     return 0
 
 

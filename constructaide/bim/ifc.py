@@ -145,7 +145,7 @@ def iterate_geometry(
     f: ifcopenshell.file, threads: int | None = None
 ) -> dict[int, tuple[np.ndarray, np.ndarray, RGBA | None]]:
     """World-coordinate triangle meshes in metres with their main surface colour:
-    ``{step id: (vertices (N,3) f64, faces (M,3) i32, rgba or None)}``.
+    ``{step id: (vertices (N,3) f64, faces (M,3) i32, rgba or None)}`` in step-id order.
 
     Elements whose geometry ifcopenshell cannot build are skipped by the iterator.
     """
@@ -167,7 +167,7 @@ def iterate_geometry(
                 out[shape.id] = (verts, faces, _dominant_rgba(shape.geometry))
             if not it.next():
                 break
-    return out
+    return dict(sorted(out.items()))  # the file's order, whatever order the threads finished in
 
 
 def _body_products(f: ifcopenshell.file) -> set[int]:

@@ -33,9 +33,9 @@ class BimMeshes:
         """The model as read from its files (the batch command's ``--bim``), as :meth:`set_model` would hold it."""
         out = cls()
         out.ref_of = {e.global_id: (e.geometry_ref or e.global_id) for e in site_model.elements.values()}
-        out.meshes = {
-            ref: (m.vertices_m, m.faces) for ref in set(out.ref_of.values()) if (m := site_model.meshes.get(ref))
-        }
+        # in the model's element order, as the GLB the ingest node publishes holds them (the draw order)
+        refs = dict.fromkeys(out.ref_of.values())
+        out.meshes = {ref: (m.vertices_m, m.faces) for ref in refs if (m := site_model.meshes.get(ref)) is not None}
         out.tasks = site_model.tasks
         out.terrain_height_m = terrain_height_m
         return out

@@ -13,7 +13,8 @@ their edges. The search range shrinks round by round and the model is rendered a
 rounds.
 
 The result is kept only when it explains the photo clearly better and stays a polish: the share of samples with a
-photo edge within ``support_px`` grows by at least ``min_support_gain``, the camera turns by at most
+photo edge within ``support_px`` grows by at least ``min_support_gain`` (and in proportion more for an outline moved
+by more than ``free_image_shift_rel`` of the width: a far pull needs clear evidence), the camera turns by at most
 ``max_rotation_deg``, its centre moves by at most ``max_shift_rel`` of the depth and the outline by at most
 ``max_image_shift_rel`` of the width. Otherwise the registration stands as solved; :class:`AlignResult` says why.
 On close-ups of heavy texture (brick, printed hoarding) the search locks onto texture as often as onto outlines
