@@ -3,10 +3,10 @@ recordings, scored against the synthetic site's truth.
 
     python bench/modelalign.py --run SIZE:SEED:RECORDING [--run ...] [--no-write]
 
-For each registered photo of each recording: the pose the register node published as solved (its first
-registration of the photo that is not a polish update, ``...+outline``; recordings of code without the polish have
-only those) and the pose :func:`nodes.register.modelalign.polish` makes of it with the node's default parameters
-(``--ablation JSON``: also with those parameter overrides, rows labelled so), on the recording's BIM
+For each registered photo of each recording: the pose the register node published as solved (its latest
+registration of the photo that is not failed and not a polish update, ``...+outline``; recordings of code without
+the polish have only those) and the pose :func:`nodes.register.modelalign.polish` makes of it with the node's
+default parameters (``--ablation JSON``: also with those parameter overrides, rows labelled so), on the recording's BIM
 (elements the schedule says stand, terrain plane). Error = mean reprojection error on the photo's truly visible BIM
 pixels (every 16th pixel), % of the width: the true camera's pixel, back-projected with the true depth, projected
 by the estimate. Only this scoring reads `truth/`. Fixed-camera frames (polished by default) and phone photos
@@ -70,9 +70,9 @@ def run(
     lookup = MeshDepthLookup(bim.meshes, elements_at=bim.refs_at(), ground_height_m=bim.terrain_height_m)
     rel_of = {p.photo_id: p.filename for p in inputs.photos.values()}
     solved: dict[str, Registration] = {}
-    for msg in iter_recording(recording):
-        if isinstance(msg, Registration) and not msg.method.endswith("+outline"):
-            solved.setdefault(msg.photo_id, msg)
+    for msg in iter_recording(recording):  # the latest solved registration of each photo
+        if isinstance(msg, Registration) and msg.status != "failed" and not msg.method.endswith("+outline"):
+            solved[msg.photo_id] = msg
     out: list[list[tuple[bool, float, float, bool, float]]] = [[] for _ in params]
     try:
         for pid, reg in sorted(solved.items(), key=lambda kv: kv[1].capture_time_ns):
