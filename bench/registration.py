@@ -879,6 +879,8 @@ def main(argv: list[str] | None = None) -> int:
         if note:
             notes.append(note)
     if not args.no_write:
+        if all(x.startswith("synthetic-") for x in sets):  # the synthetic sets run fewer draws (see above)
+            runs = min(runs, args.synthetic_runs) if any("-default" not in x for x in sets) else args.default_site_runs
         cmd = shlex.join(["python", "bench/registration.py", *(argv if argv is not None else sys.argv[1:])])
         standard = not (args.sets or args.variants or args.first_draw or args.protocols != ",".join(PROTOCOLS))
         if standard:
