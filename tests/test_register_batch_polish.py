@@ -75,7 +75,11 @@ def test_outline_polish_of_a_batch_reconstruction_lowers_the_model_error(
         polish_params=None,
     )
     recon = copy.deepcopy(solved)
-    notes = polish_reconstruction(recon, dict(find_images(site / "photos")), load_bim_lookup(*_bim(site)))
+    lookup = load_bim_lookup(*_bim(site))
+    try:
+        notes = polish_reconstruction(recon, dict(find_images(site / "photos")), lookup)
+    finally:
+        lookup.close()
     X = ds.synth_checkpoints(site, cams)
     fixed: dict[str, list] = {"before": [], "after": [], "name": []}
     phones: dict[str, list] = {"before": [], "after": [], "name": []}

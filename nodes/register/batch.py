@@ -461,8 +461,11 @@ def run_batch(
             bar_p.total, bar_p.n = total, done
             bar_p.refresh()
 
-        polish_notes = polish_reconstruction(recon, dict(named), lookup, polish_params, progress=pprog)
-        bar_p.close()
+        try:
+            polish_notes = polish_reconstruction(recon, dict(named), lookup, polish_params, progress=pprog)
+        finally:
+            lookup.close()  # the GL context and the model's buffers
+            bar_p.close()
     polish_secs = time.perf_counter() - t_polish
     dense_stats = None
     if densify_params is not None:
