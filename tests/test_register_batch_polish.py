@@ -10,6 +10,7 @@ import re
 import sys
 import tomllib
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -18,6 +19,7 @@ from constructaide import camera as cam
 from constructaide.errors import UserError
 from nodes.register.batch import find_images, load_bim_lookup, polish_reconstruction, run_batch
 from nodes.register.colmap_io import read_text_model
+from nodes.register.recon import Reconstruction
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -54,6 +56,19 @@ def _bim(site: Path) -> tuple[tuple[Path, ...], str, float]:
     return (site / doc["paths"]["ifc"],), doc["site"]["tz"], doc["site"]["terrain_height_m"]
 
 
+def _register(photos: Path, tmp: Path, **kwargs: Any) -> tuple[Reconstruction, dict]:
+    """``run_batch`` on the site layout with ``tmp/anchors.json``, no densification, into ``tmp/out``."""
+    return run_batch(
+        photos,
+        tmp / "anchors.json",
+        tmp / "out",
+        show_progress=False,
+        densify_params=None,
+        camera_folders=True,
+        **kwargs,
+    )
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("site_fixture", ["small_site", "small_site_seed7"])
 def test_outline_polish_of_a_batch_reconstruction_lowers_the_model_error(
@@ -65,15 +80,7 @@ def test_outline_polish_of_a_batch_reconstruction_lowers_the_model_error(
     site: Path = request.getfixturevalue(site_fixture)
     cams = ds.load_synth(site)
     _anchor_file(site, cams, tmp_path / "anchors.json", seed=1)
-    solved, _ = run_batch(
-        site / "photos",
-        tmp_path / "anchors.json",
-        tmp_path / "out",
-        show_progress=False,
-        densify_params=None,
-        camera_folders=True,
-        polish_params=None,
-    )
+    solved, _ = _register(site / "photos", tmp_path, polish_params=None)
     recon = copy.deepcopy(solved)
     lookup = load_bim_lookup(*_bim(site))
     try:
@@ -121,17 +128,7 @@ def test_register_with_bim_writes_the_polished_poses(small_site: Path, tmp_path:
         (tmp_path / "photos" / c.name).symlink_to(c.path)
     _anchor_file(small_site, cams, tmp_path / "anchors.json", seed=1)
     ifc, tz, terrain = _bim(small_site)
-    recon, report = run_batch(
-        tmp_path / "photos",
-        tmp_path / "anchors.json",
-        tmp_path / "out",
-        show_progress=False,
-        densify_params=None,
-        camera_folders=True,
-        bim_paths=ifc,
-        tz=tz,
-        terrain_height_m=terrain,
-    )
+    recon, report = _register(tmp_path / "photos", tmp_path, bim_paths=ifc, tz=tz, terrain_height_m=terrain)
     assert report["timings_secs"]["outline_polish"] > 0
     written = {im.name: im for im in read_text_model(tmp_path / "out").images}
     notes = {d["image"]: d.get("polish") for d in report["images"]}

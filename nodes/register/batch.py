@@ -41,7 +41,7 @@ from nodes.register.colmap_io import ColmapImage, ColmapModel, write_text_model
 from nodes.register.config import MapperConfig
 from nodes.register.densify import DensifyParams, densify_reconstruction
 from nodes.register.features import Features, extract_features
-from nodes.register.modelalign import AlignParams, PolishPolicy, ViewPolish, polish_registration
+from nodes.register.modelalign import AlignParams, Polished, PolishPolicy, ViewPolish, polish_registration
 from nodes.register.pose import epipolar_agreement
 from nodes.register.recon import Clicks, Reconstruction, add_image
 from nodes.register.sfm import reconstruct
@@ -355,16 +355,12 @@ def polish_reconstruction(
         try:
             out = polish_registration(
                 lookup, gray, im.camera, im.pose, im.capture_time_ns, im.camera_id, clicks, views, params, policy
-            )
+            ) or Polished(None, None, "not polished (a phone photo without anchor clicks)")
         except (RuntimeError, ValueError) as e:  # no GL context, a degenerate render: the solved pose stands
-            notes[im.name] = f"not polished: {e}"
-            out = None
-        if out is not None and out.world_from_camera is not None and out.intrinsics is not None:
+            out = Polished(None, None, f"not polished: {e}")
+        if out.world_from_camera is not None and out.intrinsics is not None:
             im.world_from_camera, im.intrinsics = out.world_from_camera, out.intrinsics
-        if out is not None:
-            notes[im.name] = out.note
-        else:
-            notes.setdefault(im.name, "not polished (a phone photo without anchor clicks)")
+        notes[im.name] = out.note
         if progress is not None:
             progress(k + 1, len(order))
     return notes

@@ -465,9 +465,11 @@ def refine_pose(
         refusal = (
             f"outline moved {100 * result.image_shift_rel:.2f} % of the width (> {100 * p.max_image_shift_rel:.2f} %)"
         )
-    gain = p.min_support_gain * max(1.0, result.image_shift_rel / p.free_image_shift_rel) if clicks is None else None
-    if not refusal and sup < result.support_before + (gain or p.min_support_gain):
-        refusal = f"edge support {result.support_before:.3f} -> {sup:.3f} (gain < {gain or p.min_support_gain:.3f})"
+    gain = p.min_support_gain  # with clicks they bound the move; without, a larger move needs a larger gain
+    if clicks is None:
+        gain *= max(1.0, result.image_shift_rel / p.free_image_shift_rel)
+    if not refusal and sup < result.support_before + gain:
+        refusal = f"edge support {result.support_before:.3f} -> {sup:.3f} (gain < {gain:.3f})"
     if refusal:
         result.reason = refusal
     else:
@@ -528,7 +530,7 @@ def same_view(
     return turn_deg <= params.same_view_deg and shift_m <= params.same_view_m
 
 
-@dataclass
+@dataclass(frozen=True)
 class ViewPolish:
     """The outline polish of a fixed camera's view: its first frame's solved pose (4x4) and intrinsics, and the
     accepted polish (None: refused)."""

@@ -741,7 +741,9 @@ class StreamingRegistrar:
         if not self.config.model_align or not isinstance(lookup, MeshDepthLookup):
             return None
         t0 = time.perf_counter()
-        policy = PolishPolicy(True, self.config.model_align_phones, self.config.model_align_anchored_phones)
+        policy = PolishPolicy(
+            phones=self.config.model_align_phones, anchored_phones=self.config.model_align_anchored_phones
+        )
         views: dict[str, ViewPolish] = self.__dict__.setdefault("_polish_of_view", {})  # (state saved before it)
         try:
             out = polish_registration(
