@@ -817,6 +817,7 @@ def main(argv: list[str] | None = None) -> int:
         "pp refined, anchors free": MapperConfig(refine_principal_point=True, fix_anchor_poses=False),
         "accuracy target 5 mm": MapperConfig(target_centre_sigma=0.005),
         "no relative-pose bootstrap": MapperConfig(bootstrap=False),
+        "no lens hold": MapperConfig(max_anchor_click_drift_px=None),
         NO_POLISH: MapperConfig(),
         **EXTRA_VARIANTS,
     }

@@ -41,8 +41,51 @@ def bundle(
     """Constrained bundle adjustment over all registered images, or a local one where only images in ``window``
     (and the points they see) move. Then drops observations beyond threshold and points left with < 2 views.
     ``covariance`` (with ``cfg.ba_solver == "schur"``): set each moved camera's ``centre_sigma_m``.
+    An anchor whose clicks the adjustment moved further than ``cfg.max_anchor_click_drift_px`` beyond its click
+    solve's RMS gets its lens held at that solve's (:func:`drifted_anchors`) and the adjustment is redone.
     Returns stats (initial/final rms px, observations removed, points, observations, initial/final total squared
     error of features and clicks px^2 and the number of those residuals)."""
+    snap = snapshot(recon) if cfg.max_anchor_click_drift_px is not None else None
+    stats = _bundle(recon, cfg, window, fixed_anchors, covariance)
+    drifted = drifted_anchors(recon, cfg, window) if snap is not None and stats else []
+    if not drifted:
+        return stats
+    assert snap is not None
+    restore(recon, snap)
+    for i in drifted:
+        im = recon.images[i]
+        assert im.anchor is not None
+        im.lens_held = True
+        im.intrinsics = im.anchor.intrinsics
+        im.message += "; lens held at the clicks' solve (the tracks pulled the clicks off)"
+    return _bundle(recon, cfg, window, fixed_anchors, covariance)
+
+
+def drifted_anchors(recon: Reconstruction, cfg: MapperConfig, window: list[int] | None = None) -> list[int]:
+    """Registered anchors (movable in ``window``; None: all) whose accepted clicks now lie further from their
+    points (RMS px) than their click solve left them plus ``cfg.max_anchor_click_drift_px``."""
+    if cfg.max_anchor_click_drift_px is None:
+        return []
+    out = []
+    for i in recon.registered_indices() if window is None else window:
+        im = recon.images[i]
+        clicks = im.accepted_clicks
+        if im.lens_held or im.anchor is None or clicks is None or im.world_from_camera is None or not len(clicks[0]):
+            continue
+        proj, _ = cam.project_points(im.camera, cam.invert_rigid(im.pose), clicks[1])
+        rms = float(np.sqrt(np.mean(np.sum((proj - clicks[0]) ** 2, axis=1))))
+        if not rms <= im.anchor.rms_px + cfg.max_anchor_click_drift_px:
+            out.append(i)
+    return out
+
+
+def _bundle(
+    recon: Reconstruction,
+    cfg: MapperConfig,
+    window: list[int] | None,
+    fixed_anchors: set[int] | None,
+    covariance: bool,
+) -> dict[str, float]:
     reg = recon.registered_indices()
     if not reg:
         return {}
@@ -121,7 +164,7 @@ def bundle(
     # rays are used only for movable anchors.
     pose_fixed = np.array([(i in anchors) or (i not in movable) for i in reg])
     centre_fixed = np.array([recon.images[i].centre_source in anchors for i in reg])
-    intr_fixed = np.array([i not in movable for i in reg])
+    intr_fixed = np.array([i not in movable or recon.images[i].lens_held for i in reg])
     prob = BundleProblem(
         camera_from_world=np.stack([cam.invert_rigid(recon.images[i].pose) for i in reg]),
         f_px=np.array([x.f_px for x in intr]),

@@ -103,6 +103,11 @@ class MapperConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     # and the (shared) principal points and aspect ratios refined is kept when the data support it (see
     # release_anchors_if_significant); False = the paper, fixed to the end.
     release_anchors: bool = True
+    # An adjustment may move an anchor's clicks off their points by at most this much more (RMS, px) than its click
+    # solve left them; beyond it the anchor's lens is held at the clicks' solve (recon.ImageState.lens_held) and the
+    # adjustment redone (None: off). Matches on repeated texture can outvote a dozen clicks on the lens of a photo
+    # whose pose they hold fixed (synthetic small seed 3: a phone's k1 -0.64, its clicks 1.5 -> 7.5 px RMS).
+    max_anchor_click_drift_px: float | None = 1.0
     # Only anchors observing at least this many triangulated track points are released: the others' poses rest on
     # their clicks alone.
     release_min_observations: int = 300

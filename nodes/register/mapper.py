@@ -59,6 +59,7 @@ def register_anchor(recon: Reconstruction, idx: int, clicks: Clicks, cfg: Mapper
         sol = disambiguate_anchor(recon, idx, sol, px, world, cfg)
     im.intrinsics, im.world_from_camera = sol.intrinsics, sol.world_from_camera
     im.status, im.method, im.anchor = "anchor", "anchor", sol
+    im.lens_held = False
     im.solved_focal_px = sol.intrinsics.f_px if sol.focal_solved else None
     im.focal_prior_rejected = sol.focal_prior_rejected
     im.clicks, im.click_inliers = (px, world), ~sol.outlier_mask

@@ -76,6 +76,9 @@ class ImageState:
     # adjustment with the anchors released (release_anchors_if_significant): what the features and clicks fix of
     # where the camera stood. NaN when not estimated (release not run or not kept, or the pose held fixed).
     centre_sigma_m: float = float("nan")
+    # An anchor whose lens the adjustments hold at its click solve's (their tracks pulled its clicks off: see
+    # MapperConfig.max_anchor_click_drift_px).
+    lens_held: bool = False
 
     @property
     def width_px(self) -> int:
