@@ -54,6 +54,18 @@ def make_features(
     return feats, ids[order]
 
 
+def arc_reconstruction(rng: np.random.Generator, n_views: int = 7) -> tuple[rc.Reconstruction, np.ndarray, list]:
+    """``n_views`` views of a building corner on an arc (:func:`make_features`), none registered: the
+    reconstruction, the scene points (N, 3) and the true world_from_camera poses (4, 4)."""
+    pts = scene_points(rng)
+    desc = rng.normal(size=(len(pts), 128))
+    poses = arc_cameras(n_views)
+    recon = rc.Reconstruction()
+    for k, T in enumerate(poses):
+        rc.add_image(recon, f"view{k}", make_features(rng, pts, desc, T)[0])
+    return recon, pts, poses
+
+
 def clicks_for(
     rng: np.random.Generator, points: np.ndarray, world_from_camera: np.ndarray, n: int = 10, noise_px: float = 0.5
 ) -> rc.Clicks:
@@ -390,12 +402,7 @@ def test_release_shares_intrinsics_of_one_camera_but_not_across_a_zoom():
     n_tied = len(recon.registered_indices()) - 1
     assert not recon.shared_intrinsics and recon.shared_intrinsics_lr > 9.0 * 3 * n_tied
     rng = np.random.default_rng(21)
-    pts = scene_points(rng)
-    desc = rng.normal(size=(len(pts), 128))
-    poses = arc_cameras(6)
-    one_camera = rc.Reconstruction()
-    for k, T in enumerate(poses):
-        rc.add_image(one_camera, f"view{k}", make_features(rng, pts, desc, T)[0])
+    one_camera, pts, poses = arc_reconstruction(rng, 6)
     anchors = {"view0": clicks_for(rng, pts, poses[0], n=12), "view3": clicks_for(rng, pts, poses[3], n=12)}
     sfm.reconstruct(one_camera, anchors, config.MapperConfig(focal_px=F * 1.01, release_shared_intrinsics=True))
     assert one_camera.anchors_released and one_camera.shared_intrinsics

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_register_batch_sfm import arc_cameras, clicks_for, make_features, scene_points
+from test_register_batch_sfm import arc_cameras, arc_reconstruction, clicks_for, make_features, scene_points
 from test_register_stream_scene import PlaneScene, anchor_clicks, encode_jpeg, jitter, mast_camera
 
 from constructaide import camera as cam
@@ -25,12 +25,7 @@ def test_one_anchor_registers_the_arc_and_fixes_its_scale(seed: int) -> None:
     relative-pose bootstrap places a second view (its baseline's length from the anchor's clicks), the others
     follow by PnP; every view within 1 % of the camera distance and 0.3 deg, so the scale is right."""
     rng = np.random.default_rng(seed)
-    pts = scene_points(rng)
-    desc = rng.normal(size=(len(pts), 128))
-    poses = arc_cameras(7)
-    recon = rc.Reconstruction()
-    for k, T in enumerate(poses):
-        rc.add_image(recon, f"view{k}", make_features(rng, pts, desc, T)[0])
+    recon, pts, poses = arc_reconstruction(rng)
     asked: list[str] = []
 
     def request(name: str, reason: str, n: int):

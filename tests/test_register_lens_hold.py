@@ -7,7 +7,7 @@ from __future__ import annotations
 import msgspec
 import numpy as np
 import pytest
-from test_register_batch_sfm import arc_cameras, clicks_for, make_features, scene_points
+from test_register_batch_sfm import arc_reconstruction, clicks_for
 
 from constructaide import camera as cam
 from nodes.register import adjust, config, sfm
@@ -21,12 +21,7 @@ def anchored_arc(seed: int) -> tuple[rc.Reconstruction, config.MapperConfig]:
     registered. The tracks hang on the first anchor's rays, so the fourth's observations are residuals of its lens
     like any camera's."""
     rng = np.random.default_rng(seed)
-    pts = scene_points(rng)
-    desc = rng.normal(size=(len(pts), 128))
-    poses = arc_cameras(7)
-    recon = rc.Reconstruction()
-    for k, T in enumerate(poses):
-        rc.add_image(recon, f"view{k}", make_features(rng, pts, desc, T)[0])
+    recon, pts, poses = arc_reconstruction(rng)
     cfg = config.MapperConfig(focal_px=F)
     clicks = {"view0": clicks_for(rng, pts, poses[0]), "view3": clicks_for(rng, pts, poses[3])}
     sfm.reconstruct(recon, clicks, cfg, lambda *_: None)
