@@ -178,6 +178,15 @@ def median_click_error_px(
     return float(np.median(e)) if len(e) else float("nan")
 
 
+def rms_click_error_px(
+    intr: Intrinsics, world_from_camera: F64, pixels_px: ArrayLike, points_in_world_m: ArrayLike
+) -> float:
+    """RMS distance (px) between clicked pixels (N, 2) and their model points (N, 3) projected through the camera."""
+    px = np.asarray(pixels_px, dtype=np.float64).reshape(-1, 2)
+    proj, _ = project_points(intr, invert_rigid(np.asarray(world_from_camera, dtype=np.float64)), points_in_world_m)
+    return float(np.sqrt(np.mean(np.sum((proj - px) ** 2, axis=1))))
+
+
 def invert_rigid(T: F64) -> F64:
     """Inverse of a (4, 4) rigid transform."""
     R = T[:3, :3]

@@ -45,9 +45,10 @@ def bundle(
     solve's RMS gets its lens held at that solve's (:func:`drifted_anchors`) and the adjustment is redone.
     Returns stats (initial/final rms px, observations removed, points, observations, initial/final total squared
     error of features and clicks px^2 and the number of those residuals)."""
-    snap = snapshot(recon) if cfg.max_anchor_click_drift_px is not None else None
+    watched = _drift_candidates(recon, cfg, window)
+    snap = snapshot(recon) if watched else None
     stats = _bundle(recon, cfg, window, fixed_anchors, covariance)
-    drifted = drifted_anchors(recon, cfg, window) if snap is not None and stats else []
+    drifted = drifted_anchors(recon, cfg, watched) if snap is not None and stats else []
     if not drifted:
         return stats
     assert snap is not None
@@ -61,19 +62,28 @@ def bundle(
     return _bundle(recon, cfg, window, fixed_anchors, covariance)
 
 
-def drifted_anchors(recon: Reconstruction, cfg: MapperConfig, window: list[int] | None = None) -> list[int]:
-    """Registered anchors (movable in ``window``; None: all) whose accepted clicks now lie further from their
-    points (RMS px) than their click solve left them plus ``cfg.max_anchor_click_drift_px``."""
+def _drift_candidates(recon: Reconstruction, cfg: MapperConfig, window: list[int] | None) -> list[int]:
+    """Registered anchors (of ``window``; None: all) with accepted clicks and a lens not yet held: those an
+    adjustment could pull off their clicks (none when ``cfg.max_anchor_click_drift_px`` is None)."""
     if cfg.max_anchor_click_drift_px is None:
         return []
     out = []
     for i in recon.registered_indices() if window is None else window:
         im = recon.images[i]
         clicks = im.accepted_clicks
-        if im.lens_held or im.anchor is None or clicks is None or im.world_from_camera is None or not len(clicks[0]):
-            continue
-        proj, _ = cam.project_points(im.camera, cam.invert_rigid(im.pose), clicks[1])
-        rms = float(np.sqrt(np.mean(np.sum((proj - clicks[0]) ** 2, axis=1))))
+        if not (im.lens_held or im.anchor is None or clicks is None or im.world_from_camera is None) and len(clicks[0]):
+            out.append(i)
+    return out
+
+
+def drifted_anchors(recon: Reconstruction, cfg: MapperConfig, anchors: list[int] | None = None) -> list[int]:
+    """Of ``anchors`` (None: every registered anchor with clicks and a free lens), those whose accepted clicks now
+    lie further from their points (RMS px) than their click solve left them plus ``cfg.max_anchor_click_drift_px``."""
+    out = []
+    for i in _drift_candidates(recon, cfg, anchors):
+        im = recon.images[i]
+        assert im.anchor is not None and im.accepted_clicks is not None and cfg.max_anchor_click_drift_px is not None
+        rms = cam.rms_click_error_px(im.camera, im.pose, *im.accepted_clicks)
         if not rms <= im.anchor.rms_px + cfg.max_anchor_click_drift_px:
             out.append(i)
     return out

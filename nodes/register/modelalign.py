@@ -364,13 +364,6 @@ def _click_normal(intr: Intrinsics, cfw: F64, clicks: tuple[F64, F64, float], x:
     return J.T @ J, J.T @ r
 
 
-def click_rms_px(intr: Intrinsics, world_from_camera: F64, clicks: tuple[F64, F64]) -> float:
-    """RMS (px) of the clicks (pixels (N, 2), world points (N, 3)) under the camera."""
-    px, pts = clicks
-    proj, _ = cam.project_points(intr, cam.invert_rigid(world_from_camera), pts)
-    return float(np.sqrt(np.mean(np.sum((proj - px) ** 2, axis=1))))
-
-
 def support(
     intr: Intrinsics,
     cfw: F64,
@@ -451,8 +444,8 @@ def refine_pose(
     refusal = ""
     note = ""
     if clicks is not None:
-        rms0 = click_rms_px(intr, wfc0, clicks)
-        rms1 = click_rms_px(_focal_scaled(intr, x), wfc, clicks)
+        rms0 = cam.rms_click_error_px(intr, wfc0, *clicks)
+        rms1 = cam.rms_click_error_px(_focal_scaled(intr, x), wfc, *clicks)
         result.click_rms_px = (rms0, rms1)
         note = f", clicks {rms0:.2f} -> {rms1:.2f} px"
         if not rms1 <= max(p.click_gate_px, rms0):
