@@ -7,7 +7,7 @@ import pytest
 
 from constructaide.camera import look_at
 from constructaide.schedule4d import ElementWindow
-from nodes.progress.evidence import EvidenceParams, photo_evidence, to_lab
+from nodes.progress.evidence import EvidenceParams, PhotoCache, photo_evidence, to_lab
 from nodes.progress.fusion import NS_PER_DAY, ElementTrack, FusionParams, Observation, estimate
 from nodes.progress.modelview import LayerRenderer
 from schemas.messages import Intrinsics
@@ -185,6 +185,34 @@ def test_change_cue_attributes_appearance_to_the_right_element(scene, seed: int)
         c.index: c for c in photo_evidence(lab1, occ, layers, ["", "b", "c", "c"], EvidenceParams(), reference=ref)
     }
     assert masked[1].status == "occluded" and masked[1].llr_change == 0.0
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_cached_pass_with_settled_elements_reads_the_rest_alike(scene, seed: int) -> None:  # noqa: ANN001
+    """A later reading pass of the same photo (one PhotoCache, earlier cues settled) gives the unsettled elements
+    exactly the cues a fresh reading gives them, and leaves the settled ones without cues but with their status."""
+    r, T = scene
+    rng = np.random.default_rng(seed)
+    layers = r.render(INTR, T, np.zeros(4, bool), np.array([False, True, True, True]))
+    before = textured(rng, (H, W), (90, 140, 80))
+    after = before.copy()
+    after[layers.ids_all == 1] = textured(rng, (H, W), (160, 70, 50))[layers.ids_all == 1]
+    lab1 = to_lab(after)
+    ref = (to_lab(before), np.ones((H, W), bool), np.zeros((H, W), np.int64))
+    occ = np.zeros((H, W), bool)
+    mats = ["", "brick", "concrete", "concrete"]
+    fresh = {c.index: c for c in photo_evidence(lab1, occ, layers, mats, EvidenceParams(), reference=ref)}
+    cache = PhotoCache(lab1)
+    photo_evidence(lab1, occ, layers, mats, EvidenceParams(), reference=ref, cache=cache)  # the first pass
+    again = {
+        c.index: c
+        for c in photo_evidence(lab1, occ, layers, mats, EvidenceParams(), reference=ref, cache=cache, settled=[1])
+    }
+    assert fresh[1].llr_change > 3.0 and abs(fresh[1].llr_edge) + abs(fresh[1].llr_appearance) > 0.0
+    assert again[1].status == fresh[1].status == "seen"
+    assert again[1].llr_change == again[1].llr_edge == again[1].llr_appearance == 0.0
+    for i in (2, 3):
+        assert again[i] == fresh[i]
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])

@@ -158,3 +158,37 @@ def test_a_visits_looks_count_once() -> None:
     assert apart.present_at(6 * D) > 0.7  # five independent looks win against the plan and the later reading
     assert once.present_at(6 * D) == pytest.approx(single.present_at(6 * D), rel=0.01)  # grid differs a little
     assert once.present_at(6 * D) < 0.3
+
+
+def test_the_streaming_node_reads_with_the_engines_defaults() -> None:
+    """The progress node (live dashboards) and `constructaide progress` (the bench's figures) read photos with the
+    same parameters unless configured otherwise: the node's config defaults come from the engine's. (Until
+    2026-12-06 the node kept a schedule weight of 0.5 after the engine's became 0.8.)"""
+    import msgspec
+
+    from nodes.progress.engine import EngineParams
+    from nodes.progress.node import Config, engine_params
+
+    assert engine_params(Config()) == EngineParams()
+    cfg = msgspec.convert({"schedule_weight": 0.6, "working_scale": 0.0}, Config)
+    p = engine_params(cfg)
+    assert (p.fusion.schedule_weight, p.working_scale, p.fusion.proof_llr) == (
+        0.6,
+        0.0,
+        EngineParams().fusion.proof_llr,
+    )
+
+
+def test_prior_cdf_at_one_time_is_the_vector_one() -> None:
+    """The schedule prior's CDF at one time (plain floats, the fusion's hot path) equals the vectorised one."""
+    from nodes.progress.fusion import NS_PER_DAY, _prior_cdf
+
+    rng = np.random.default_rng(5)
+    lo, hi = 0.0, 200 * NS_PER_DAY
+    ts = np.concatenate([rng.uniform(-10, 210, 300) * NS_PER_DAY, [-np.inf, np.inf, lo, hi]])
+    for window in (None, (50 * NS_PER_DAY, 50 * NS_PER_DAY), (60 * NS_PER_DAY, 64.5 * NS_PER_DAY)):
+        for width in (NS_PER_DAY / 24, 1.5 * NS_PER_DAY):
+            vec = _prior_cdf(ts, window, width, lo, hi, 0.8)
+            one = np.array([_prior_cdf(np.array([t]), window, width, lo, hi, 0.8)[0] for t in ts])
+            assert np.allclose(one, vec, rtol=1e-12, atol=1e-14)
+            assert _prior_cdf(np.array(ts[0]), window, width, lo, hi, 0.8).shape == ()

@@ -243,7 +243,12 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="constructaide progress", description=__doc__.split("\n\n")[0])
     ap.add_argument("--recording", type=Path, required=True, help="MCAP recording of a pipeline run")
     ap.add_argument("--out", type=Path, required=True, help="folder for observations.csv and elements.csv")
-    ap.add_argument("--working-width", type=int, default=EngineParams().working_width_px)
+    ap.add_argument(
+        "--working-width", type=int, default=EngineParams().working_width_px, help="least width photos are read at (px)"
+    )
+    ap.add_argument(
+        "--working-scale", type=float, default=EngineParams().working_scale, help="share of a photo's width read"
+    )
     ap.add_argument(
         "--set",
         default="{}",
@@ -255,7 +260,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     inputs = read_inputs(args.recording)
-    params = engine_params_from_json(args.set, working_width_px=args.working_width)
+    params = engine_params_from_json(args.set, working_width_px=args.working_width, working_scale=args.working_scale)
     engine = run_engine(inputs, params, progress=not args.quiet)
     args.out.mkdir(parents=True, exist_ok=True)
     obs = observation_rows(engine)
@@ -273,6 +278,7 @@ def main(argv: list[str] | None = None) -> int:
         "deviation_counts": {d: sum(r["deviation"] == d for r in els) for d in DEVIATIONS},
         "evidence_ms_per_photo": times,
         "working_width_px": args.working_width,
+        "working_scale": args.working_scale,
         "engine_overrides": json.loads(args.set),
         "schedule_slip_days": round(engine.fusion.schedule_width_days, 3),
         "wall_secs": round(time.perf_counter() - t0, 1),

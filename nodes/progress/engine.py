@@ -25,7 +25,7 @@ from constructaide.camera import invert_rigid, pose_from_tuple, registered_camer
 from constructaide.imagecodec import decode_rgb, mask_of_message
 from constructaide.schedule4d import ElementWindow, element_windows, task_ancestors, task_elements
 from constructaide.sparsecloud import SparseArrays, decode_sparse_cloud
-from nodes.progress.evidence import ElementCue, EvidenceParams, MaterialModel, colour_bins, photo_evidence, to_lab
+from nodes.progress.evidence import ElementCue, EvidenceParams, MaterialModel, PhotoCache, photo_evidence, to_lab
 from nodes.progress.fusion import (
     NS_PER_DAY,
     ElementEstimate,
@@ -70,6 +70,11 @@ ANNOTATION_LLR = 8.0  # a person's status annotation outweighs any image cue
 @dataclass(frozen=True)
 class EngineParams:
     working_width_px: int = 640
+    """A photo is read at ``working_scale`` of its width but at least this wide (never wider than it is)."""
+    working_scale: float = 0.5
+    """Share of a photo's width it is read at (above ``working_width_px``). 0: always ``working_width_px`` (the
+    reading until 2026-12-06, 640 px for the default sites' 1920 px frames: their thin and far elements were read
+    on too few pixels; BENCHMARKS 'progress notes')."""
     lookahead_days: float = 14.0
     """Candidates: elements planned to start by the photo's date plus this (and every unscheduled one)."""
     work_hours: tuple[float, float] = (7.0, 17.0)
@@ -459,7 +464,7 @@ class ProgressEngine:
         photo, reg = self.photos[photo_id], self.registrations[photo_id]
         rgb = decode_rgb(photo.data, f"photo {photo_id}")
         h, w = rgb.shape[:2]
-        W = min(self.params.working_width_px, w)
+        W = min(w, max(self.params.working_width_px, round(w * self.params.working_scale)))
         H = max(1, round(h * W / w))
         small = np.asarray(cv2.resize(rgb, (W, H), interpolation=cv2.INTER_AREA), np.uint8) if W != w else rgb
         assert reg.intrinsics is not None
@@ -493,7 +498,8 @@ class ProgressEngine:
         lenient = bool(photo.camera_id) and not self.params.dynamic_hides_unseen
         static = union_of(self.masks.get(photo_id, {}), ("static", "user"), (H, W)) if lenient else occluded
         looks = self.materials.counts if lenient and self.params.dynamic_spares_material_like else None
-        bins = colour_bins(lab) if looks is not None else None
+        cache = PhotoCache(lab)
+        bins = cache.bins() if looks is not None else None
         seen: dict[int, ElementCue] = {}
         touched: list[str] = []
         layers = None
@@ -520,6 +526,9 @@ class ProgressEngine:
                 present,
                 confirmed,
                 self._stood_at,
+                cache,
+                # a later pass only adds elements the earlier ones did not read
+                [i for i, c in seen.items() if c.status == "seen"],
             )
             if held is None and deferred:
                 # hold this reading until the deferred candidates, drawn in front where nearer, are read
@@ -561,7 +570,7 @@ class ProgressEngine:
         cues = [seen[i] for i in sorted(seen)]
         self.as_of_ns = max(self.as_of_ns, t)
         self.refit_slip()
-        self._learn_materials(lab, occluded, layers.ids_all, t)
+        self._learn_materials(cache.bins(), occluded, layers.ids_all, t)
         if photo.camera_id:
             frames = self.frames.setdefault(photo.camera_id, [])
             frames[:] = [f for f in frames if f.photo_id != photo_id]
@@ -660,9 +669,10 @@ class ProgressEngine:
         return out
 
     def _learn_materials(
-        self, lab: NDArray[np.float32], occluded: NDArray[np.bool_], ids: NDArray[np.uint32], t: int
+        self, bins: NDArray[np.int32], occluded: NDArray[np.bool_], ids: NDArray[np.uint32], t: int
     ) -> None:
-        bins = colour_bins(lab)
+        """Adds the colours (``bins``, :func:`~nodes.progress.evidence.colour_bins` of the photo) of the elements
+        seen appearing and standing at ``t`` to their materials' looks."""
         confirmed = self._confirmed(t)
         for gid in list(self.global_ids):
             if not confirmed[self.index_of[gid]]:

@@ -25,7 +25,7 @@ Elements whose region is mostly covered by the occlusion mask are ``occluded``; 
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
 
 import cv2
@@ -157,21 +157,61 @@ def change_score(lab: F32, ref: F32, valid: BoolA, window_px: int = 5, light_sca
     """(H, W) per-pixel change score in [0, 1] between two aligned Lab images, robust to a global exposure change
     and to ~1 px of misalignment: the largest of an exposure-corrected lightness ratio, a chroma difference and a
     local structure dissimilarity (1 - NCC of L over ``window_px`` windows, where either side is textured)."""
-    cur = cv2.GaussianBlur(lab, (0, 0), 0.6)
-    old = cv2.GaussianBlur(ref, (0, 0), 0.6)
-    L1, L0 = cur[..., 0] + 1.0, old[..., 0] + 1.0
-    ratio = np.log(L1 / L0)
-    gain = float(np.median(ratio[valid])) if valid.any() else 0.0
-    light = np.abs(ratio - gain) / light_scale
-    chroma = np.hypot(cur[..., 1] - old[..., 1], cur[..., 2] - old[..., 2]) / 14.0
-    k = (window_px, window_px)
-    m1, m0 = cv2.blur(L1, k), cv2.blur(L0, k)
-    v1 = np.maximum(cv2.blur(L1 * L1, k) - m1 * m1, 0.0)
-    v0 = np.maximum(cv2.blur(L0 * L0, k) - m0 * m0, 0.0)
-    ncc = (cv2.blur(L1 * L0, k) - m1 * m0) / np.sqrt(v1 * v0 + 1e-3)
-    textured = np.clip((np.sqrt(np.maximum(v1, v0)) - 1.5) / 2.5, 0.0, 1.0)  # smooth -> 0, > 4 L units -> 1
-    structure = textured * np.clip((1.0 - ncc) / 1.2, 0.0, 1.0)
-    return np.clip(np.maximum(np.maximum(light, chroma), structure), 0.0, 1.0).astype(np.float32)
+    return ChangeParts(lab, ref, window_px).score(valid, light_scale)
+
+
+class ChangeParts:
+    """The parts of :func:`change_score` that do not depend on ``valid`` (which only sets the exposure gain), so
+    one photo's passes over the same plate compute them once."""
+
+    def __init__(self, lab: F32, ref: F32, window_px: int = 5) -> None:
+        cur = cv2.GaussianBlur(lab, (0, 0), 0.6)
+        old = cv2.GaussianBlur(ref, (0, 0), 0.6)
+        L1, L0 = cur[..., 0] + 1.0, old[..., 0] + 1.0
+        self.ratio = np.log(L1 / L0)
+        chroma = np.hypot(cur[..., 1] - old[..., 1], cur[..., 2] - old[..., 2]) / 14.0
+        k = (window_px, window_px)
+        m1, m0 = cv2.blur(L1, k), cv2.blur(L0, k)
+        v1 = np.maximum(cv2.blur(L1 * L1, k) - m1 * m1, 0.0)
+        v0 = np.maximum(cv2.blur(L0 * L0, k) - m0 * m0, 0.0)
+        ncc = (cv2.blur(L1 * L0, k) - m1 * m0) / np.sqrt(v1 * v0 + 1e-3)
+        textured = np.clip((np.sqrt(np.maximum(v1, v0)) - 1.5) / 2.5, 0.0, 1.0)  # smooth -> 0, > 4 L units -> 1
+        structure = textured * np.clip((1.0 - ncc) / 1.2, 0.0, 1.0)
+        self.rest = np.maximum(chroma, structure)
+
+    def score(self, valid: BoolA, light_scale: float = 0.5) -> F32:
+        gain = float(np.median(self.ratio[valid])) if valid.any() else 0.0
+        light = np.abs(self.ratio - gain) / light_scale
+        return np.clip(np.maximum(light, self.rest), 0.0, 1.0).astype(np.float32)
+
+
+class PhotoCache:
+    """What every reading pass of one photo (same photo, same plate) computes alike: colour bins, the edge cue's
+    blur, the change score's parts per window. Pass one per photo to :func:`photo_evidence`."""
+
+    def __init__(self, lab: F32) -> None:
+        self.lab = lab
+        self._bins: NDArray[np.int32] | None = None
+        self._blur: F32 | None = None
+        self._change: dict[int, ChangeParts] = {}
+        self._ref: F32 | None = None
+
+    def bins(self) -> NDArray[np.int32]:
+        if self._bins is None:
+            self._bins = colour_bins(self.lab)
+        return self._bins
+
+    def edge_blur(self) -> F32:
+        if self._blur is None:
+            self._blur = np.asarray(cv2.GaussianBlur(self.lab, (0, 0), 0.8), np.float32)
+        return self._blur
+
+    def change(self, ref: F32, window_px: int) -> ChangeParts:
+        if ref is not self._ref:
+            self._change, self._ref = {}, ref
+        if window_px not in self._change:
+            self._change[window_px] = ChangeParts(self.lab, ref, window_px)
+        return self._change[window_px]
 
 
 def interior(ids: NDArray[np.int64], radius_px: int) -> BoolA:
@@ -236,6 +276,8 @@ def photo_evidence(
     present: NDArray[np.float64] | None = None,
     confirmed: NDArray[np.float64] | None = None,
     stood_at: Callable[[NDArray[np.int64], NDArray[np.int64]], NDArray[np.float64]] | None = None,
+    cache: PhotoCache | None = None,
+    settled: Collection[int] = (),
 ) -> list[ElementCue]:
     """Cues for every element with pixels in this photo's candidate or built layers.
 
@@ -245,8 +287,11 @@ def photo_evidence(
     elements seen appearing and standing since, whose pixels show their material's look. ``stood_at(indices,
     times_ns)`` -> P(element stood at that time), each (K,): where a candidate stands in front of a believed-built
     element that may have appeared since the plate was taken, a change may be that element's. Returns one
-    :class:`ElementCue` per element, ascending index.
+    :class:`ElementCue` per element, ascending index. ``cache``: the photo's :class:`PhotoCache` (the same plate in
+    every pass; computed here when None). ``settled``: indices whose cues the caller already holds from an earlier
+    pass of this photo: their status is given, their cues are not computed.
     """
+    cache = PhotoCache(lab) if cache is None else cache
     n = len(material_of)
     ids_all = layers.ids_all.astype(np.int64)
     free = ~occluded
@@ -259,19 +304,21 @@ def photo_evidence(
         if visible[i] < params.min_pixels:
             status = "occluded" if occ >= params.occluded_fraction else "unknown"
         cues[int(i)] = ElementCue(int(i), int(region[i]), int(visible[i]), float(occ), status=status)
+    skip = set(settled)
+    work = {i: c for i, c in cues.items() if i not in skip}
     if reference is not None:
-        _change_cue(lab, free, layers, reference, params, cues, n, present, stood_at)
+        _change_cue(cache, free, layers, reference, params, work, n, present, stood_at)
     if points is not None and len(points[0]):
-        _points_cue(layers, points, params, cues, n)
+        _points_cue(layers, points, params, work, n)
     if params.edge:
-        _edge_cue(lab, free, layers, params, cues)
+        _edge_cue(cache.edge_blur(), free, layers, params, work)
     if params.appearance:
-        _appearance_cue(lab, free, layers, material_of, params, cues, materials, confirmed)
+        _appearance_cue(cache.bins(), free, layers, material_of, params, work, materials, confirmed)
     return [cues[i] for i in sorted(cues)]
 
 
 def _change_cue(
-    lab: F32,
+    cache: PhotoCache,
     free: BoolA,
     layers: Layers,
     reference: tuple[F32, BoolA, NDArray[np.int64]],
@@ -290,7 +337,7 @@ def _change_cue(
     """
     ref_lab, ref_valid, ref_time = reference
     valid = free & ref_valid
-    changed = change_score(lab, ref_lab, valid) > p.change_threshold
+    changed = cache.change(ref_lab, 5).score(valid) > p.change_threshold
     front = layers.ids_front.astype(np.int64)
     built = layers.ids_built.astype(np.int64)
     second = layers.ids_second.astype(np.int64)
@@ -315,7 +362,7 @@ def _change_cue(
         if extra.any():
             # their structure window must stay inside them too ...
             window = 2 * p.thin_interior_px + 1
-            changed = np.where(extra, change_score(lab, ref_lab, valid, window_px=window) > p.change_threshold, changed)
+            changed = np.where(extra, cache.change(ref_lab, window).score(valid) > p.change_threshold, changed)
             sel |= extra
     if p.neighbour_px > 0:
         near = _neighbours(owner, p.neighbour_px)
@@ -431,7 +478,7 @@ def _points_cue(
 
 
 def _appearance_cue(
-    lab: F32,
+    bins: NDArray[np.int32],
     free: BoolA,
     layers: Layers,
     material_of: list[str],
@@ -444,8 +491,8 @@ def _appearance_cue(
     elements of that material, weighted by how likely each stands, plus what confident detections taught) against
     what would show if it were absent (half the believed-built surface behind it or the background around it,
     half anything else this photo shows). ``present`` weights each element's pixels in its material's look (the
-    confirmed elements). Without a known look of its material an element gets no appearance evidence."""
-    bins = colour_bins(lab)
+    confirmed elements). Without a known look of its material an element gets no appearance evidence. ``bins``:
+    :func:`colour_bins` of the photo."""
     front = layers.ids_front.astype(np.int64)
     built = layers.ids_built.astype(np.int64)
     ids_all = np.where(front > 0, front, built)
@@ -515,18 +562,18 @@ def _appearance_cue(
         cue.llr_appearance = llr
 
 
-def _edge_cue(lab: F32, free: BoolA, layers: Layers, p: EvidenceParams, cues: dict[int, ElementCue]) -> None:
+def _edge_cue(img: F32, free: BoolA, layers: Layers, p: EvidenceParams, cues: dict[int, ElementCue]) -> None:
     """Silhouette evidence of candidates: along the stretches of a candidate's outline where, were it absent, the
     same thing would show on both sides (what stands behind it inside = what shows outside), an edge across the
     outline (a colour difference above ``edge_min_contrast`` and ``edge_control_ratio`` times the difference
     between two outside pixels the same distance apart) says it stands; its fraction of the outline samples gives
-    ``edge_slope * (fraction - edge_neutral)``, clipped, scaled down below ``edge_full_samples``."""
+    ``edge_slope * (fraction - edge_neutral)``, clipped, scaled down below ``edge_full_samples``. ``img``: the
+    photo's Lab blurred by sigma 0.8 px (:meth:`PhotoCache.edge_blur`)."""
     front = layers.ids_front.astype(np.int64)
     built = layers.ids_built.astype(np.int64)
     second = layers.ids_second.astype(np.int64)
     owner = np.where(front > 0, front, built)
     alt = np.where(second > 0, second, built)  # what shows where the front candidate is absent
-    img = cv2.GaussianBlur(lab, (0, 0), 0.8)
     h, w = owner.shape
     g, c = p.edge_gap_px, p.edge_control_px
     ids_l, hit_l = [], []

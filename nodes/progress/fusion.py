@@ -216,10 +216,33 @@ def _prior_cdf(
 ) -> NDArray[np.float64]:
     """Prior CDF of a change time at ``t`` (ns): with weight ``w`` the planned ``window`` blurred by the slip
     (:func:`_window_cdf`), the rest flat over ``[lo, hi]``."""
+    if np.size(t) == 1:  # one time (present_at): the same in plain floats, without numpy's per-call overhead
+        return np.array([_prior_cdf_at(float(np.reshape(t, -1)[0]), window, width_ns, lo, hi, w)]).reshape(np.shape(t))
     flat = np.clip((t - lo) / max(hi - lo, 1.0), 0.0, 1.0)
     if window is None:
         return flat
     return w * _window_cdf(t, window[0], window[1], width_ns) + (1.0 - w) * flat
+
+
+def _softplus(x: float) -> float:
+    return math.log1p(math.exp(-abs(x))) + max(x, 0.0)
+
+
+def _prior_cdf_at(
+    t: float, window: tuple[float, float] | None, width_ns: float, lo: float, hi: float, w: float
+) -> float:
+    """:func:`_prior_cdf` at one time ``t`` (ns, +-inf allowed)."""
+    flat = min(max((t - lo) / max(hi - lo, 1.0), 0.0), 1.0)
+    if window is None:
+        return flat
+    a, b = window
+    x = min(max((t - a) / width_ns, -1e6), 1e6)
+    span = (b - a) / width_ns
+    if span >= 1e-6:
+        f = (_softplus(x) - _softplus(x - span)) / span
+    else:
+        f = 1.0 / (1.0 + math.exp(-x)) if x > -700 else 0.0
+    return w * min(max(f, 0.0), 1.0) + (1.0 - w) * flat
 
 
 @dataclass

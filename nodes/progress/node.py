@@ -11,42 +11,48 @@ The algorithms live in :mod:`nodes.progress.engine`; this shell only wires topic
 from __future__ import annotations
 
 from collections import OrderedDict
+from dataclasses import replace
 
 import msgspec
 
 from constructaide.runtime import Input, NodeContext, NodeSpec, Output, run_node_cli
 from nodes.progress.engine import EngineParams, ProgressEngine
-from nodes.progress.evidence import EvidenceParams
-from nodes.progress.fusion import FusionParams
 from schemas import keys
 from schemas import messages as m
 
+_ENGINE = EngineParams()
+
 
 class Config(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """The node's settings; the engine's own defaults (one source: :class:`EngineParams`, the batch
+    ``constructaide progress`` reads with them too)."""
+
     site: str = "demo"
-    working_width_px: int = 640
-    """Evidence is computed at this width (photos are downscaled)."""
+    working_width_px: int = _ENGINE.working_width_px
+    """Evidence is computed at ``working_scale`` of a photo's width, but at least this wide."""
+    working_scale: float = _ENGINE.working_scale
     require_mask: bool = True
     """Wait for a photo's combined occlusion mask before reading it (false: read it on registration)."""
-    lookahead_days: float = 14.0
+    lookahead_days: float = _ENGINE.lookahead_days
     """Elements planned to start within this many days of a photo are looked for in it."""
-    schedule_weight: float = 0.5
+    schedule_weight: float = _ENGINE.fusion.schedule_weight
     """Share of each element's prior that follows the schedule (the rest is flat over the project)."""
-    tolerance_days: float = 0.0
+    tolerance_days: float = _ENGINE.fusion.tolerance_days
     """Deviation tolerance around the planned windows."""
-    work_hours: tuple[float, float] = (7.0, 17.0)
+    work_hours: tuple[float, float] = _ENGINE.work_hours
     """Local working hours, Mon-Fri (the middle of a finish interval is taken in working time)."""
     max_photos: int = 2000
     """Photos kept for re-reading on newer masks (the oldest processed ones leave first)."""
 
 
 def engine_params(config: Config) -> EngineParams:
-    return EngineParams(
+    return replace(
+        _ENGINE,
         working_width_px=config.working_width_px,
+        working_scale=config.working_scale,
         lookahead_days=config.lookahead_days,
         work_hours=config.work_hours,
-        evidence=EvidenceParams(),
-        fusion=FusionParams(schedule_weight=config.schedule_weight, tolerance_days=config.tolerance_days),
+        fusion=replace(_ENGINE.fusion, schedule_weight=config.schedule_weight, tolerance_days=config.tolerance_days),
     )
 
 
