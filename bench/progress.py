@@ -23,7 +23,8 @@ once its task's planned finish has passed, on time.
   schedule without element slots can resolve. "Resolvable by the photos" is the share of each class for which
   some photo the element is visible in was taken while it deviated (absent after its planned finish, standing
   before its planned start; the element's slot for the truth classes, the trade task's for "(task)"): the ceiling
-  of any reading of these photos;
+  of any reading of these photos. "Seen by no photo" counts the class's elements no photo shows (buried footings
+  and basement walls): any reading can only say `unknown` of them, which the class counts wrong;
 - evidence time per photo (the engine's `process`: decode, layers render, cues, fusion update), median, 1920x1080
   photos when the site has them.
 """
@@ -223,7 +224,7 @@ def score(site: Path, recording: Path, out: Path) -> dict:
         errs_sched.append(np.inf if pf is None else (working_hours(pf) - truth_h) / WORK_HOURS)
 
     # deviation classes at the last photo
-    dev = defaultdict(lambda: [0, 0, 0, 0])  # class -> [n, ours right, schedule right, resolvable]
+    dev = defaultdict(lambda: [0, 0, 0, 0, 0])  # class -> [n, ours right, schedule right, resolvable, seen by none]
     for g, e in st["elements"].items():
         af = parse(e["actual_finish"])
         absent_at_end = af is None or af.timestamp() * 1e9 > t_last
@@ -250,6 +251,7 @@ def score(site: Path, recording: Path, out: Path) -> dict:
             d[1] += ours in right
             d[2] += "on_time" in right
             d[3] += _resolvable(cls, af, win, seen_at.get(g, []))
+            d[4] += g not in seen_at
     # our deviation flags at the last photo: how many are right (precision; the classes above are recall)
     flags = {"behind": [0, 0], "ahead": [0, 0], "not_built": [0, 0]}
     for g, e in st["elements"].items():
@@ -329,8 +331,16 @@ def report(res: dict, label: str) -> tuple[str, str]:
     med = lambda e: float(np.median(np.abs(e))) if e else float("nan")  # noqa: E731
     f_rows = [[label, len(eo), within(eo), med(eo), within(es), med(es)]]
     d_rows = [
-        [label, cls, n, right / n if n else float("nan"), sched / n if n else float("nan"), res_ / n if n else 0.0]
-        for cls, (n, right, sched, res_) in sorted(res["deviation"].items())
+        [
+            label,
+            cls,
+            n,
+            right / n if n else float("nan"),
+            sched / n if n else float("nan"),
+            res_ / n if n else 0.0,
+            *rest,
+        ]
+        for cls, (n, right, sched, res_, *rest) in sorted(res["deviation"].items())
     ]
     g_rows = [[label, f, n, right, right / n if n else float("nan")] for f, (n, right) in res["flags"].items()]
     t_rows = [[label, res["photos_processed"], res["photos"], res["n_1080p"], res["ms_1080p"], res["ms_all"]]]
@@ -365,8 +375,16 @@ def tables(all_rows: list[dict]) -> str:
         [r for x in all_rows for r in x["f"]],
     )
     d = table(
-        ["run", "truth class", "elements", "ours right", "schedule right", "resolvable by the photos"],
-        [r for x in all_rows for r in x["d"]],
+        [
+            "run",
+            "truth class",
+            "elements",
+            "ours right",
+            "schedule right",
+            "resolvable by the photos",
+            "seen by no photo",
+        ],
+        [r + [""] * (7 - len(r)) for x in all_rows for r in x["d"]],
     )
     g = table(
         ["run", "our flag", "elements flagged", "right", "share right"],

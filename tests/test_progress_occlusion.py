@@ -99,3 +99,42 @@ def test_only_what_looks_like_the_elements_material_is_read_through(scene, seed:
     hide = fixed_camera_hiding(colour_bins(lab), dynamic, none, layers, np.zeros(3, bool), mats, looks)
     assert hide[truck].mean() > 0.95 and hide[wall & ~truck].mean() < 0.2
     assert fixed_camera_hiding(colour_bins(lab), dynamic, none, layers, np.zeros(3, bool), mats, {})[wall].all()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_elements_below_the_terrain_are_hidden_not_read_absent(seed: int) -> None:
+    """A footing below the terrain shows soil whether it stands or not: its pixels are hidden (status occluded, no
+    evidence), while an element above the ground (and the footing's part above it) is read; seeded camera heights.
+    Without the terrain its soil-coloured pixels would be read as the footing's look."""
+    from test_progress_fusion_evidence import box, textured
+
+    from constructaide.camera import look_at
+    from nodes.progress.modelview import LayerRenderer, below_terrain, surface_height_m
+
+    rng = np.random.default_rng(seed)
+    r = LayerRenderer()
+    r.set_model(
+        ["footing", "column", "wall"],
+        {
+            "footing": box((-2.0, -1.0, -1.2), (0.0, 1.0, -0.3)),  # wholly below the ground (z = 0)
+            "column": box((0.5, -0.3, 0.0), (1.1, 0.3, 2.5)),
+            "wall": box((1.6, -0.2, -1.0), (2.6, 0.2, 1.5)),  # a basement wall rising above the ground
+        },
+    )
+    T = look_at((float(rng.uniform(-1, 1)), -9.0, float(rng.uniform(1.5, 3.5))), (0.0, 0.0, -0.3))
+    layers = r.render(INTR, T, np.array([False, True, True, True]), np.zeros(4, bool))
+    z = surface_height_m(layers, INTR, T)
+    footing, column, wall = (layers.ids_built == i for i in (1, 2, 3))
+    assert footing.sum() > 100 and column.sum() > 100 and wall.sum() > 100
+    assert np.nanmax(z[footing]) < -0.25 and np.nanmin(z[footing]) > -1.25 and np.nanmin(z[column]) > -0.05
+    hidden = below_terrain(layers, INTR, T, 0.0, 0.05)
+    assert hidden[footing].all() and not hidden[column].any() and not hidden[layers.ids_built == 0].any()
+    assert 0.1 < hidden[wall].mean() < 0.9  # only its part below the ground
+    img = textured(rng, (H, W), (120, 95, 70))  # soil (and a grey column)
+    img[column] = textured(rng, (H, W), (150, 150, 150))[column]
+    mats = ["", "concrete", "concrete", "concrete"]
+    seen = {c.index: c for c in photo_evidence(to_lab(img), hidden, layers, mats, EvidenceParams())}
+    assert seen[1].status == "occluded" and seen[1].llr_edge == seen[1].llr_appearance == 0.0
+    assert seen[2].status == "seen" and seen[3].status == "seen"
+    unhidden = {c.index: c for c in photo_evidence(to_lab(img), np.zeros((H, W), bool), layers, mats, EvidenceParams())}
+    assert unhidden[1].status == "seen"

@@ -19,12 +19,13 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from constructaide.camera import invert_rigid
+from constructaide.camera import invert_rigid, pixels_to_normalized
 from constructaide.gl import offscreen_renderer
 from constructaide.modelscene import build_scene
 from constructaide.modelview import IdTarget, projection_from_intrinsics, render_geometry, vertex_array
@@ -84,6 +85,38 @@ class Layers:
     @property
     def depth_all_m(self) -> NDArray[np.float32]:
         return np.minimum(self.depth_front_m, self.depth_built_m)
+
+
+def surface_height_m(layers: Layers, intr: Intrinsics, world_from_camera: NDArray[np.float64]) -> NDArray[np.float32]:
+    """(H, W) world z in metres of the surface each pixel of ``layers`` shows (front-most of built + candidates;
+    NaN where nothing is drawn); ``intr`` at the layers' size, radial distortion undone."""
+    h, w = layers.ids_built.shape
+    depth = np.where(layers.ids_front > 0, layers.depth_front_m, layers.depth_built_m).astype(np.float64)
+    xy = _normalized_grid(intr, h, w)
+    T = np.asarray(world_from_camera, np.float64)
+    with np.errstate(invalid="ignore"):
+        z = T[2, 3] + depth * (T[2, 0] * xy[..., 0] + T[2, 1] * xy[..., 1] + T[2, 2])
+    return np.where(np.isfinite(depth), z, np.nan).astype(np.float32)
+
+
+@lru_cache(maxsize=16)
+def _normalized_grid(intr: Intrinsics, h: int, w: int) -> NDArray[np.float64]:
+    """(h, w, 2) undistorted normalised coordinates of every pixel (a fixed camera's frames share one)."""
+    us, vs = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    grid = pixels_to_normalized(intr, np.stack([us.ravel(), vs.ravel()], axis=1)).reshape(h, w, 2)
+    grid.flags.writeable = False
+    return grid
+
+
+def below_terrain(
+    layers: Layers, intr: Intrinsics, world_from_camera: NDArray[np.float64], terrain_height_m: float, margin_m: float
+) -> NDArray[np.bool_]:
+    """(H, W) pixels whose element surface lies more than ``margin_m`` below the site's terrain (the ground, not in
+    the model, stands in front of it: a backfilled footing or basement wall shows soil whether it stands or not).
+    The occlude node marks the same pixels of its own render as static occluders."""
+    z = surface_height_m(layers, intr, world_from_camera)
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(z) & (z < terrain_height_m - margin_m)
 
 
 class LayerRenderer:
