@@ -506,6 +506,10 @@ class ProgressEngine:
         looks = self.materials.counts if lenient and self.params.dynamic_spares_material_like else None
         cache = PhotoCache(lab)
         terrain = self.model.terrain_height_m if self.params.terrain_hides else None
+        if terrain is not None:  # elements whose box reaches below the ground (by index)
+            low = np.array(
+                [False] + [e.bbox_min_m[2] < terrain - self.params.terrain_margin_m for e in self.model.elements]
+            )
         bins = cache.bins() if looks is not None else None
         seen: dict[int, ElementCue] = {}
         touched: list[str] = []
@@ -522,7 +526,7 @@ class ProgressEngine:
                 seen_ids = seen_appearing >= 0.5
                 hide = fixed_camera_hiding(bins, occluded, static, layers, seen_ids, self.material_of, looks)
             if terrain is not None:
-                hide = hide | below_terrain(layers, intr, T, terrain, self.params.terrain_margin_m)
+                hide = hide | below_terrain(layers, intr, T, terrain, self.params.terrain_margin_m, low)
             cues = photo_evidence(
                 lab,
                 hide,

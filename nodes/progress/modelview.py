@@ -19,7 +19,6 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -87,34 +86,40 @@ class Layers:
         return np.minimum(self.depth_front_m, self.depth_built_m)
 
 
-def surface_height_m(layers: Layers, intr: Intrinsics, world_from_camera: NDArray[np.float64]) -> NDArray[np.float32]:
+def surface_height_m(
+    layers: Layers, intr: Intrinsics, world_from_camera: NDArray[np.float64], where: NDArray[np.bool_] | None = None
+) -> NDArray[np.float32]:
     """(H, W) world z in metres of the surface each pixel of ``layers`` shows (front-most of built + candidates;
-    NaN where nothing is drawn); ``intr`` at the layers' size, radial distortion undone."""
-    h, w = layers.ids_built.shape
-    depth = np.where(layers.ids_front > 0, layers.depth_front_m, layers.depth_built_m).astype(np.float64)
-    xy = _normalized_grid(intr, h, w)
+    NaN where nothing is drawn, and outside ``where`` when given); ``intr`` at the layers' size, radial distortion
+    undone."""
+    depth = np.where(layers.ids_front > 0, layers.depth_front_m, layers.depth_built_m)
+    sel = np.isfinite(depth) if where is None else where & np.isfinite(depth)
+    vs, us = np.nonzero(sel)
+    xy = pixels_to_normalized(intr, np.stack([us, vs], axis=1).astype(np.float64))
     T = np.asarray(world_from_camera, np.float64)
-    with np.errstate(invalid="ignore"):
-        z = T[2, 3] + depth * (T[2, 0] * xy[..., 0] + T[2, 1] * xy[..., 1] + T[2, 2])
-    return np.where(np.isfinite(depth), z, np.nan).astype(np.float32)
-
-
-@lru_cache(maxsize=16)
-def _normalized_grid(intr: Intrinsics, h: int, w: int) -> NDArray[np.float64]:
-    """(h, w, 2) undistorted normalised coordinates of every pixel (a fixed camera's frames share one)."""
-    us, vs = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    grid = pixels_to_normalized(intr, np.stack([us.ravel(), vs.ravel()], axis=1)).reshape(h, w, 2)
-    grid.flags.writeable = False
-    return grid
+    d = depth[vs, us].astype(np.float64)
+    out = np.full(depth.shape, np.nan, np.float32)
+    out[vs, us] = T[2, 3] + d * (T[2, 0] * xy[:, 0] + T[2, 1] * xy[:, 1] + T[2, 2])
+    return out
 
 
 def below_terrain(
-    layers: Layers, intr: Intrinsics, world_from_camera: NDArray[np.float64], terrain_height_m: float, margin_m: float
+    layers: Layers,
+    intr: Intrinsics,
+    world_from_camera: NDArray[np.float64],
+    terrain_height_m: float,
+    margin_m: float,
+    reaches_below: NDArray[np.bool_] | None = None,
 ) -> NDArray[np.bool_]:
     """(H, W) pixels whose element surface lies more than ``margin_m`` below the site's terrain (the ground, not in
     the model, stands in front of it: a backfilled footing or basement wall shows soil whether it stands or not).
-    The occlude node marks the same pixels of its own render as static occluders."""
-    z = surface_height_m(layers, intr, world_from_camera)
+    ``reaches_below`` (n + 1,) per element index: whether any of it lies that low (its box); only their pixels are
+    looked at. The occlude node marks the same pixels of its own render as static occluders."""
+    owner = layers.ids_all.astype(np.int64)
+    where = owner > 0 if reaches_below is None else np.asarray(reaches_below, bool)[owner] & (owner > 0)
+    if not where.any():
+        return np.zeros(owner.shape, bool)
+    z = surface_height_m(layers, intr, world_from_camera, where)
     with np.errstate(invalid="ignore"):
         return np.isfinite(z) & (z < terrain_height_m - margin_m)
 
