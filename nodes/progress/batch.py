@@ -31,9 +31,10 @@ from zoneinfo import ZoneInfo
 
 from constructaide.errors import UserError
 from constructaide.recording import RecordingError, decoded_messages
-from nodes.progress.engine import EngineParams, ProgressEngine
+from nodes.progress.engine import ProgressEngine
 from nodes.progress.evidence import EvidenceParams
 from nodes.progress.fusion import FusionParams
+from nodes.progress.params import EngineParams
 from nodes.progress.registrations import ignores_polish
 from schemas.messages import (
     Annotation,

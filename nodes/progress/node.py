@@ -16,7 +16,8 @@ from dataclasses import replace
 import msgspec
 
 from constructaide.runtime import Input, NodeContext, NodeSpec, Output, run_node_cli
-from nodes.progress.engine import EngineParams, ProgressEngine
+from nodes.progress.engine import ProgressEngine
+from nodes.progress.params import EngineParams
 from schemas import keys
 from schemas import messages as m
 
