@@ -138,11 +138,12 @@ def undistort_normalized(xy_d: F64, k1: float, k2: float, iterations: int = 20) 
     return xy
 
 
-def pixels_to_normalized(intr: Intrinsics, pixels_px: ArrayLike) -> F64:
-    """Undistorted normalised image coordinates (N, 2) of pixels (N, 2)."""
+def pixels_to_normalized(intr: Intrinsics, pixels_px: ArrayLike, iterations: int = 20) -> F64:
+    """Undistorted normalised image coordinates (N, 2) of pixels (N, 2) (``iterations`` of
+    :func:`undistort_normalized`)."""
     px = np.asarray(pixels_px, dtype=np.float64).reshape(-1, 2)
     xy_d = (px - np.array([intr.cx_px, intr.cy_px])) / np.array(focal_xy(intr))
-    return undistort_normalized(xy_d, intr.k1, intr.k2)
+    return undistort_normalized(xy_d, intr.k1, intr.k2, iterations)
 
 
 def normalized_to_pixels(intr: Intrinsics, xy: ArrayLike) -> F64:

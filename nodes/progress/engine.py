@@ -173,6 +173,11 @@ class ProgressEngine:
         self.index_of = {g: i for i, g in enumerate(self.global_ids, start=1)}
         self.material_of = [""] + [(e.material or e.ifc_class).lower() for e in els]
         self.storey_of = {e.global_id: e.storey for e in els}
+        terrain = self.model.terrain_height_m
+        # (n + 1,) whether an element's box reaches below the terrain (only their pixels can be hidden by it)
+        self._reaches_below = np.array(
+            [False] + [terrain is not None and e.bbox_min_m[2] < terrain - self.params.terrain_margin_m for e in els]
+        )
         self.windows = element_windows(self.model.tasks)
         self.tasks = {t.task_id: t for t in self.model.tasks}
         self.task_elements = task_elements(self.model.tasks)
@@ -432,10 +437,6 @@ class ProgressEngine:
         looks = self.materials.counts if lenient and self.params.dynamic_spares_material_like else None
         cache = PhotoCache(lab)
         terrain = self.model.terrain_height_m if self.params.terrain_hides else None
-        if terrain is not None:  # elements whose box reaches below the ground (by index)
-            low = np.array(
-                [False] + [e.bbox_min_m[2] < terrain - self.params.terrain_margin_m for e in self.model.elements]
-            )
         bins = cache.bins() if looks is not None else None
         seen: dict[int, ElementCue] = {}
         touched: list[str] = []
@@ -452,7 +453,7 @@ class ProgressEngine:
                 seen_ids = seen_appearing >= 0.5
                 hide = fixed_camera_hiding(bins, occluded, static, layers, seen_ids, self.material_of, looks)
             if terrain is not None:
-                hide = hide | below_terrain(layers, intr, T, terrain, self.params.terrain_margin_m, low)
+                hide = hide | below_terrain(layers, intr, T, terrain, self.params.terrain_margin_m, self._reaches_below)
             cues = photo_evidence(
                 lab,
                 hide,

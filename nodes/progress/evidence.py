@@ -153,16 +153,11 @@ def to_lab(rgb: NDArray[np.uint8]) -> F32:
     return np.asarray(cv2.cvtColor(rgb.astype(np.float32) / 255.0, cv2.COLOR_RGB2LAB), np.float32)
 
 
-def change_score(lab: F32, ref: F32, valid: BoolA, window_px: int = 5, light_scale: float = 0.5) -> F32:
-    """(H, W) per-pixel change score in [0, 1] between two aligned Lab images, robust to a global exposure change
-    and to ~1 px of misalignment: the largest of an exposure-corrected lightness ratio, a chroma difference and a
-    local structure dissimilarity (1 - NCC of L over ``window_px`` windows, where either side is textured)."""
-    return ChangeParts(lab, ref, window_px).score(valid, light_scale)
-
-
 class ChangeParts:
-    """The parts of :func:`change_score` that do not depend on ``valid`` (which only sets the exposure gain), so
-    one photo's passes over the same plate compute them once."""
+    """Per-pixel change score in [0, 1] between two aligned Lab images (the photo, its plate), robust to a global
+    exposure change and to ~1 px of misalignment: the largest of an exposure-corrected lightness ratio, a chroma
+    difference and a local structure dissimilarity (1 - NCC of L over ``window_px`` windows, where either side is
+    textured). Built once per photo and plate; :meth:`score` only sets the exposure gain from the valid pixels."""
 
     def __init__(self, lab: F32, ref: F32, window_px: int = 5) -> None:
         cur = cv2.GaussianBlur(lab, (0, 0), 0.6)
@@ -180,6 +175,7 @@ class ChangeParts:
         self.rest = np.maximum(chroma, structure)
 
     def score(self, valid: BoolA, light_scale: float = 0.5) -> F32:
+        """(H, W) change score, the exposure gain the median lightness ratio over ``valid`` (H, W)."""
         gain = float(np.median(self.ratio[valid])) if valid.any() else 0.0
         light = np.abs(self.ratio - gain) / light_scale
         return np.clip(np.maximum(light, self.rest), 0.0, 1.0).astype(np.float32)

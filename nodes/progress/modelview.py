@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from constructaide.camera import focal_xy, invert_rigid, undistort_normalized
+from constructaide.camera import invert_rigid, pixels_to_normalized
 from constructaide.gl import offscreen_renderer
 from constructaide.modelscene import build_scene
 from constructaide.modelview import IdTarget, projection_from_intrinsics, render_geometry, vertex_array
@@ -95,8 +95,7 @@ def surface_height_m(
     depth = np.where(layers.ids_front > 0, layers.depth_front_m, layers.depth_built_m)
     sel = np.isfinite(depth) if where is None else where & np.isfinite(depth)
     vs, us = np.nonzero(sel)
-    xy_d = (np.stack([us, vs], axis=1) - np.array([intr.cx_px, intr.cy_px])) / np.array(focal_xy(intr))
-    xy = undistort_normalized(xy_d, intr.k1, intr.k2, iterations=8)  # contracts by ~|2 k1 r^2| per step
+    xy = pixels_to_normalized(intr, np.stack([us, vs], axis=1), iterations=8)  # contracts by ~|2 k1 r^2| a step
     T = np.asarray(world_from_camera, np.float64)
     d = depth[vs, us].astype(np.float64)
     out = np.full(depth.shape, np.nan, np.float32)
