@@ -30,12 +30,17 @@ from nodes.workbench.service import Workbench
 from schemas import keys
 from schemas.messages import (
     AnchorClicks,
+    Annotation,
     BimElement,
     BimModel,
+    ElementEvidence,
+    ElementProgress,
     NeedsAnchor,
     OcclusionMask,
     Overlay,
     Photo,
+    PhotoEvidence,
+    ProgressUpdate,
     Registration,
     ScheduleTask,
     ViewpointGroup,
@@ -392,6 +397,73 @@ def test_annotations_transfer_edit_delete(client, wb, published) -> None:
         client.post("/api/annotations", json={"photo_id": "p2", "element_ids": ["wall"], "status": "great"}), 400
     )
     assert "JSON object" in _error(client.post("/api/annotations", json=[1, 2]), 400)
+
+
+def test_progress_readings_confirmed_and_corrected(client, wb, published) -> None:
+    """What the progress node read in a photo, listed with the fused progress; a person confirms one reading and
+    corrects another: each becomes a published status annotation on the element, listed as its review."""
+    assert "no progress evidence" in _error(client.get("/api/photos/p2/progress"), 404)
+    t2 = T0 + 10 * DAY
+    wb.apply(
+        PhotoEvidence(
+            site=S,
+            photo_id="p2",
+            camera_id="cam-a",
+            capture_time_ns=t2,
+            elements=(
+                ElementEvidence(global_id="col", state="occluded", confidence=0.9, visible_px=9, occluded_fraction=0.9),
+                ElementEvidence(global_id="slab", state="not_built", confidence=0.8, visible_px=400),
+                ElementEvidence(global_id="wall", state="built", confidence=0.93, visible_px=900, llr_appearance=1.0),
+            ),
+        )
+    )
+    wb.apply(
+        ProgressUpdate(
+            site=S,
+            as_of_ns=t2,
+            photo_id="p2",
+            tz="Europe/Berlin",
+            elements=(
+                ElementProgress(global_id="wall", state="built", present_probability=0.97, deviation="on_time"),
+                ElementProgress(global_id="slab", state="not_built", present_probability=0.1, deviation="not_built"),
+            ),
+        )
+    )
+    doc = client.get("/api/photos/p2/progress").json()
+    assert (doc["as_of_ns"], doc["tz"], doc["capture_time_ns"]) == (t2, "Europe/Berlin", t2)
+    assert [e["global_id"] for e in doc["elements"]] == ["wall", "slab", "col"]  # reviewable first, by pixels
+    wall, slab, col = doc["elements"]
+    assert wall["ifc_class"] == "IfcWall" and wall["photo"]["llr_appearance"] == 1.0
+    assert wall["fused"]["deviation"] == "on_time" and slab["fused"]["present_probability"] == 0.1
+    assert col["fused"] is None and all(e["review"] is None for e in doc["elements"])
+    n0 = len(published)
+    r = client.post("/api/photos/p2/progress/review", json={"global_id": "wall", "verdict": "confirm", "author": "pm"})
+    assert r.status_code == 201, r.text
+    ok = r.json()
+    assert (ok["kind"], ok["status"], ok["element_ids"], ok["photo_id"]) == ("status", "built", ["wall"], "p2")
+    assert ok["text"] == "confirms the detection: built (93%)" and ok["author"] == "pm"
+    key, msg = published[-1]
+    assert isinstance(msg, Annotation) and msg.status == "built" and msg.element_ids == ("wall",)
+    assert key == keys.key(keys.ANNOTATION, site=S, annotation=ok["annotation_id"])
+    fix = client.post(
+        "/api/photos/p2/progress/review", json={"global_id": "slab", "verdict": "built", "text": "poured 9:00"}
+    ).json()
+    assert fix["status"] == "built" and fix["text"] == "corrects the detection not built (80%): built; poured 9:00"
+    reviews = {e["global_id"]: e["review"] for e in client.get("/api/photos/p2/progress").json()["elements"]}
+    assert reviews["wall"]["status"] == "built" and reviews["wall"]["author"] == "pm"
+    assert reviews["slab"]["annotation_id"] == fix["annotation_id"] and reviews["col"] is None
+    assert len(published) == n0 + 2
+    review = "/api/photos/p2/progress/review"
+    assert "nothing to confirm" in _error(client.post(review, json={"global_id": "col", "verdict": "confirm"}), 400)
+    assert "verdict must be" in _error(client.post(review, json={"global_id": "wall", "verdict": "maybe"}), 400)
+    assert "global_id" in _error(client.post(review, json={"verdict": "built"}), 400)
+    assert "not read in photo" in _error(client.post(review, json={"global_id": "nope", "verdict": "built"}), 404)
+    other = "/api/photos/p3/progress/review"
+    assert "no progress evidence" in _error(client.post(other, json={"global_id": "wall", "verdict": "built"}), 404)
+    assert "unknown photo" in _error(client.get("/api/photos/zzz/progress"), 404)
+    assert len(published) == n0 + 2
+    for a in (ok, fix):  # leave the annotations as the other tests expect them
+        client.delete(f"/api/annotations/{a['annotation_id']}")
 
 
 # ---------------------------------------------------------------------------------------------- time, preview

@@ -16,11 +16,12 @@ import msgspec
 import numpy as np
 import pytest
 from conftest import ROOT
-from workbench_site import running_site
+from workbench_site import SITE, running_site
 
 from constructaide import camera as cam
 from constructaide.synth import truth
 from nodes.workbench.geometry import ModelGeometry
+from schemas import keys
 from schemas.messages import Intrinsics, Registration
 
 CHROMIUM = shutil.which("chromium") or ("/usr/bin/chromium" if Path("/usr/bin/chromium").exists() else None)
@@ -41,7 +42,7 @@ ARGS = [
 
 @pytest.fixture(scope="module")
 def site(small_site):
-    with running_site(small_site) as s:
+    with running_site(small_site, progress=True) as s:
         yield s
 
 
@@ -261,6 +262,98 @@ def test_select_annotate_and_find_it_on_another_camera_and_date(page, site) -> N
     with httpx.Client(base_url=site.url) as http:
         hist = http.get(f"/api/annotations/{ann['annotation_id']}/history").json()
     assert [h["revision"] for h in hist] == [0, 1]
+
+
+# ------------------------------------------------------------------------------------------------- progress
+
+
+def _wrong_reading(site, states: dict, index: dict[str, int]):
+    """A fixed camera's photo and an element the progress node read wrong there, as a person looking at the photo
+    would see, and that the fused estimate still gets wrong at that time: read ``not_built`` while it stands (at
+    least 400 truly visible pixels) with a fused finish not before the photo, or read ``built`` while it is absent
+    (at least 300 pixels of its model region read) with a fused finish before the photo. The one a person sees
+    best: (photo path, element id, capture time ns, what the person says); None if there is none."""
+    wb = site.workbench.workbench
+    best = None
+    for pid, ev in wb.state.evidence.items():
+        rel = site.rel_of[pid]
+        if ev.camera_id is None:
+            continue
+        ids, occ = _element_pixels(site, rel)
+        built = set(states["photos"][rel])
+        for e in ev.elements:
+            fused = wb.state.progress.get(e.global_id)
+            finish = None if fused is None else fused.detected_finish_ns
+            if e.state == "not_built" and e.global_id in built and (finish is None or finish > ev.capture_time_ns):
+                seen, verdict = int(np.sum((ids == index.get(e.global_id, -1)) & ~occ)) - 400, "built"
+            elif (
+                e.state == "built" and e.global_id not in built and finish is not None and finish <= ev.capture_time_ns
+            ):
+                seen, verdict = e.visible_px - 300, "not_built"
+            else:
+                continue
+            if seen > 0 and (best is None or seen > best[0]):
+                best = (seen, rel, e.global_id, ev.capture_time_ns, verdict)
+    return None if best is None else best[1:]
+
+
+def test_progress_reading_confirmed_and_corrected_in_the_page(page, site) -> None:
+    """The progress node's reading of a photo is listed in the page; a person highlights an element, confirms a
+    right reading and corrects a wrong one (an element they see standing read as not built, or one they see absent
+    read as built). Each review is a status annotation on the bus; the progress node takes the correction, and the
+    element's fused finish moves to the right side of the photo's time."""
+    states = truth.element_states(site.site_dir)
+    index = {v: int(k) for k, v in truth.element_index(site.site_dir).items() if v}
+    wrong = _wrong_reading(site, states, index)
+    assert wrong is not None, "no wrong reading on this site to correct (the test needs one)"
+    rel, gid, t_ns, verdict = wrong
+    p = site.photos[rel]
+    ev = site.workbench.workbench.state.evidence[p.photo_id]
+    ids, occ = _element_pixels(site, rel)
+    # A right reading in the same photo to confirm: the built element read built with the most visible pixels.
+    right = max(
+        (e for e in ev.elements if e.state == "built" and e.global_id in set(states["photos"][rel])),
+        key=lambda e: int(np.sum((ids == index.get(e.global_id, -1)) & ~occ)),
+    ).global_id
+    heard = site.bus.collect(keys.pattern(keys.ANNOTATION, site=SITE))
+    page.click(f"#cameras li[data-group='{p.camera_id}']")
+    page.click(f"#timeline figure[data-photo='{p.photo_id}']")
+    page.wait_for_function(f"wb.detections && wb.detections.photo_id === '{p.photo_id}'")
+    assert "built" in page.inner_text("#detect-summary")
+    row = page.locator(f"#detections li[data-element='{right}']")
+    assert row.get_attribute("data-state") == "built"
+    row.locator("a.det-name").click()
+    page.wait_for_function(f"wb.highlighted === '{right}' && wb.highlight.length > 0")
+    drawn = _polygon_mask(page.evaluate("wb.highlight"), ids.shape)
+    true_px = (ids == index[right]) & ~occ
+    assert np.sum(drawn & true_px) / np.sum(true_px) > 0.8, "the highlight should cover the element's visible part"
+    row.locator("button.review-confirm").click()
+    page.wait_for_function(
+        f"wb.annotations.some(a => a.element_ids[0] === '{right}' && a.status === 'built' && a.author === 'workbench')"
+    )
+    page.wait_for_function(f"document.querySelector(\"#detections li[data-element='{right}'] .reviewed\") !== null")
+    # The wrong reading: the person sees what stands there and says so.
+    bad = page.locator(f"#detections li[data-element='{gid}']")
+    read = "not_built" if verdict == "built" else "built"
+    assert bad.get_attribute("data-state") == read
+    bad.locator(f"button.review-{verdict}").click()
+    page.wait_for_function(
+        f"wb.annotations.some(a => a.element_ids[0] === '{gid}' && a.status === '{verdict}' && "
+        f"a.text.startsWith('corrects the detection {read.replace('_', ' ')}'))"
+    )
+    sent = [m for _k, m in heard.items if gid in m.element_ids]
+    assert sent and sent[-1].status == verdict and sent[-1].photo_id == p.photo_id
+    # The progress node took it: the element's fused finish is now on the right side of the photo, and the page
+    # shows it.
+    right_side = f"f !== null && f <= {t_ns}" if verdict == "built" else f"(f === null || f > {t_ns})"
+    page.wait_for_function(
+        f"(() => {{ const e = wb.detections.elements.find(x => x.global_id === '{gid}'); if (!e || !e.fused || "
+        f"!e.review) return false; const f = e.fused.detected_finish_ns; return {right_side}; }})()",
+        timeout=60_000,
+    )
+    finish = site.workbench.workbench.state.progress[gid].detected_finish_ns
+    assert (finish is not None and finish <= t_ns) if verdict == "built" else (finish is None or finish > t_ns)
+    page.screenshot(path=str(DOCS / "workbench_progress.png"))
 
 
 # ------------------------------------------------------------------------------------------------- time, peek

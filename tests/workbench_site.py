@@ -16,6 +16,8 @@ from constructaide.runtime import Collector, start_node
 from constructaide.runtime.local import LocalBus
 from nodes.ingest.photos import photo_from_file
 from nodes.ingest.revisions import to_bim_model
+from nodes.progress.node import SPEC as PROGRESS
+from nodes.progress.node import Config as ProgressConfig
 from nodes.register.node import SPEC as REGISTER
 from nodes.register.node import Config as RegisterConfig
 from nodes.render.node import SPEC as RENDER
@@ -53,8 +55,11 @@ def site_photos(site_dir: Path) -> tuple[dict[str, Photo], str]:
 
 
 @contextlib.contextmanager
-def running_site(site_dir: Path, modes: tuple[str, ...] = MODES, timeout: float = 900.0) -> Iterator[RunningSite]:
-    """The site's model, anchors.json clicks and photos through register + render, with the workbench (live, any
+def running_site(
+    site_dir: Path, modes: tuple[str, ...] = MODES, timeout: float = 900.0, progress: bool = False
+) -> Iterator[RunningSite]:
+    """The site's model, anchors.json clicks and photos through register + render (and, with ``progress``, the
+    progress node reading each registered photo without waiting for occlusion masks), with the workbench (live, any
     free port) beside them; yields once the nodes are idle."""
     photos, tz = site_photos(site_dir)
     model = to_bim_model(load_site_model([site_dir / "model" / "building.ifc"], tz=tz), SITE, "r1", 0.0)
@@ -63,7 +68,13 @@ def running_site(site_dir: Path, modes: tuple[str, ...] = MODES, timeout: float 
         start_node(WORKBENCH, WorkbenchConfig(site=SITE, port=0), bus) as wb,
         start_node(REGISTER, RegisterConfig(site=SITE), bus) as reg,
         start_node(RENDER, RenderConfig(site=SITE, modes=modes), bus) as ren,
+        contextlib.ExitStack() as more,
     ):
+        prog = (
+            more.enter_context(start_node(PROGRESS, ProgressConfig(site=SITE, require_mask=False), bus))
+            if progress
+            else None
+        )
         regs = bus.collect(keys.pattern(keys.REGISTRATION, site=SITE))
         bus.publish(keys.key(keys.BIM_MODEL, site=SITE), model, latched=True)
         for a in json.loads((site_dir / "anchors.json").read_text())["anchors"]:
@@ -78,7 +89,8 @@ def running_site(site_dir: Path, modes: tuple[str, ...] = MODES, timeout: float 
         for rel in sorted(photos, key=lambda r: (photos[r].capture_time_ns, r)):
             p = photos[rel]
             bus.publish(keys.key(keys.PHOTO, site=SITE, camera=p.camera_id), p)
-        assert reg.wait_idle(timeout) and ren.wait_idle(timeout) and wb.wait_idle(60)
+        assert reg.wait_idle(timeout) and ren.wait_idle(timeout)
+        assert (prog is None or prog.wait_idle(timeout)) and wb.wait_idle(60)
         yield RunningSite(
             site_dir=site_dir,
             url=wb.obj.url,

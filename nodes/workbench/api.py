@@ -244,6 +244,16 @@ def outline(req: Request) -> JSONResponse:
     return JSONResponse({"polygons": _wb(req).outline(req.path_params["photo_id"], _ids(req))})
 
 
+def progress(req: Request) -> JSONResponse:
+    return JSONResponse(_wb(req).progress(req.path_params["photo_id"]))
+
+
+async def review(req: Request) -> JSONResponse:
+    body = _obj(await _json(req))
+    out = await asyncio.to_thread(_wb(req).review_detection, req.path_params["photo_id"], body)
+    return JSONResponse(out, status_code=201)
+
+
 def element(req: Request) -> JSONResponse:
     g = _wb(req).geometry()
     try:
@@ -422,6 +432,21 @@ ENDPOINTS: tuple[Endpoint, ...] = (
         body='{"mode": "click"|"grow"|"region"|"occlusion", ...}',
     ),
     Endpoint("GET", "/api/photos/{photo_id}/outline", outline, "Outlines of elements' visible parts", ("element_ids",)),
+    Endpoint(
+        "GET",
+        "/api/photos/{photo_id}/progress",
+        progress,
+        "What the progress node read in the photo: per element its reading there, its fused progress (P, deviation, "
+        "dates) and the latest person's review",
+    ),
+    Endpoint(
+        "POST",
+        "/api/photos/{photo_id}/progress/review",
+        review,
+        "Confirm or correct the reading of an element: a status annotation (built / not built) on it, published in "
+        "live mode; the progress node takes it as evidence",
+        body='{"global_id", "verdict": "confirm"|"built"|"not_built", "author"?, "text"?}',
+    ),
     Endpoint("GET", "/api/elements/{global_id}", element, "IFC attributes and state of one element", ("at_ns",)),
     Endpoint(
         "GET",

@@ -1,7 +1,8 @@
 """Workbench node: the browser page where people anchor photos, select and annotate elements and move through time.
 
 Subscribes to everything the page shows (model, photos, registrations, anchor requests, overlays, masks, viewpoint
-groups, annotations) and serves the page and its JSON API over HTTP (:mod:`nodes.workbench.api`). What people make
+groups, annotations, the progress node's readings and fused progress) and serves the page and its JSON API over HTTP
+(:mod:`nodes.workbench.api`). What people make
 goes back on the bus: anchor clicks (``anchors/{photo}``) and annotations (``annotation/{id}``), unless ``live`` is
 off (review: answers are solved and shown, nothing is published). Binding a non-loopback ``host`` needs a
 ``token`` (one is generated and printed when none is configured).
@@ -63,7 +64,7 @@ class WorkbenchNode:
 
     # One handler name per input (the runtime names a failing input's topic by its handler).
     on_model = on_update = on_photo = on_registration = on_needs_anchor = on_message
-    on_overlay = on_occlusion = on_viewpoints = on_annotation = on_message
+    on_overlay = on_occlusion = on_viewpoints = on_annotation = on_evidence = on_progress = on_message
 
     def close(self) -> None:
         self.server.stop()
@@ -85,6 +86,8 @@ SPEC = NodeSpec(
         Input(keys.OCCLUSION, m.OcclusionMask, "on_occlusion"),
         Input(keys.VIEWPOINTS, m.ViewpointGroup, "on_viewpoints"),
         Input(keys.ANNOTATION, m.Annotation, "on_annotation"),
+        Input(keys.PHOTO_EVIDENCE, m.PhotoEvidence, "on_evidence"),
+        Input(keys.PROGRESS, m.ProgressUpdate, "on_progress"),
     ),
     outputs=(Output(keys.ANCHORS, m.AnchorClicks), Output(keys.ANNOTATION, m.Annotation)),
 )

@@ -26,6 +26,7 @@ from constructaide import camera as cam
 from constructaide import imagecodec
 from constructaide.anchorsolve import MIN_CLICKS, AnchorSolution, DegenerateAnchors, solve_anchor
 from constructaide.bimgeom import glb_to_meshes, meshes_to_glb
+from nodes.workbench import progress as progress_view
 from nodes.workbench import regions
 from nodes.workbench.geometry import GROW_BY, ModelGeometry
 from nodes.workbench.idrender import IdImage, IdRenderer, intrinsics_scaled_by
@@ -617,6 +618,31 @@ class Workbench:
             raise ApiError(400, f"bad annotation: {e}") from None
         self._emit(ann)
         return self.annotation_json(ann)
+
+    # -- progress ---------------------------------------------------------------------------------------------
+
+    def progress(self, photo_id: str) -> dict[str, Any]:
+        """What the progress node read in a photo (:func:`nodes.workbench.progress.detections`)."""
+        with self._lock:
+            self.photo(photo_id)
+            names = {e.global_id: e for e in self.model().elements} if self.state.model is not None else {}
+            try:
+                return progress_view.detections(self.state, photo_id, names)
+            except LookupError as e:
+                raise ApiError(404, str(e)) from None
+
+    def review_detection(self, photo_id: str, body: dict[str, Any]) -> dict[str, Any]:
+        """Confirm or correct what the progress node read of an element in a photo: a ``status`` annotation
+        (:func:`nodes.workbench.progress.review_annotation`), published like any other."""
+        with self._lock:
+            self.photo(photo_id)
+            try:
+                ann = progress_view.review_annotation(self.state, photo_id, body)
+            except LookupError as e:
+                raise ApiError(404, str(e)) from None
+            except ValueError as e:
+                raise ApiError(400, str(e)) from None
+        return self.create_annotation(ann)
 
     def delete_annotation(self, annotation_id: str) -> dict[str, Any]:
         revs = self.state.annotations.get(annotation_id)

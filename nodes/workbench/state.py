@@ -16,11 +16,14 @@ from schemas.messages import (
     Annotation,
     BimModel,
     BimUpdate,
+    ElementProgress,
     Message,
     NeedsAnchor,
     OcclusionMask,
     Overlay,
     Photo,
+    PhotoEvidence,
+    ProgressUpdate,
     Registration,
     ViewpointGroup,
 )
@@ -51,6 +54,12 @@ class SiteState:
     annotations: dict[str, list[Annotation]] = field(default_factory=dict)
     model: BimModel | None = None
     updates: list[BimUpdate] = field(default_factory=list)
+    evidence: dict[str, PhotoEvidence] = field(default_factory=dict)
+    """The progress node's latest reading of each photo."""
+    progress: dict[str, ElementProgress] = field(default_factory=dict)
+    """The latest fused progress of each element (merged from the ProgressUpdates)."""
+    progress_as_of_ns: int = 0
+    progress_tz: str = "UTC"
     errors: int = 0
     max_photos: int = 5000
     """Photos kept (with their registrations, overlays, masks, viewpoint groups): beyond it the earliest arrivals
@@ -65,7 +74,7 @@ class SiteState:
     def _bound(self) -> None:
         cap = max(1, self.max_photos)
         slack = max(1, cap // 10)
-        per_photo = (self.registrations, self.needs_anchor, self.viewpoints)
+        per_photo = (self.registrations, self.needs_anchor, self.viewpoints, self.evidence)
         per_key = (self.overlays, self.masks)
         over = (
             len(self.photos) > cap + slack
@@ -116,6 +125,14 @@ class SiteState:
             revs.append(msg)
             revs.sort(key=lambda a: a.revision)
             return [{"kind": "annotation", "annotation_id": msg.annotation_id, "revision": msg.revision}]
+        if isinstance(msg, PhotoEvidence):
+            self.evidence[msg.photo_id] = msg
+            return [{"kind": "evidence", "photo_id": msg.photo_id}]
+        if isinstance(msg, ProgressUpdate):
+            for e in msg.elements:
+                self.progress[e.global_id] = e
+            self.progress_as_of_ns, self.progress_tz = max(self.progress_as_of_ns, msg.as_of_ns), msg.tz
+            return [{"kind": "progress", "photo_id": msg.photo_id, "elements": len(msg.elements)}]
         if isinstance(msg, BimModel):
             self.model, self.updates = msg, []
             return [{"kind": "model", "revision": msg.revision}]

@@ -4,6 +4,7 @@ import * as api from "./api.js";
 import { AnchorView } from "./anchor.js";
 import { parseMesh } from "./modelgl.js";
 import { drawPolygons, photoPixel, svgEl } from "./draw.js";
+import { ProgressPanel } from "./progress.js";
 
 const $ = (s) => document.querySelector(s);
 const wb = (window.wb = {
@@ -123,7 +124,8 @@ export async function showPhoto(id) {
   setTimeValue(p.capture_time);
   renderModes(p);
   renderInfo(p);
-  await Promise.all([loadAnnotations(), refreshSelectionOutline()]);
+  if (changed) wb.highlight = [];
+  await Promise.all([loadAnnotations(), refreshSelectionOutline(), progressPanel.load(id)]);
   if (wb.region && $("#peek-toggle").checked && !changed) await peek();
   drawAll();
 }
@@ -204,6 +206,7 @@ function drawAll() {
     drawPolygons(svg, a.polygons, { fill: `rgba(${r},${g},${b},${(al / 255).toFixed(2)})`, stroke: `rgb(${r},${g},${b})`, cls: "annotation", data: { annotation: a.annotation_id } });
   }
   drawPolygons(svg, wb.selection.polygons, { fill: "rgba(77,124,254,0.25)", stroke: "#4d7cfe", cls: "selection" });
+  drawPolygons(svg, wb.highlight, { fill: "rgba(255,213,79,0.3)", stroke: "#ffb300", cls: "detection" });
   drawPolygons(svg, wb.selection.region_polygons, { fill: "rgba(255,255,255,0.15)", stroke: "#fff", dash: true, cls: "region" });
   if (wb.region) drawPolygons(svg, [wb.region], { fill: "none", stroke: "#ffeb3b", dash: true, cls: "peek-region" });
   if (wb.drawing && wb.drawing.length) {
@@ -507,6 +510,8 @@ function showSite() {
 
 // -- live updates ---------------------------------------------------------------------------------------------------
 
+const progressPanel = new ProgressPanel(wb, { say, redraw: () => drawAll(), onReviewed: () => loadAnnotations() });
+
 let reloadTimer = null;
 function onEvent(ev) {
   wb.lastEvent = ev;
@@ -524,6 +529,7 @@ function onEvent(ev) {
     }, 150);
   }
   if (ev.kind === "annotation" && wb.current) loadAnnotations();
+  if (["evidence", "progress", "annotation"].includes(ev.kind) && wb.current) progressPanel.refreshSoon();
   if (ev.kind === "model") loadModel().then(setupTime);
 }
 
