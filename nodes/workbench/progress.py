@@ -65,8 +65,8 @@ def _reading(e: ElementEvidence) -> dict[str, Any]:
 def detections(state: SiteState, photo_id: str, elements: dict[str, BimElement]) -> dict[str, Any]:
     """The ``GET /api/photos/{photo_id}/progress`` document: ``{"photo_id", "as_of_ns", "tz", "elements": [...]}``,
     each element ``{"global_id", "name", "ifc_class", "photo": reading, "fused": progress or null, "review":
-    {"annotation_id", "status", "author", "photo_id"} or null}``; readings a person can review (built / not built)
-    first, then the rest, each by visible pixels. ``elements``: the model's elements by id (names and classes)."""
+    {"annotation_id", "status", "author", "photo_id"} or null}``; readings a person can confirm (built / not built)
+    first, then the rest (unknown, occluded), each by visible pixels. ``elements``: the model's elements by id (names and classes)."""
     ev = state.evidence.get(photo_id)
     if ev is None:
         raise LookupError(f"no progress evidence for photo {photo_id!r} (is the progress node running?)")

@@ -44,7 +44,8 @@ export class ProgressPanel {
       `${count("built")} built, ${count("not_built")} not built, ${count("occluded")} occluded, ${count("unknown")} unknown` +
       (deviating.length ? `; ${deviating.length} off schedule` : "");
     ul.replaceChildren();
-    for (const e of doc.elements.filter((x) => REVIEWABLE.includes(x.photo.state) || x.review)) ul.append(this.row(photoId, e));
+    // Occluded ones are hidden in the photo (a person cannot tell either); unknown ones a person can often answer.
+    for (const e of doc.elements.filter((x) => x.photo.state !== "occluded" || x.review)) ul.append(this.row(photoId, e));
   }
 
   row(photoId, e) {
