@@ -51,28 +51,8 @@ from schemas.messages import Annotation, PhotoEvidence  # noqa: E402
 
 def read_all(inputs: batch.RecordedInputs) -> tuple[ProgressEngine, dict[str, PhotoEvidence]]:
     """:func:`nodes.progress.batch.run_engine`, keeping each photo's PhotoEvidence as it was published."""
-    engine = ProgressEngine()
-    assert inputs.model is not None
-    engine.set_model(inputs.model)
-    for u in inputs.updates:
-        engine.apply_update(u)
-    for p in inputs.photos.values():
-        engine.add_photo(p)
-    for r in inputs.registrations.values():
-        engine.add_registration(r)
-    for m in inputs.masks.values():
-        engine.add_mask(m)
-    if inputs.sparse is not None:
-        engine.set_sparse(inputs.sparse)
-    evidence = {}
-    todo = sorted((p for p in inputs.photos.values() if engine.ready(p.photo_id)), key=lambda p: p.capture_time_ns)
-    for k, p in enumerate(todo, start=1):
-        evidence[p.photo_id], _update = engine.process(p.photo_id)
-        print(f"\rprogress: evidence {k}/{len(todo)} photos", end="", file=sys.stderr, flush=True)
-    print(file=sys.stderr)
-    for a in inputs.annotations:
-        engine.add_annotation(a)
-    return engine, evidence
+    evidence: dict[str, PhotoEvidence] = {}
+    return batch.run_engine(inputs, evidence=evidence), evidence
 
 
 def write_outputs(engine: ProgressEngine, out: Path) -> None:

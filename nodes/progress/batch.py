@@ -43,6 +43,7 @@ from schemas.messages import (
     Message,
     OcclusionMask,
     Photo,
+    PhotoEvidence,
     Registration,
     SparseCloud,
 )
@@ -111,8 +112,14 @@ def read_inputs(path: Path) -> RecordedInputs:
     return out
 
 
-def run_engine(inputs: RecordedInputs, params: EngineParams | None = None, progress: bool = True) -> ProgressEngine:
-    """Feed a recording's inputs to a fresh engine and process every registered photo in capture order."""
+def run_engine(
+    inputs: RecordedInputs,
+    params: EngineParams | None = None,
+    progress: bool = True,
+    evidence: dict[str, PhotoEvidence] | None = None,
+) -> ProgressEngine:
+    """Feed a recording's inputs to a fresh engine and process every registered photo in capture order;
+    ``evidence``, when given, receives each photo's PhotoEvidence as the streaming node would publish it."""
     engine = ProgressEngine(params)
     assert inputs.model is not None
     engine.set_model(inputs.model)
@@ -130,7 +137,9 @@ def run_engine(inputs: RecordedInputs, params: EngineParams | None = None, progr
         (p for p in inputs.photos.values() if engine.ready(p.photo_id)), key=lambda p: (p.capture_time_ns, p.photo_id)
     )
     for k, p in enumerate(todo, start=1):
-        engine.process(p.photo_id)
+        ev, _update = engine.process(p.photo_id)
+        if evidence is not None:
+            evidence[p.photo_id] = ev
         if progress:
             print(f"\rprogress: evidence {k}/{len(todo)} photos", end="", file=sys.stderr, flush=True)
     if progress and todo:
