@@ -15,6 +15,10 @@ takes them (``ProgressEngine.add_annotation``, what the streaming node does with
 outputs are scored by ``bench/progress.py``'s ``score`` before and after. Only the scoring and the simulated person
 read ``truth/``.
 
+With ``--policies queue:K`` the person instead answers the first K entries of the workbench's review queue
+(``Workbench.review_queue``: readings that disagree with the plan, one per element, the farthest off first), each
+with "right" or the correction (one in 20 the wrong way).
+
 The reviewed photos' own (photo, element) pairs are then right by construction, so the built F1 rises partly by
 definition; the finish dates and the deviation classes at the last photo are the effect to read.
 """
@@ -46,7 +50,7 @@ from nodes.progress import batch  # noqa: E402
 from nodes.progress.engine import ProgressEngine  # noqa: E402
 from nodes.progress.modelview import LayerRenderer  # noqa: E402
 from nodes.workbench.service import Workbench  # noqa: E402
-from schemas.messages import Annotation, PhotoEvidence  # noqa: E402
+from schemas.messages import Annotation, PhotoEvidence, ProgressUpdate  # noqa: E402
 
 
 def read_all(inputs: batch.RecordedInputs) -> tuple[ProgressEngine, dict[str, PhotoEvidence]]:
@@ -81,7 +85,9 @@ def reviewed_photos(evidence: dict[str, PhotoEvidence], every_days: float, tz: s
     return [e.photo_id for e in sorted(latest.values(), key=lambda e: (e.capture_time_ns, e.photo_id))]
 
 
-def run(size: str, seed: int, recording: Path, every_days: float, misjudge: float) -> dict:
+def run(size: str, seed: int, recording: Path, policy: str, misjudge: float) -> dict:
+    """One review ``policy``: ``"7"`` (every 7 days the latest photo of each fixed camera) or ``"queue:30"`` (the
+    first 30 entries of the workbench's review queue, each answered: confirmed or corrected)."""
     site = ensure_site(size, seed, ROOT / ".cache" / "synth")
     t0 = time.perf_counter()
     inputs = batch.read_inputs(recording)
@@ -106,31 +112,55 @@ def run(size: str, seed: int, recording: Path, every_days: float, misjudge: floa
         renderer.set_model(gids, glb_to_meshes(inputs.model.geometry_glb))
         meshes = glb_to_meshes(inputs.model.geometry_glb)
         rng = np.random.default_rng(seed)
-        photos = reviewed_photos(evidence, every_days, engine.tz)
         listed = wrong = unknown = misjudged = 0
-        for pid in photos:
-            rel = by_id[pid]
-            visible = set(truth_population(site, rel, gids, meshes, renderer, cams))
-            built = set(truth_built[rel])
-            for row in wb.progress(pid)["elements"]:
-                reading = row["photo"]["state"]
-                if reading == "occluded":
-                    continue  # not listed
+        if policy.startswith("queue:"):
+            # The fused progress the page knows (the streaming node's ProgressUpdates; here the final one).
+            elements = tuple(engine.element_progress(g) for g in engine.global_ids)
+            wb.apply(ProgressUpdate(site="bench", as_of_ns=engine.as_of_ns, elements=elements, tz=engine.tz))
+            items = wb.review_queue(int(policy.split(":")[1]))
+            photos = sorted({q["photo_id"] for q in items})
+            seen_in: dict[str, set[str]] = {}
+            for q in items:
+                pid, g, reading = q["photo_id"], q["global_id"], q["reading"]
+                rel = by_id[pid]
+                if pid not in seen_in:
+                    seen_in[pid] = set(truth_population(site, rel, gids, meshes, renderer, cams))
                 listed += 1
-                g = row["global_id"]
-                if g not in visible:
+                if g not in seen_in[pid]:
                     continue  # nothing a person can tell there
-                sees = "built" if g in built else "not_built"
-                if reading == sees:
-                    continue
-                if reading == "unknown":
-                    unknown += 1
-                else:
-                    wrong += 1
+                sees = "built" if g in truth_built[rel] else "not_built"
+                wrong += sees != reading
                 if rng.random() < misjudge:
-                    sees, misjudged = reading, misjudged + 1  # they look and wrongly agree with the reading
-                    continue
-                wb.review_detection(pid, {"global_id": g, "verdict": sees, "author": "bench"})
+                    sees, misjudged = ("not_built" if sees == "built" else "built"), misjudged + 1
+                verdict = "confirm" if sees == reading else sees
+                wb.review_detection(pid, {"global_id": g, "verdict": verdict, "author": "bench"})
+            photos_reviewed = len(photos)
+        else:
+            photos = reviewed_photos(evidence, float(policy), engine.tz)
+            photos_reviewed = len(photos)
+            for pid in photos:
+                rel = by_id[pid]
+                visible = set(truth_population(site, rel, gids, meshes, renderer, cams))
+                built = set(truth_built[rel])
+                for row in wb.progress(pid)["elements"]:
+                    reading = row["photo"]["state"]
+                    if reading == "occluded":
+                        continue  # not listed
+                    listed += 1
+                    g = row["global_id"]
+                    if g not in visible:
+                        continue  # nothing a person can tell there
+                    sees = "built" if g in built else "not_built"
+                    if reading == sees:
+                        continue
+                    if reading == "unknown":
+                        unknown += 1
+                    else:
+                        wrong += 1
+                    if rng.random() < misjudge:
+                        sees, misjudged = reading, misjudged + 1  # they look and wrongly agree with the reading
+                        continue
+                    wb.review_detection(pid, {"global_id": g, "verdict": sees, "author": "bench"})
         wb.close()
         for ann in published:
             engine.add_annotation(ann)
@@ -138,7 +168,7 @@ def run(size: str, seed: int, recording: Path, every_days: float, misjudge: floa
         after = score(site, recording, Path(tmp) / "after")
     return {
         "site": f"{size} seed {seed}",
-        "reviewed_photos": len(photos),
+        "reviewed_photos": photos_reviewed,
         "listed": listed,
         "wrong": wrong,
         "unknown": unknown,
@@ -156,10 +186,12 @@ def _cells(res: dict) -> list[str]:
     eo = res["finish"][0]
     d = res["deviation"]
     share = lambda c: d[c][1] / d[c][0] if c in d and d[c][0] else float("nan")  # noqa: E731
+    fl = res["flags"]
     return [
         f"{f1:.3f}",
         f"{100 * within(eo):.1f} %",
         f"{100 * share('late'):.0f} / {100 * share('early'):.0f} / {100 * share('on_time'):.0f} %",
+        f"{fl['behind'][1]} of {fl['behind'][0]} / {fl['ahead'][1]} of {fl['ahead'][0]}",
     ]
 
 
@@ -169,28 +201,31 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--recording", type=Path, required=True, help="a `constructaide demo` recording of that site")
     ap.add_argument(
-        "--every-days", default="7,1", help="days between two reviews of each camera; several: one row each (7,1)"
+        "--policies",
+        default="7,1,queue:100",
+        help="review policies, a row each: N (every N days the latest photo of each camera), queue:K (the first K "
+        "readings of the review queue)",
     )
     ap.add_argument("--misjudge", type=float, default=0.05, help="share of wrong readings the person gets wrong too")
     ap.add_argument("--no-write", action="store_true")
     args = ap.parse_args(argv)
-    every = [float(x) for x in str(args.every_days).split(",")]
     rows = []
-    for days in every:
-        r = run(args.size, args.seed, args.recording, days, args.misjudge)
+    for policy in args.policies.split(","):
+        r = run(args.size, args.seed, args.recording, policy, args.misjudge)
         b, a = _cells(r["before"]), _cells(r["after"])
-        rows.append(_row(r, days, b, a))
+        rows.append(_row(r, policy, b, a))
     text = table(
         [
             "site",
-            "review every",
+            "review",
             "photos reviewed",
             "readings listed (built, not built, unknown)",
             "of them wrong / unknown where the person sees the element",
-            "corrections pressed",
+            "reviews pressed",
             "built F1, all photos",
             "finish within ±1 working day",
             "late / early / on time classed right",
+            "our behind / ahead flags right",
         ],
         rows,
     )
@@ -199,10 +234,13 @@ def main(argv: list[str] | None = None) -> int:
         pct = f"{100 * args.misjudge:.0f}"
         body = f"""Recording `{r["recording"]}` of
 `constructaide demo --size {args.size} --seed {args.seed} --answer-anchor-requests`, code {code_version()}. The
-shipping progress engine reads every photo; then a simulated site manager reviews, every N days (a row each), the
-latest photo of each fixed camera in the workbench (`Workbench.review_detection`): each reading listed (built, not
-built, unknown) of an element that truly shows there and is wrong or unknown gets "built" or "not built" ({pct} %
-of them misjudged: left as read). The engine takes the published status
+shipping progress engine reads every photo; then a simulated site manager reviews in the workbench
+(`Workbench.review_detection`; a row per policy). "every N days": the latest photo of each fixed camera every N
+days; each reading listed (built, not built, unknown) of an element that truly shows there and is wrong or unknown
+gets "built" or "not built" ({pct} % of them misjudged: left as read). "first K of the queue": the workbench's
+review queue (`Workbench.review_queue`: readings that disagree with the plan, one per element, farthest off
+first), each entry whose element truly shows answered: "right" or the correction ({pct} % answered the wrong
+way). The engine takes the published status
 annotations; scored by `bench/progress.py` before -> after (same definitions; the reviewed (photo, element) pairs
 are right by construction after, so built F1 rises partly by definition).
 
@@ -212,17 +250,19 @@ are right by construction after, so built F1 rises partly by definition).
     return 0
 
 
-def _row(r: dict, days: float, b: list[str], a: list[str]) -> list:
+def _row(r: dict, policy: str, b: list[str], a: list[str]) -> list:
+    what = f"first {policy.split(':')[1]} of the queue" if policy.startswith("queue:") else f"every {policy} days"
     return [
         r["site"],
-        f"{days:g} days",
+        what,
         r["reviewed_photos"],
         r["listed"],
         f"{r['wrong']} / {r['unknown']}",
-        f"{r['corrections']} ({r['misjudged']} misjudged, left)",
+        f"{r['corrections']} ({r['misjudged']} misjudged)",
         f"{b[0]} -> {a[0]}",
         f"{b[1]} -> {a[1]}",
         f"{b[2]} -> {a[2]}",
+        f"{b[3]} -> {a[3]}",
     ]
 
 

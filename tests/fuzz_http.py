@@ -65,6 +65,10 @@ def good_bodies(project: Any, T0: int) -> dict[str, list[dict[str, Any]]]:
         "POST /api/annotations": [ann, {"photo_id": "p1", "polygon_px": poly, "text": "region"}],
         "PUT /api/annotations/{annotation_id}": [{"text": "edited", "status": "on_time"}],
         "POST /api/photos/{photo_id}/peek": [{"at_ns": T0 - 1, "polygon": poly}, {"at_ns": T0 + 30 * 86_400 * 10**9}],
+        "POST /api/photos/{photo_id}/progress/review": [
+            {"global_id": "wall", "verdict": "confirm"},
+            {"global_id": "wall", "verdict": "not_built", "text": "fuzz", "author": "fuzz"},
+        ],
     }
 
 
@@ -75,6 +79,7 @@ GOOD_PARAMS = {
     "snap_px": "8",
     "at_ns": "1800000000000000000",
     "element_ids": "wall,col",
+    "limit": "20",
 }
 BAD_IDS = [
     "nope",

@@ -425,7 +425,14 @@ def test_progress_readings_confirmed_and_corrected(client, wb, published) -> Non
             tz="Europe/Berlin",
             elements=(
                 ElementProgress(global_id="wall", state="built", present_probability=0.97, deviation="on_time"),
-                ElementProgress(global_id="slab", state="not_built", present_probability=0.1, deviation="not_built"),
+                ElementProgress(
+                    global_id="slab",
+                    state="not_built",
+                    present_probability=0.1,
+                    deviation="not_built",
+                    planned_start_ns=T0,
+                    planned_finish_ns=T0 + DAY,
+                ),
             ),
         )
     )
@@ -436,6 +443,11 @@ def test_progress_readings_confirmed_and_corrected(client, wb, published) -> Non
     assert wall["ifc_class"] == "IfcWall" and wall["photo"]["llr_appearance"] == 1.0
     assert wall["fused"]["deviation"] == "on_time" and slab["fused"]["present_probability"] == 0.1
     assert col["fused"] is None and all(e["review"] is None for e in doc["elements"])
+    # The review queue: the slab read not built 9 days after its planned finish (the wall's reading agrees with its
+    # plan, the column was not read).
+    (q,) = client.get("/api/progress/review-queue").json()
+    assert (q["photo_id"], q["global_id"], q["reading"], q["days_off"]) == ("p2", "slab", "not_built", 9.0)
+    assert client.get("/api/progress/review-queue?limit=0").json() == []
     n0 = len(published)
     r = client.post("/api/photos/p2/progress/review", json={"global_id": "wall", "verdict": "confirm", "author": "pm"})
     assert r.status_code == 201, r.text
@@ -453,6 +465,7 @@ def test_progress_readings_confirmed_and_corrected(client, wb, published) -> Non
     assert reviews["wall"]["status"] == "built" and reviews["wall"]["author"] == "pm"
     assert reviews["slab"]["annotation_id"] == fix["annotation_id"] and reviews["col"] is None
     assert len(published) == n0 + 2
+    assert client.get("/api/progress/review-queue").json() == []  # reviewed elements leave the queue
     review = "/api/photos/p2/progress/review"
     assert "nothing to confirm" in _error(client.post(review, json={"global_id": "col", "verdict": "confirm"}), 400)
     assert "verdict must be" in _error(client.post(review, json={"global_id": "wall", "verdict": "maybe"}), 400)

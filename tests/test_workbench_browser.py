@@ -316,6 +316,14 @@ def test_progress_reading_confirmed_and_corrected_in_the_page(page, site) -> Non
         key=lambda e: int(np.sum((ids == index.get(e.global_id, -1)) & ~occ)),
     ).global_id
     heard = site.bus.collect(keys.pattern(keys.ANNOTATION, site=SITE))
+    # The queue of readings off schedule: its first entry opens that photo with the element outlined.
+    with httpx.Client(base_url=site.url) as http:
+        queue = http.get("/api/progress/review-queue?limit=30").json()
+    assert queue, "readings off schedule expected on this site (late and early elements)"
+    page.wait_for_function(f"document.querySelectorAll('#review-queue li').length === {len(queue)}")
+    page.locator("#review-queue li").first.click()
+    page.wait_for_function(f"wb.current === '{queue[0]['photo_id']}' && wb.highlighted === '{queue[0]['global_id']}'")
+    assert page.locator("#draw polygon.detection").count() >= 1
     page.click(f"#cameras li[data-group='{p.camera_id}']")
     page.click(f"#timeline figure[data-photo='{p.photo_id}']")
     page.wait_for_function(f"wb.detections && wb.detections.photo_id === '{p.photo_id}'")

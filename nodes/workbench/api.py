@@ -248,6 +248,10 @@ def progress(req: Request) -> JSONResponse:
     return JSONResponse(_wb(req).progress(req.path_params["photo_id"]))
 
 
+def review_queue(req: Request) -> JSONResponse:
+    return JSONResponse(_wb(req).review_queue(_q(req, "limit", int64, 50)))
+
+
 async def review(req: Request) -> JSONResponse:
     body = _obj(await _json(req))
     out = await asyncio.to_thread(_wb(req).review_detection, req.path_params["photo_id"], body)
@@ -438,6 +442,14 @@ ENDPOINTS: tuple[Endpoint, ...] = (
         progress,
         "What the progress node read in the photo: per element its reading there, its fused progress (P, deviation, "
         "dates) and the latest person's review",
+    ),
+    Endpoint(
+        "GET",
+        "/api/progress/review-queue",
+        review_queue,
+        "Readings that disagree with the plan (built before the planned start, not built after the planned finish), "
+        "one per element not reviewed yet, the farthest off schedule first",
+        ("limit",),
     ),
     Endpoint(
         "POST",

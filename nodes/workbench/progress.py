@@ -8,6 +8,10 @@ review (``confirm`` the detection, or say ``built`` / ``not_built``) into the bo
 the progress node reads it as strong evidence at the photo's capture time (``ProgressEngine.add_annotation``), so a
 confirmed or corrected element's estimate follows the person.
 
+:func:`review_queue` lists the readings worth a person's look first: those that disagree with the schedule (an
+element read built before its planned start, or not built after its planned finish: the evidence of an ``ahead`` or
+``behind``), one per element, the farthest off schedule first.
+
 Errors: ``LookupError`` (unknown photo evidence or element: the API's 404), ``ValueError`` (a bad review: 400).
 """
 
@@ -66,7 +70,8 @@ def detections(state: SiteState, photo_id: str, elements: dict[str, BimElement])
     """The ``GET /api/photos/{photo_id}/progress`` document: ``{"photo_id", "as_of_ns", "tz", "elements": [...]}``,
     each element ``{"global_id", "name", "ifc_class", "photo": reading, "fused": progress or null, "review":
     {"annotation_id", "status", "author", "photo_id"} or null}``; readings a person can confirm (built / not built)
-    first, then the rest (unknown, occluded), each by visible pixels. ``elements``: the model's elements by id (names and classes)."""
+    first, then the rest (unknown, occluded), each by visible pixels. ``elements``: the model's elements by id (names
+    and classes)."""
     ev = state.evidence.get(photo_id)
     if ev is None:
         raise LookupError(f"no progress evidence for photo {photo_id!r} (is the progress node running?)")
@@ -140,3 +145,46 @@ def review_annotation(state: SiteState, photo_id: str, body: dict[str, Any]) -> 
         "text": text,
         "author": author if isinstance(author, str) else "",
     }
+
+
+def review_queue(state: SiteState, elements: dict[str, BimElement], limit: int = 50) -> list[dict[str, Any]]:
+    """Readings that disagree with the plan, one per element not reviewed yet, the farthest off first: ``[{"photo_id",
+    "camera_id", "capture_time_ns", "global_id", "name", "ifc_class", "reading", "confidence", "days_off",
+    "planned_start_ns", "planned_finish_ns"}]``. An element read ``built`` before its planned start (a possible
+    ``ahead``: its earliest such photo) or ``not_built`` after its planned finish (a possible ``behind``: its latest
+    such photo); ``days_off`` how far the photo lies outside the planned window. Planned dates come from the
+    progress node's ElementProgress."""
+    reviewed = set(_reviews(state))
+    best: dict[str, dict[str, Any]] = {}
+    day = 86_400e9
+    for ev in state.evidence.values():
+        for e in ev.elements:
+            p = state.progress.get(e.global_id)
+            if p is None or e.global_id in reviewed or e.state not in REVIEWABLE:
+                continue
+            t = ev.capture_time_ns
+            start = p.planned_start_ns if p.planned_start_ns is not None else p.planned_finish_ns
+            if e.state == "built" and start is not None and t < start:
+                off = (start - t) / day
+            elif e.state == "not_built" and p.planned_finish_ns is not None and t > p.planned_finish_ns:
+                off = (t - p.planned_finish_ns) / day
+            else:
+                continue
+            old = best.get(e.global_id)
+            if old is not None and old["days_off"] >= off:
+                continue
+            el = elements.get(e.global_id)
+            best[e.global_id] = {
+                "photo_id": ev.photo_id,
+                "camera_id": ev.camera_id,
+                "capture_time_ns": t,
+                "global_id": e.global_id,
+                "name": el.name if el is not None else "",
+                "ifc_class": el.ifc_class if el is not None else "",
+                "reading": e.state,
+                "confidence": e.confidence,
+                "days_off": off,
+                "planned_start_ns": p.planned_start_ns,
+                "planned_finish_ns": p.planned_finish_ns,
+            }
+    return sorted(best.values(), key=lambda r: (-r["days_off"], r["global_id"]))[: max(0, limit)]

@@ -631,6 +631,13 @@ class Workbench:
             except LookupError as e:
                 raise ApiError(404, str(e)) from None
 
+    def review_queue(self, limit: int = 50) -> list[dict[str, Any]]:
+        """Readings that disagree with the plan, the farthest off first
+        (:func:`nodes.workbench.progress.review_queue`)."""
+        with self._lock:
+            names = {e.global_id: e for e in self.model().elements} if self.state.model is not None else {}
+            return progress_view.review_queue(self.state, names, limit)
+
     def review_detection(self, photo_id: str, body: dict[str, Any]) -> dict[str, Any]:
         """Confirm or correct what the progress node read of an element in a photo: a ``status`` annotation
         (:func:`nodes.workbench.progress.review_annotation`), published like any other."""

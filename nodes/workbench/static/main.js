@@ -510,7 +510,12 @@ function showSite() {
 
 // -- live updates ---------------------------------------------------------------------------------------------------
 
-const progressPanel = new ProgressPanel(wb, { say, redraw: () => drawAll(), onReviewed: () => loadAnnotations() });
+const progressPanel = new ProgressPanel(wb, {
+  say,
+  redraw: () => drawAll(),
+  onReviewed: () => loadAnnotations(),
+  show: (id) => showPhoto(id),
+});
 
 let reloadTimer = null;
 function onEvent(ev) {
@@ -555,6 +560,7 @@ async function init() {
   $("#tab-site").onclick = showSite;
   $("#tab-anchor").onclick = () => (wb.queue.length ? openAnchor(wb.queue[0].photo_id) : say("no anchor requests"));
   api.events(onEvent, (on) => $("#live-dot").classList.toggle("on", on));
+  await progressPanel.loadQueue();
   const first = wb.photos.filter((p) => p.camera_id && (p.status === "anchor" || p.status === "auto"));
   if (wb.photos.length) await showGroup(groupOf(first.length ? first[first.length - 1] : wb.photos[0]));
   wb.showSite = showSite;

@@ -8,20 +8,51 @@ const words = (s) => (s || "").replace("_", " ");
 const REVIEWABLE = ["built", "not_built"];
 
 export class ProgressPanel {
-  constructor(wb, { say, redraw, onReviewed }) {
+  constructor(wb, { say, redraw, onReviewed, show }) {
     this.wb = wb;
+    this.show = show;
     this.say = say;
     this.redraw = redraw;
     this.onReviewed = onReviewed;
     this.timer = null;
     wb.detections = null;
     wb.highlight = [];
+    wb.reviewQueue = [];
   }
 
   // Reload soon (events come in bursts: one ProgressUpdate per photo read).
   refreshSoon() {
     clearTimeout(this.timer);
-    this.timer = setTimeout(() => this.wb.current && this.load(this.wb.current), 250);
+    this.timer = setTimeout(() => {
+      this.loadQueue();
+      if (this.wb.current) this.load(this.wb.current);
+    }, 250);
+  }
+
+  // Readings that disagree with the plan (built before its start, not built after its finish), farthest off first.
+  async loadQueue() {
+    let items;
+    try {
+      items = await api.get("/api/progress/review-queue?limit=30");
+    } catch (err) {
+      return; // no model yet
+    }
+    this.wb.reviewQueue = items;
+    $("#rq-count").textContent = items.length;
+    const ul = $("#review-queue");
+    ul.replaceChildren();
+    for (const q of items) {
+      const li = document.createElement("li");
+      li.dataset.photo = q.photo_id;
+      li.dataset.element = q.global_id;
+      const side = q.reading === "built" ? "before its planned start" : "after its planned finish";
+      li.innerHTML = `<b>${q.name || q.global_id}</b> read ${words(q.reading)} ${q.days_off.toFixed(1)} d ${side}<br><small>${q.camera_id || "phone"}</small>`;
+      li.onclick = async () => {
+        await this.show(q.photo_id);
+        await this.highlight(q.photo_id, q.global_id);
+      };
+      ul.append(li);
+    }
   }
 
   async load(photoId) {
