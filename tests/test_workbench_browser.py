@@ -361,6 +361,7 @@ def test_progress_reading_confirmed_and_corrected_in_the_page(page, site) -> Non
     )
     finish = site.workbench.workbench.state.progress[gid].detected_finish_ns
     assert (finish is not None and finish <= t_ns) if verdict == "built" else (finish is None or finish > t_ns)
+    page.locator("#review-queue").scroll_into_view_if_needed()
     page.screenshot(path=str(DOCS / "workbench_progress.png"))
 
 

@@ -147,13 +147,16 @@ def review_annotation(state: SiteState, photo_id: str, body: dict[str, Any]) -> 
     }
 
 
-def review_queue(state: SiteState, elements: dict[str, BimElement], limit: int = 50) -> list[dict[str, Any]]:
+def review_queue(
+    state: SiteState, elements: dict[str, BimElement], limit: int = 50, min_days_off: float = 0.25
+) -> list[dict[str, Any]]:
     """Readings that disagree with the plan, one per element not reviewed yet, the farthest off first: ``[{"photo_id",
     "camera_id", "capture_time_ns", "global_id", "name", "ifc_class", "reading", "confidence", "days_off",
     "planned_start_ns", "planned_finish_ns"}]``. An element read ``built`` before its planned start (a possible
     ``ahead``: its earliest such photo) or ``not_built`` after its planned finish (a possible ``behind``: its latest
-    such photo); ``days_off`` how far the photo lies outside the planned window. Planned dates come from the
-    progress node's ElementProgress."""
+    such photo); ``days_off`` how far the photo lies outside the planned window, at least ``min_days_off`` (a
+    reading an hour after a planned finish is no news). Planned dates come from the progress node's
+    ElementProgress."""
     reviewed = set(_reviews(state))
     best: dict[str, dict[str, Any]] = {}
     day = 86_400e9
@@ -169,6 +172,8 @@ def review_queue(state: SiteState, elements: dict[str, BimElement], limit: int =
             elif e.state == "not_built" and p.planned_finish_ns is not None and t > p.planned_finish_ns:
                 off = (t - p.planned_finish_ns) / day
             else:
+                continue
+            if off < min_days_off:
                 continue
             old = best.get(e.global_id)
             if old is not None and old["days_off"] >= off:
