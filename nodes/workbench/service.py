@@ -25,12 +25,11 @@ from numpy.typing import NDArray
 from constructaide import camera as cam
 from constructaide import imagecodec
 from constructaide.anchorsolve import MIN_CLICKS, AnchorSolution, DegenerateAnchors, solve_anchor
-from constructaide.bimgeom import glb_to_meshes, meshes_to_glb
 from nodes.workbench import progress as progress_view
 from nodes.workbench import regions
 from nodes.workbench.geometry import GROW_BY, ModelGeometry
 from nodes.workbench.idrender import IdImage, IdRenderer, intrinsics_scaled_by
-from nodes.workbench.state import EventHub, SiteState
+from nodes.workbench.state import EventHub, SiteState, merged_model
 from schemas import keys
 from schemas.messages import AnchorClicks, AnchorPoint, Annotation, BimModel, Intrinsics, Message, Photo, Registration
 
@@ -114,27 +113,6 @@ def fit_intrinsics(intr: Intrinsics, width_px: int, height_px: int) -> Intrinsic
     if width_px <= 0 or (intr.width_px, intr.height_px) == (width_px, height_px):
         return intr
     return cam.scaled_intrinsics(intr, width_px, height_px)
-
-
-def merged_model(model: BimModel, updates: list[Any]) -> BimModel:
-    """The model after its BimUpdates (elements by GlobalId, meshes by geometry_ref)."""
-    if not updates:
-        return model
-    meshes = glb_to_meshes(model.geometry_glb)
-    elements = {e.global_id: e for e in model.elements}
-    tasks = model.tasks
-    revision = model.revision
-    for up in updates:
-        for gid in up.removed:
-            elements.pop(gid, None)
-        for e in (*up.changed, *up.added):
-            elements[e.global_id] = e
-        meshes.update(glb_to_meshes(up.geometry_glb))
-        tasks = tasks if up.tasks is None else up.tasks
-        revision = up.revision
-    return msgspec.structs.replace(
-        model, revision=revision, elements=tuple(elements.values()), tasks=tasks, geometry_glb=meshes_to_glb(meshes)
-    )
 
 
 class _Points(msgspec.Struct, forbid_unknown_fields=True):

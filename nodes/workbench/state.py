@@ -12,6 +12,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+import msgspec
+
+from constructaide.bimgeom import glb_to_meshes, meshes_to_glb
 from schemas.messages import (
     Annotation,
     BimModel,
@@ -217,3 +220,24 @@ class EventHub:
     def seq(self) -> int:
         with self._lock:
             return self._seq
+
+
+def merged_model(model: BimModel, updates: list[Any]) -> BimModel:
+    """The model after its BimUpdates (elements by GlobalId, meshes by geometry_ref)."""
+    if not updates:
+        return model
+    meshes = glb_to_meshes(model.geometry_glb)
+    elements = {e.global_id: e for e in model.elements}
+    tasks = model.tasks
+    revision = model.revision
+    for up in updates:
+        for gid in up.removed:
+            elements.pop(gid, None)
+        for e in (*up.changed, *up.added):
+            elements[e.global_id] = e
+        meshes.update(glb_to_meshes(up.geometry_glb))
+        tasks = tasks if up.tasks is None else up.tasks
+        revision = up.revision
+    return msgspec.structs.replace(
+        model, revision=revision, elements=tuple(elements.values()), tasks=tasks, geometry_glb=meshes_to_glb(meshes)
+    )
