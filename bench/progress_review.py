@@ -108,9 +108,9 @@ def run(size: str, seed: int, recording: Path, policy: str, misjudge: float) -> 
         cams = load_cameras(site)
         truth_built = element_states(site)["photos"]
         gids = [e.global_id for e in inputs.model.elements]
-        renderer = LayerRenderer()
-        renderer.set_model(gids, glb_to_meshes(inputs.model.geometry_glb))
         meshes = glb_to_meshes(inputs.model.geometry_glb)
+        renderer = LayerRenderer()
+        renderer.set_model(gids, meshes)
         rng = np.random.default_rng(seed)
         listed = wrong = unknown = misjudged = 0
         if policy.startswith("queue:"):

@@ -31,7 +31,17 @@ from nodes.workbench.geometry import GROW_BY, ModelGeometry
 from nodes.workbench.idrender import IdImage, IdRenderer, intrinsics_scaled_by
 from nodes.workbench.state import EventHub, SiteState, merged_model
 from schemas import keys
-from schemas.messages import AnchorClicks, AnchorPoint, Annotation, BimModel, Intrinsics, Message, Photo, Registration
+from schemas.messages import (
+    AnchorClicks,
+    AnchorPoint,
+    Annotation,
+    BimElement,
+    BimModel,
+    Intrinsics,
+    Message,
+    Photo,
+    Registration,
+)
 
 STATUS_RGBA: dict[str, tuple[int, int, int, int]] = {
     "ahead": (40, 200, 60, 150),
@@ -599,13 +609,16 @@ class Workbench:
 
     # -- progress ---------------------------------------------------------------------------------------------
 
+    def _elements_by_id(self) -> dict[str, BimElement]:
+        """The model's elements (after its updates) by GlobalId; empty before a model arrives."""
+        return {e.global_id: e for e in self.model().elements} if self.state.model is not None else {}
+
     def progress(self, photo_id: str) -> dict[str, Any]:
         """What the progress node read in a photo (:func:`nodes.workbench.progress.detections`)."""
         with self._lock:
             self.photo(photo_id)
-            names = {e.global_id: e for e in self.model().elements} if self.state.model is not None else {}
             try:
-                return progress_view.detections(self.state, photo_id, names)
+                return progress_view.detections(self.state, photo_id, self._elements_by_id())
             except LookupError as e:
                 raise ApiError(404, str(e)) from None
 
@@ -613,8 +626,7 @@ class Workbench:
         """Readings that disagree with the plan, the farthest off first
         (:func:`nodes.workbench.progress.review_queue`)."""
         with self._lock:
-            names = {e.global_id: e for e in self.model().elements} if self.state.model is not None else {}
-            return progress_view.review_queue(self.state, names, limit)
+            return progress_view.review_queue(self.state, self._elements_by_id(), limit)
 
     def review_detection(self, photo_id: str, body: dict[str, Any]) -> dict[str, Any]:
         """Confirm or correct what the progress node read of an element in a photo: a ``status`` annotation
