@@ -216,6 +216,34 @@ def test_cached_pass_with_settled_elements_reads_the_rest_alike(scene, seed: int
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
+def test_change_score_parts_shared_between_windows_and_read_at_some_pixels(seed: int) -> None:
+    """The change score's parts at a second window, built from the first window's lightness and chroma, equal
+    parts built from scratch; thresholding at some pixels gives the full map's values there. A grey site photo 1.8
+    times brighter than its plate with one patch repainted: with the exposure gain (the median lightness ratio of
+    the valid pixels) only the patch changed; without it, everything."""
+    from nodes.progress.evidence import ChangeParts
+
+    rng = np.random.default_rng(seed)
+    plate = textured(rng, (H, W), (90, 90, 90), amp=15.0)
+    photo = np.clip(plate.astype(np.float64) * 1.8, 0, 255).astype(np.uint8)
+    photo[40:70, 50:90] = textured(rng, (30, 40), (160, 70, 50))
+    lab, ref = to_lab(photo), to_lab(plate)
+    cache = PhotoCache(lab)
+    five, three = cache.change(ref, 5), cache.change(ref, 3)
+    alone = ChangeParts(lab, ref, 3)
+    assert np.array_equal(three.rest, alone.rest) and np.array_equal(three.ratio, alone.ratio)
+    gain = five.gain(np.ones((H, W), bool))
+    assert gain == pytest.approx(float(np.median(five.ratio))) and gain > 0.4
+    full = three.changed(0.5, gain)
+    where = rng.random((H, W)) < 0.3
+    assert np.array_equal(three.changed(0.5, gain, where), full[where])
+    outside = np.ones((H, W), bool)
+    outside[30:80, 40:100] = False
+    assert full[45:65, 55:85].mean() > 0.9 and full[outside].mean() < 0.05
+    assert three.changed(0.5, 0.0)[outside].mean() > 0.9
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
 def test_points_cue_on_surface_and_seen_through(scene, seed: int) -> None:  # noqa: ANN001
     r, T = scene
     rng = np.random.default_rng(seed)

@@ -613,13 +613,17 @@ class ProgressEngine:
     ) -> None:
         """Adds the colours (``bins``, :func:`~nodes.progress.evidence.colour_bins` of the photo) of the elements
         seen appearing and standing at ``t`` to their materials' looks."""
-        confirmed = self._confirmed(t)
-        for gid in list(self.global_ids):
-            if not confirmed[self.index_of[gid]]:
-                continue
-            sel = (ids == self.index_of[gid]) & ~occluded
-            if sel.sum() >= self.params.evidence.min_pixels:
-                self.materials.add(self.material_of[self.index_of[gid]], bins[sel], weight=1.0)
+        confirmed = self._confirmed(t) > 0
+        keep = ~occluded & (ids > 0) & (ids < len(confirmed))
+        idx = ids[keep].astype(np.int64)
+        mine = confirmed[idx]
+        idx, px_bins = idx[mine], bins[keep][mine]
+        order = np.argsort(idx, kind="stable")
+        idx, px_bins = idx[order], px_bins[order]
+        n_px = np.bincount(idx, minlength=len(confirmed))
+        ends = np.cumsum(n_px)
+        for i in np.nonzero(n_px >= self.params.evidence.min_pixels)[0]:  # ascending index, as elements are listed
+            self.materials.add(self.material_of[int(i)], px_bins[ends[i] - n_px[i] : ends[i]], weight=1.0)
 
     # -- messages -------------------------------------------------------------------------------------
 

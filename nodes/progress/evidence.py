@@ -157,14 +157,24 @@ class ChangeParts:
     """Per-pixel change score in [0, 1] between two aligned Lab images (the photo, its plate), robust to a global
     exposure change and to ~1 px of misalignment: the largest of an exposure-corrected lightness ratio, a chroma
     difference and a local structure dissimilarity (1 - NCC of L over ``window_px`` windows, where either side is
-    textured). Built once per photo and plate; :meth:`score` only sets the exposure gain from the valid pixels."""
+    textured). Built once per photo and plate (and window); :meth:`changed` thresholds the score with the exposure
+    gain (:meth:`gain`) of the valid pixels."""
 
-    def __init__(self, lab: F32, ref: F32, window_px: int = 5) -> None:
-        cur = cv2.GaussianBlur(lab, (0, 0), 0.6)
-        old = cv2.GaussianBlur(ref, (0, 0), 0.6)
-        L1, L0 = cur[..., 0] + 1.0, old[..., 0] + 1.0
-        self.ratio = np.log(L1 / L0)
-        chroma = np.hypot(cur[..., 1] - old[..., 1], cur[..., 2] - old[..., 2]) / 14.0
+    _L1: F32
+    _L0: F32
+    _chroma: F32
+
+    def __init__(self, lab: F32, ref: F32, window_px: int = 5, like: ChangeParts | None = None) -> None:
+        """``like``: parts of the same photo and plate at another window (their lightness and chroma are shared)."""
+        if like is None:
+            cur = cv2.GaussianBlur(lab, (0, 0), 0.6)
+            old = cv2.GaussianBlur(ref, (0, 0), 0.6)
+            L1, L0 = cur[..., 0] + 1.0, old[..., 0] + 1.0
+            self.ratio = np.log(L1 / L0)
+            chroma = np.hypot(cur[..., 1] - old[..., 1], cur[..., 2] - old[..., 2]) / 14.0
+        else:
+            L1, L0, self.ratio, chroma = like._L1, like._L0, like.ratio, like._chroma
+        self._L1, self._L0, self._chroma = L1, L0, chroma
         k = (window_px, window_px)
         m1, m0 = cv2.blur(L1, k), cv2.blur(L0, k)
         v1 = np.maximum(cv2.blur(L1 * L1, k) - m1 * m1, 0.0)
@@ -174,11 +184,16 @@ class ChangeParts:
         structure = textured * np.clip((1.0 - ncc) / 1.2, 0.0, 1.0)
         self.rest = np.maximum(chroma, structure)
 
-    def score(self, valid: BoolA, light_scale: float = 0.5) -> F32:
-        """(H, W) change score, the exposure gain the median lightness ratio over ``valid`` (H, W)."""
-        gain = float(np.median(self.ratio[valid])) if valid.any() else 0.0
-        light = np.abs(self.ratio - gain) / light_scale
-        return np.clip(np.maximum(light, self.rest), 0.0, 1.0).astype(np.float32)
+    def gain(self, valid: BoolA) -> float:
+        """Exposure gain: the median lightness log ratio over ``valid`` (the same for every window)."""
+        return float(np.median(self.ratio[valid])) if valid.any() else 0.0
+
+    def changed(self, threshold: float, gain: float, where: BoolA | None = None, light_scale: float = 0.5) -> BoolA:
+        """Whether the change score (the largest of ``|ratio - gain| / light_scale`` and the chroma and structure
+        parts, clipped to [0, 1]) exceeds ``threshold`` in [0, 1), ``gain`` = :meth:`gain` of the valid pixels;
+        (H, W) bool, or (K,) at the pixels ``where`` only."""
+        ratio, rest = (self.ratio, self.rest) if where is None else (self.ratio[where], self.rest[where])
+        return (np.abs(ratio - gain) / light_scale > threshold) | (rest > threshold)
 
 
 class PhotoCache:
@@ -206,7 +221,8 @@ class PhotoCache:
         if ref is not self._ref:
             self._change, self._ref = {}, ref
         if window_px not in self._change:
-            self._change[window_px] = ChangeParts(self.lab, ref, window_px)
+            like = next(iter(self._change.values()), None)
+            self._change[window_px] = ChangeParts(self.lab, ref, window_px, like)
         return self._change[window_px]
 
 
@@ -333,7 +349,9 @@ def _change_cue(
     """
     ref_lab, ref_valid, ref_time = reference
     valid = free & ref_valid
-    changed = cache.change(ref_lab, 5).score(valid) > p.change_threshold
+    parts = cache.change(ref_lab, 5)
+    gain = parts.gain(valid)
+    changed = parts.changed(p.change_threshold, gain)
     front = layers.ids_front.astype(np.int64)
     built = layers.ids_built.astype(np.int64)
     second = layers.ids_second.astype(np.int64)
@@ -358,7 +376,7 @@ def _change_cue(
         if extra.any():
             # their structure window must stay inside them too ...
             window = 2 * p.thin_interior_px + 1
-            changed = np.where(extra, cache.change(ref_lab, window).score(valid) > p.change_threshold, changed)
+            changed[extra] = cache.change(ref_lab, window).changed(p.change_threshold, gain, extra)
             sel |= extra
     if p.neighbour_px > 0:
         near = _neighbours(owner, p.neighbour_px)
@@ -378,7 +396,7 @@ def _change_cue(
     # after the plate's frame: such a pixel would have changed with or without the owner, so the cue's strength
     # drops with their share
     is_cand = np.zeros(n, bool)
-    is_cand[np.unique(front[front < n])] = True
+    is_cand[:n] = np.bincount(front[front < n], minlength=n)[:n] > 0
     is_cand[0] = False
 
     # candidates: P(appeared) from their exclusive pixels; built elements: from their belief, one lookup for all
@@ -391,8 +409,10 @@ def _change_cue(
         m = (other > 0) & ~is_cand[other]
         if stood_at is not None and m.any():
             t = np.broadcast_to(times, other.shape)
-            keys, inv = np.unique(np.stack([other[m], t[m]]), axis=1, return_inverse=True)
-            p_all[m] = np.clip(stood[keys[0]] - stood_at(keys[0], keys[1]), 0.0, 1.0)[inv.reshape(-1)]
+            times_u, t_idx = np.unique(t[m], return_inverse=True)
+            key_u, inv = np.unique(other[m] * len(times_u) + t_idx.reshape(-1), return_inverse=True)
+            el_u, tm_u = key_u // len(times_u), times_u[key_u % len(times_u)]
+            p_all[m] = np.clip(stood[el_u] - stood_at(el_u, tm_u), 0.0, 1.0)[inv.reshape(-1)]
         p_other = p_all.max(0)
     wb = 1.0 - p_other * (1.0 - stood[ids])
     wx *= wb
