@@ -395,8 +395,7 @@ def _change_cue(
     # ... and so may a built element behind it or an element beside it, where that one appeared
     # after the plate's frame: such a pixel would have changed with or without the owner, so the cue's strength
     # drops with their share
-    is_cand = np.zeros(n, bool)
-    is_cand[:n] = np.bincount(front[front < n], minlength=n)[:n] > 0
+    is_cand = np.bincount(front[front < n], minlength=n)[:n] > 0
     is_cand[0] = False
 
     # candidates: P(appeared) from their exclusive pixels; built elements: from their belief, one lookup for all
