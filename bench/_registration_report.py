@@ -66,7 +66,7 @@ def write_section(rows: list[dict], notes: list[str], command: str, runs: int, t
         dens = r.get("densify_secs", float("nan"))
         sig, zr = r.get("centre_sigma", float("nan")), r.get("centre_z_rms", float("nan"))
         lines.append(
-            f"| {r['set']} | {r['method']} | {r['registered']}/{r['total']} | {r['anchors_used']} | "
+            f"| {r['set']} | {r['method']} | {r['registered']}/{r['total']} | {r['anchors_used']}{_by_model(r)} | "
             f"{r['angle_deg']:.3f} | "
             f"{r['centre_dist']:.4f} | {r['centre_dist_min']:.4f}-{r['centre_dist_max']:.4f} | "
             f"{r['centre_dist_pct']:.3f} | {r['centre_dist_after_similarity']:.4f} | "
@@ -208,3 +208,9 @@ def base_notes() -> list[str]:
         "6.13 mm, so it stays off. The figures of the 'fountain-P11 centre distance', 'Tried' and 'Second anchor' "
         "notes were measured at 1600 px.",
     ]
+
+
+def _by_model(r: dict) -> str:
+    """' (+N by the model)' when fixed cameras were anchored by the model search, else ''."""
+    n = r.get("model_anchors", "0")
+    return "" if n in ("0", 0, None) else f" (+{n} by the model)"

@@ -375,7 +375,7 @@ def mean_over_draws(per_draw: list[dict]) -> dict:
     out: dict = {}
     for key in per_draw[0]:
         vals = [d[key] for d in per_draw]
-        if key == "anchors_used":
+        if key in ("anchors_used", "model_anchors"):
             lo, hi = min(vals), max(vals)
             out[key] = f"{lo}" if lo == hi else f"{lo}-{hi}"
         elif key == "centre_z_rms":
@@ -448,11 +448,14 @@ def bench_set(
                     times[(p_label, label)].append(secs)
                     if first:
                         densify_times.append(dsecs)
-                    n_anchor = sum(1 for im in report["images"] if im["status"] == "anchor")
+                    # a person's clicks; a fixed camera the model's outlines found is no person's work
+                    anchored = [im for im in report["images"] if im["status"] == "anchor"]
+                    n_anchor = sum(1 for im in anchored if im.get("method") != "model")
                     m = {
                         **evaluate(cams, est, X_check, priors),
                         **predicted_centre(report, est, cams),
                         "anchors_used": n_anchor,
+                        "model_anchors": len(anchored) - n_anchor,
                     }
                     per_draw[(p_label, label)].append(m)
                     print(f"  draw {draw} {p_label} / {label}: {json.dumps(m)}", flush=True)
@@ -558,6 +561,9 @@ def synth_note(size: str, seed: int) -> str:
 
 
 EXTRA_VARIANTS = {
+    # Only when named with --variants: fixed cameras not searched for by the model before a request (the rule
+    # before 2026-12-07).
+    "no model search": MapperConfig(model_search=False),
     # Only when named with --variants: the second anchor asked in collection order (the rule before
     # MapperConfig.anchor_request_min_shared_matches).
     "second anchor: collection order": MapperConfig(anchor_request_min_shared_matches=0),

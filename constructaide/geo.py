@@ -61,6 +61,15 @@ def exif_gps(exif: Image.Exif) -> GeoPoint | None:
     return GeoPoint(lat_deg=lat, lon_deg=lon, alt_m=alt)
 
 
+def enu_m(g: GeoPoint, origin: GeoPoint) -> tuple[float, float]:
+    """East / north metres of ``g`` from ``origin`` (local equirectangular, like :func:`horizontal_distance_m`)."""
+    lat = math.radians(0.5 * (g.lat_deg + origin.lat_deg))
+    return (
+        EARTH_RADIUS_M * math.radians(g.lon_deg - origin.lon_deg) * math.cos(lat),
+        EARTH_RADIUS_M * math.radians(g.lat_deg - origin.lat_deg),
+    )
+
+
 def horizontal_distance_m(a: GeoPoint, b: GeoPoint) -> float:
     """Horizontal distance (m) between two WGS84 points (local equirectangular approximation)."""
     lat_m = math.radians(0.5 * (a.lat_deg + b.lat_deg))

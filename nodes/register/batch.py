@@ -42,8 +42,9 @@ from nodes.register.config import MapperConfig
 from nodes.register.densify import DensifyParams, densify_reconstruction
 from nodes.register.features import Features, extract_features
 from nodes.register.modelalign import AlignParams, Polished, PolishPolicy, ViewPolish, polish_registration
+from nodes.register.modelsearch import model_anchor
 from nodes.register.pose import epipolar_agreement
-from nodes.register.recon import Clicks, Reconstruction, add_image
+from nodes.register.recon import Clicks, Reconstruction, add_image, focal_prior
 from nodes.register.sfm import reconstruct
 from schemas.messages import GeoPoint
 
@@ -321,9 +322,23 @@ def load_bim_lookup(
     try:
         site_model = load_site_model(bim_paths, tz=tz)
         bim = BimMeshes.from_site_model(site_model, terrain_height_m)
-        return MeshDepthLookup(bim.meshes, elements_at=bim.refs_at(), ground_height_m=terrain_height_m)
+        return MeshDepthLookup(
+            bim.meshes,
+            elements_at=bim.refs_at(),
+            ground_height_m=terrain_height_m,
+            site_gps=bim.gps,
+            origin_offset_m=bim.origin_offset_m,
+        )
     except ValueError as e:  # IfcLoadError, ScheduleError, a model without triangles
         raise UserError(f"--bim: {e}") from e
+
+
+def _gray(path: Path) -> np.ndarray:
+    """An image file as (H, W) uint8 grey. UserError when it cannot be read."""
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        raise UserError(f"cannot read image {path}")
+    return img
 
 
 def polish_reconstruction(
@@ -346,10 +361,7 @@ def polish_reconstruction(
         path = paths[im.name]
 
         def gray(path: Path = path) -> np.ndarray:
-            img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-            if img is None:
-                raise UserError(f"cannot read image {path}")
-            return img
+            return _gray(path)
 
         clicks = im.accepted_clicks if im.camera_id is None else None
         try:
@@ -401,7 +413,8 @@ def run_batch(
     for b in bim_paths:
         if not Path(b).exists():
             raise UserError(f"--bim {b} does not exist")
-    lookup = load_bim_lookup(tuple(bim_paths), tz, terrain_height_m) if bim_paths and polish_params else None
+    wants_model = bool(polish_params) or (cfg.model_search and camera_folders)
+    lookup = load_bim_lookup(tuple(bim_paths), tz, terrain_height_m) if bim_paths and wants_model else None
     named = find_images(images_dir)
     if not named:
         raise UserError(f"no images under {images_dir}")
@@ -438,6 +451,15 @@ def run_batch(
 
     given = {n: c for n, c in anchors.items() if n not in on_request}
     answers = {n: c for n, c in anchors.items() if n in on_request}
+    paths = dict(named)
+
+    def by_model(i: int) -> tuple[Clicks | None, str]:
+        im = recon.images[i]
+        if lookup is None:
+            return None, "no BIM (--bim)"
+        intr = cam.centered_intrinsics(im.width_px, im.height_px, focal_prior(im, cfg))
+        return model_anchor(lookup, _gray(paths[im.name]), intr, im.gps, im.capture_time_ns, cfg.model_search_clicks)
+
     reconstruct(
         recon,
         given,
@@ -445,12 +467,13 @@ def run_batch(
         request_anchor=lambda name, reason, n: answers.pop(name, None),
         progress=prog,
         match_progress=lambda: bar_m.update(),
+        by_model=by_model if lookup is not None else None,
     )
     bar_m.close()
     bar_r.close()
     polish_notes: dict[str, str] = {}
     t_polish = time.perf_counter()
-    if lookup is not None:
+    if lookup is not None and polish_params:
         bar_p = tqdm(total=0, desc="outline polish", unit="img", disable=not show_progress, file=sys.stderr)
 
         def pprog(done: int, total: int) -> None:
@@ -462,6 +485,8 @@ def run_batch(
         finally:
             lookup.close()  # the GL context and the model's buffers
             bar_p.close()
+    elif lookup is not None:
+        lookup.close()
     polish_secs = time.perf_counter() - t_polish
     dense_stats = None
     if densify_params is not None:

@@ -8,7 +8,7 @@ import numpy as np
 
 from constructaide import camera as cam
 from constructaide.modelview import ModelView
-from schemas.messages import Intrinsics
+from schemas.messages import GeoPoint, Intrinsics
 
 DepthLookup = Callable[[np.ndarray, Intrinsics, np.ndarray, int], np.ndarray]
 """``depth_lookup(world_from_camera (4, 4), intrinsics, pixels_px (N, 2), capture_time_ns) -> depth_m (N,)``:
@@ -28,6 +28,8 @@ class MeshDepthLookup:
         elements_at: Callable[[int], set[str] | None] | None = None,
         max_relative_spread: float = 0.03,
         ground_height_m: float | None = None,
+        site_gps: GeoPoint | None = None,
+        origin_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0),
     ) -> None:
         self.view = ModelView({n: (v, f) for n, (v, f) in meshes.items() if len(v) and len(f)})
         if self.view.empty:
@@ -35,6 +37,10 @@ class MeshDepthLookup:
         self.elements_at = elements_at
         self.max_relative_spread = max_relative_spread
         self.ground_height_m = ground_height_m
+        self.site_gps = site_gps
+        """The site reference's geographic position (IfcSite; map x east, y north), when known."""
+        self.origin_offset_m = origin_offset_m
+        """Subtracted from map coordinates to give the model's (the ingest's automatic offset)."""
 
     def elements(self, capture_time_ns: int) -> set[str] | None:
         """Mesh names standing at a time (None: all)."""

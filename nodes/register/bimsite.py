@@ -10,7 +10,7 @@ import numpy as np
 from constructaide.bim.model import SiteModel
 from constructaide.bimgeom import glb_to_meshes
 from constructaide.schedule4d import standing_elements
-from schemas.messages import BimModel, BimUpdate, ScheduleTask
+from schemas.messages import BimModel, BimUpdate, GeoPoint, ScheduleTask
 
 
 class BimMeshes:
@@ -21,12 +21,17 @@ class BimMeshes:
         self.ref_of: dict[str, str] = {}
         self.tasks: tuple[ScheduleTask, ...] = ()
         self.terrain_height_m: float | None = None
+        self.gps: GeoPoint | None = None
+        self.origin_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        """The model origin's geographic position (the site reference), when the model has one."""
 
     def set_model(self, msg: BimModel) -> None:
         self.meshes = dict(glb_to_meshes(msg.geometry_glb))
         self.ref_of = {e.global_id: (e.geometry_ref or e.global_id) for e in msg.elements}
         self.tasks = msg.tasks
         self.terrain_height_m = msg.terrain_height_m
+        self.gps = msg.gps
+        self.origin_offset_m = msg.origin_offset_m
 
     @classmethod
     def from_site_model(cls, site_model: SiteModel, terrain_height_m: float | None = None) -> BimMeshes:
@@ -38,6 +43,8 @@ class BimMeshes:
         out.meshes = {ref: (m.vertices_m, m.faces) for ref in refs if (m := site_model.meshes.get(ref)) is not None}
         out.tasks = site_model.tasks
         out.terrain_height_m = terrain_height_m
+        out.gps = site_model.gps
+        out.origin_offset_m = site_model.origin_offset_m
         return out
 
     def apply_update(self, msg: BimUpdate) -> None:

@@ -108,6 +108,11 @@ class MapperConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     # adjustment redone (None: off). Matches on repeated texture can outvote a dozen clicks on the lens of a photo
     # whose pose they hold fixed (synthetic small seed 3: a phone's k1 -0.64, its clicks 1.5 -> 7.5 px RMS).
     max_anchor_click_drift_px: float | None = 1.0
+    # A fixed camera's frame that would need anchor clicks is first searched for by the model's outlines around
+    # its GPS position (nodes/register/modelsearch.py; needs the BIM view, the site's and the photo's GPS); found,
+    # its camera gives the anchor solve model-point clicks in place of a person's.
+    model_search: bool = True
+    model_search_clicks: int = 24
     # Only anchors observing at least this many triangulated track points are released: the others' poses rest on
     # their clicks alone.
     release_min_observations: int = 300

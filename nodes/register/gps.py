@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from constructaide.geo import EARTH_RADIUS_M, gps_distance_residuals_m, horizontal_distance_m
+from constructaide.geo import enu_m, gps_distance_residuals_m, horizontal_distance_m
 from nodes.register.config import MapperConfig
 from nodes.register.recon import Reconstruction
 from schemas.messages import GeoPoint
@@ -24,11 +24,8 @@ def _gps_positions(references: list[tuple[np.ndarray, GeoPoint]], same_position_
 
 
 def _enu_m(g: GeoPoint, origin: GeoPoint) -> np.ndarray:
-    """East / north metres (2,) of ``g`` from ``origin`` (local equirectangular, like horizontal_distance_m)."""
-    lat = np.radians(0.5 * (g.lat_deg + origin.lat_deg))
-    return EARTH_RADIUS_M * np.array(
-        [np.radians(g.lon_deg - origin.lon_deg) * np.cos(lat), np.radians(g.lat_deg - origin.lat_deg)]
-    )
+    """East / north metres (2,) of ``g`` from ``origin`` (:func:`constructaide.geo.enu_m`)."""
+    return np.array(enu_m(g, origin))
 
 
 def gps_median_residual_m(

@@ -103,6 +103,9 @@ class AlignParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     click_gate_px: float = 4.0
     """With anchor clicks: the refinement is kept only when the clicks' RMS stays within this (full-resolution
     pixels; or within their RMS at the start when that is larger); the turn and shift bounds do not apply."""
+    ground_steps: bool = True
+    """Depth steps between two ground-plane pixels count as edges (grazing ground far off steps by more than
+    ``depth_step_rel``: a band of false edges along the horizon)."""
     same_view_deg: float = 0.1
     same_view_m: float = 0.1
     """Two registrations of one fixed camera within this turn and centre move (and 1 % of focal) are one view: its
@@ -172,6 +175,8 @@ def edge_samples(
         fin = np.isfinite(za) & np.isfinite(zb)
         with np.errstate(invalid="ignore"):
             step = fin & (np.abs(za - zb) > params.depth_step_rel * np.minimum(za, zb))
+        if not params.ground_steps:
+            step &= (ids[sa] != GROUND_INDEX) | (ids[sb] != GROUND_INDEX)
         # faces turning within one element: their flat shades differ (two-sided Lambert under a fixed light)
         crease = fin & (ids[sa] == ids[sb]) & (np.abs(shade[sa] - shade[sb]) > params.crease_shade)
         # the ground's far rim against the sky is no edge of anything

@@ -55,6 +55,7 @@ from nodes.register.mapper import (
     register_anchor,
     register_image_pnp,
     try_homography_transfer,
+    try_relative_pose,
 )
 from nodes.register.matching import select_pairs, verify_pair
 from nodes.register.recon import (
@@ -77,6 +78,7 @@ def reconstruct(
     request_anchor: Callable[[str, str, int], Clicks | None] | None = None,
     progress: Callable[[str, int], None] | None = None,
     match_progress: Callable[[], None] | None = None,
+    by_model: Callable[[int], tuple[Clicks | None, str]] | None = None,
 ) -> Reconstruction:
     """Run Algorithm 1 on a reconstruction whose images were added with :func:`add_image`.
 
@@ -84,6 +86,8 @@ def reconstruct(
     reconstruction, the others are used when an image needs an anchor. ``request_anchor(name, reason,
     num_tracks)`` may supply clicks for other images (None: the image stays unregistered for now); every request
     is also recorded in ``recon.needs_anchor``. ``progress(stage, registered_count)`` is called after each step.
+    ``by_model(index)``: model-point clicks for a fixed camera's frame found by the model's outlines (or None and
+    why not); before a request for one of a fixed camera's frames, its latest unregistered frame is searched once.
     """
     t_start = time.perf_counter()
     names = [im.name for im in recon.images]
@@ -176,10 +180,38 @@ def reconstruct(
     pruned: set[int] = set()  # registered images detached from the tracks their camera does not explain
     since_full = 0
 
+    searched: set[str] = set()
+
+    def model_anchor(u: int) -> bool:
+        """Anchor the latest unregistered frame of ``u``'s fixed camera by the model, once per camera."""
+        nonlocal dirty
+        cid = recon.images[u].camera_id
+        if by_model is None or not cfg.model_search or cid is None or cid in searched:
+            return False
+        searched.add(cid)
+        frames = [i for i, im in enumerate(recon.images) if im.camera_id == cid and im.status == "unregistered"]
+        v = max(frames, key=lambda i: (recon.images[i].capture_time_ns, recon.images[i].name))
+        clicks, why = by_model(v)
+        if clicks is None:
+            return False
+        try:
+            register_anchor(recon, v, clicks, cfg)
+        except DegenerateAnchors:
+            return False
+        im = recon.images[v]
+        im.method, im.message = "model", f"found by the model's outlines ({why}); {im.message}"
+        failed_pnp.clear()
+        dirty = True
+        note(f"model {im.name}")
+        return True
+
     def ask_anchor(candidates: list[int]) -> bool:
-        """Ask for clicks on ``candidates`` in turn (each request recorded); True once one is anchored."""
+        """Ask for clicks on ``candidates`` in turn (each request recorded); True once one is anchored. A fixed
+        camera's frame is first searched for by the model (:func:`model_anchor`)."""
         nonlocal dirty
         for u in candidates:
+            if model_anchor(u):
+                return True
             name = recon.images[u].name
             reason = f"only {counts[u]} matches to triangulated tracks (< {cfg.min_track_matches})"
             if u in failed_pnp and recon.images[u].message:
@@ -327,3 +359,38 @@ def reconstruct(
     recon.timings_secs["registration"] = time.perf_counter() - t_reg
     recon.timings_secs["total"] = time.perf_counter() - t_start
     return recon
+
+
+def register_one(recon: Reconstruction, idx: int, cfg: MapperConfig, matched_with: int = 0) -> str:
+    """Register image ``idx`` of a growing map (the streaming path) by the mapper's steps against its verified
+    partners, most matches first: homography transfer, PnP on tracks, relative pose to the best four. Returns ""
+    on success, else why not (``matched_with``: how many registered photos it was matched with, for the message).
+    """
+    r = recon
+    partners = sorted(
+        (j for j in r.registered_indices() if j != idx and r.pair(j, idx) is not None),
+        key=lambda j: -len(r.pair(j, idx)[0]),  # type: ignore[index]
+    )
+    if not partners:
+        return (
+            f"no verified geometry connects it to the {len(r.registered_indices())} registered photos "
+            f"(matched with {matched_with})"
+        )
+    notes: list[str] = []
+    im = r.images[idx]
+    for j in partners:
+        im.message = ""
+        if try_homography_transfer(r, j, idx, cfg):
+            return ""
+        if "refused" in im.message and im.message not in notes:
+            notes.append(im.message)
+    if register_image_pnp(r, idx, cfg):
+        return ""
+    notes.append(r.images[idx].message)
+    for j in partners[:4]:
+        if try_relative_pose(r, j, idx, cfg):
+            return ""
+        if r.images[idx].message and r.images[idx].message not in notes:
+            notes.append(r.images[idx].message)
+    names = ", ".join(r.images[j].name for j in partners[:3])
+    return f"matched {len(partners)} registered photo(s) ({names}) but {'; '.join(n for n in notes if n)}"

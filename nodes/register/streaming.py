@@ -14,7 +14,9 @@ grow the map. What streaming adds:
 * photos that cannot be registered yet stay in the reconstruction with their matches, so :meth:`retry`
   registers them when the map grows (no second anchor for a camera or a phone visit whose first photo is
   anchored);
-* viewpoint groups (paper Sec. 4.1.1) and the sparse map for the occlusion work.
+* viewpoint groups (paper Sec. 4.1.1) and the sparse map for the occlusion work;
+* a fixed camera's frame that would need clicks is first searched for by the model's outlines around its GPS
+  position (:mod:`nodes.register.modelsearch`), as the batch does before a request.
 
 Frames and units: ``world_from_camera`` (4, 4) maps OpenCV camera coordinates to world metres; pixels use the
 OpenCV convention at the photo's full resolution.
@@ -40,6 +42,7 @@ from nodes.register.fastpath import FastPath, FastPathConfig
 from nodes.register.features import extract_features, homography_inlier_ratio
 from nodes.register.matching import Vocabulary, match_image
 from nodes.register.modelalign import AlignParams, PolishPolicy, ViewPolish, polish_registration
+from nodes.register.modelsearch import ModelAnchors
 from nodes.register.photo import FrameImage, PhotoInput
 from nodes.register.pose import rotation_deviation
 from nodes.register.recon import (
@@ -50,6 +53,7 @@ from nodes.register.recon import (
     local_window,
     remove_images,
 )
+from nodes.register.sfm import register_one
 from nodes.register.triangulation import confirm_model_points, triangulate_tracks
 from nodes.register.viewpoints import ViewpointGraph, rotation_homography
 from schemas.messages import SPARSE_POINT_FROM_MODEL as POINT_FROM_MODEL
@@ -238,10 +242,17 @@ class StreamingRegistrar:
     # -- public entry points -----------------------------------------------
 
     def register_anchor(
-        self, photo: PhotoInput, pixels_px: np.ndarray, points_in_world: np.ndarray, focal_px: float | None = None
+        self,
+        photo: PhotoInput,
+        pixels_px: np.ndarray,
+        points_in_world: np.ndarray,
+        focal_px: float | None = None,
+        method: str = "anchor",
+        note: str = "",
     ) -> Outcome:
         """Register a photo from user clicks (pixels (N, 2) <-> model points (N, 3)); a registered photo is
-        corrected in place (re-anchoring). Raises ``DegenerateAnchors`` (a ValueError) for unusable clicks."""
+        corrected in place (re-anchoring). Raises ``DegenerateAnchors`` (a ValueError) for unusable clicks.
+        ``method`` "model": the clicks are model points the model search found (``note`` says how)."""
         t0 = time.perf_counter()
         idx = self._ensure_image(photo)
         im = self.recon.images[idx]
@@ -257,6 +268,8 @@ class StreamingRegistrar:
         )
         if was:
             msg += "; replaces the earlier registration"
+        if note:
+            msg = f"{note}; {msg}"
         self._match(idx)
         link_image_tracks(self.recon, idx)
         changed = self._grow(photo, idx)
@@ -264,7 +277,7 @@ class StreamingRegistrar:
         reg = self._registration(
             photo,
             "anchor",
-            "anchor",
+            method,
             im.intrinsics,
             im.world_from_camera,
             len(sol.residuals_px),
@@ -291,8 +304,26 @@ class StreamingRegistrar:
             return out
         if not self.has_registrations():
             reason = "no registered images yet: anchor clicks are needed"
-            return Outcome(self._failed(photo, reason, t0), needs_anchor=reason)
-        return self._full_path(photo, self._ensure_image(photo), t0, note)
+            return self._by_model(photo, Outcome(self._failed(photo, reason, t0), needs_anchor=reason))
+        return self._by_model(photo, self._full_path(photo, self._ensure_image(photo), t0, note))
+
+    def _by_model(self, photo: PhotoInput, out: Outcome) -> Outcome:
+        """A fixed camera's frame that needs clicks, anchored by the model's outlines when the search finds its
+        camera (:class:`~nodes.register.modelsearch.ModelAnchors`); else ``out``."""
+        lookup = self.depth_lookup
+        if out.needs_anchor is None or not self.mcfg.model_search or not isinstance(lookup, MeshDepthLookup):
+            return out
+        try:
+            focal = self.mcfg.focal_px or photo.focal_px
+            anchors = self.__dict__.setdefault("model_anchors", ModelAnchors(self.mcfg.model_search_clicks))
+            clicks, why = anchors.find(
+                lookup, photo.image.gray, focal, photo.gps, photo.camera_id, photo.capture_time_ns
+            )
+            if clicks is None:
+                return out
+            return self.register_anchor(photo, *clicks, method="model", note=f"found by the model's outlines ({why})")
+        except (RuntimeError, ValueError):  # no GL context, degenerate clicks: the request stands
+            return out
 
     def _fast_path(self, photo: PhotoInput, t0: float) -> tuple[Outcome | None, str]:
         """A tracked fixed camera's frame by the fast path (joining the map as a key frame now and then): its
@@ -349,7 +380,7 @@ class StreamingRegistrar:
         if now[0] == n_pairs and self._last_try.get(idx) == now:
             return None  # nothing new connects it
         self._last_try[idx] = now
-        return self._full_path(photo, idx, time.perf_counter(), "")
+        return self._by_model(photo, self._full_path(photo, idx, time.perf_counter(), ""))
 
     # -- the full path -----------------------------------------------------
 
@@ -392,35 +423,8 @@ class StreamingRegistrar:
         return Outcome(reg, num_matched_tracks=im.num_matched_tracks, viewpoint_changed=changed, map_changed=True)
 
     def _try_register(self, idx: int) -> str:
-        """Register image ``idx`` by the mapper's steps; returns "" on success, else why not."""
-        r, cfg = self.recon, self.mcfg
-        partners = sorted(
-            (j for j in r.registered_indices() if j != idx and r.pair(j, idx) is not None),
-            key=lambda j: -len(r.pair(j, idx)[0]),  # type: ignore[index]
-        )
-        if not partners:
-            return (
-                f"no verified geometry connects it to the {len(r.registered_indices())} registered photos "
-                f"(matched with {len(self._tried.get(idx, ()))})"
-            )
-        notes: list[str] = []
-        im = r.images[idx]
-        for j in partners:
-            im.message = ""
-            if mapper.try_homography_transfer(r, j, idx, cfg):
-                return ""
-            if "refused" in im.message and im.message not in notes:
-                notes.append(im.message)
-        if mapper.register_image_pnp(r, idx, cfg):
-            return ""
-        notes.append(r.images[idx].message)
-        for j in partners[:4]:
-            if mapper.try_relative_pose(r, j, idx, cfg):
-                return ""
-            if r.images[idx].message and r.images[idx].message not in notes:
-                notes.append(r.images[idx].message)
-        names = ", ".join(r.images[j].name for j in partners[:3])
-        return f"matched {len(partners)} registered photo(s) ({names}) but {'; '.join(n for n in notes if n)}"
+        """Register image ``idx`` by the mapper's steps (:func:`nodes.register.sfm.register_one`)."""
+        return register_one(self.recon, idx, self.mcfg, len(self._tried.get(idx, ())))
 
     def _wants_key_frame(self, photo: PhotoInput) -> bool:
         """Whether a fast-path frame joins the map: its camera has no photo in it from the last
