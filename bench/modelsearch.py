@@ -171,7 +171,7 @@ def main() -> int:
         ],
     )
     body = (
-        f"Code: git {code_version()}. Search parameters: {msgspec.json.encode(params).decode()}.\n\n{t1}\n\n"
+        f"Code: {code_version()}. Search parameters: {msgspec.json.encode(params).decode()}.\n\n{t1}\n\n"
         f"Per frame (support and its chance level of the best hypothesis):\n\n{t2}\n"
     )
     print(body)

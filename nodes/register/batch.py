@@ -550,13 +550,17 @@ def main(argv: list[str] | None = None) -> int:
         type=Path,
         help="IFC model file(s) in the anchor clicks' frame: the registered poses are polished by the model's outlines "
         "(fixed cameras' frames with --camera-folders, and anchored photos with their clicks), as the streaming "
-        "node polishes what it publishes",
+        "node polishes what it publishes; with --camera-folders a fixed camera that would need clicks is first "
+        "searched for by the model's outlines around its EXIF GPS position (the IFC's site reference places it)",
     )
     ap.add_argument("--tz", default="UTC", help="time zone of schedule dates without an offset (with --bim)")
     ap.add_argument(
         "--terrain-height-m", type=float, default=None, help="ground level in the model frame (with --bim; z up)"
     )
     ap.add_argument("--no-outline-polish", action="store_true", help="with --bim: keep the poses as solved")
+    ap.add_argument(
+        "--no-model-search", action="store_true", help="with --bim: ask for every fixed camera's clicks (no search)"
+    )
     ap.add_argument("--focal-px", type=float, default=None, help="focal prior in pixels for every image")
     ap.add_argument(
         "--max-side",
@@ -612,6 +616,7 @@ def main(argv: list[str] | None = None) -> int:
         fix_anchor_poses=not args.free_anchors,
         release_anchors=not args.fixed_anchors,
         target_centre_sigma=args.target_centre_sigma,
+        model_search=not args.no_model_search,
     )
     _, report = run_batch(
         args.images,
@@ -633,6 +638,9 @@ def main(argv: list[str] | None = None) -> int:
         f"registered {report['num_registered']}/{report['num_images']} images, {report['num_points']} points "
         f"in {report['timings_secs']['total']:.1f} s -> {args.out}"
     )
+    by_model = [d["image"] for d in report["images"] if d.get("method") == "model"]
+    if by_model:
+        print(f"  anchored by the model's outlines, no clicks: {', '.join(by_model)}")
     sigmas = [d["centre_sigma"] for d in report["images"] if "centre_sigma" in d]
     if sigmas:
         print(
