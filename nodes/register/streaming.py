@@ -321,7 +321,8 @@ class StreamingRegistrar:
             )
             if clicks is None:
                 return out
-            return self.register_anchor(photo, *clicks, method="model", note=f"found by the model's outlines ({why})")
+            px, pts = clicks
+            return self.register_anchor(photo, px, pts, method="model", note=f"found by the model's outlines ({why})")
         except (RuntimeError, ValueError):  # no GL context, degenerate clicks: the request stands
             return out
 
