@@ -4,6 +4,7 @@ read by the tests only (they are the scoring)."""
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import cv2
@@ -15,6 +16,8 @@ from constructaide import camera as cam
 from constructaide.modelview import GROUND_INDEX, ModelView
 from nodes.register.modelsearch import ModelAnchors, search_pose, virtual_clicks
 from schemas.messages import GeoPoint
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 W, H, F = 640, 360, 560.0
 
@@ -215,3 +218,89 @@ def test_streaming_registrar_anchors_a_fixed_camera_by_the_model(site_fixture: s
         assert err < 0.5, err
     finally:
         lookup.close()
+
+
+@pytest.mark.slow
+def test_batch_anchors_a_fixed_camera_by_the_model(small_site: Path, tmp_path: Path) -> None:
+    """``constructaide register --camera-folders --bim``: with one photo's clicks (the site file's first anchor,
+    cam-north's first frame) and nothing on request, the south camera is found by the model (method "model", on
+    its latest frame), so its six frames register and no request names them; ``--no-model-search`` registers only
+    the anchored camera's. Every registered photo of the south camera within 0.5 % of the width of the truth."""
+    import json
+    import tomllib
+
+    from bench import _datasets as ds
+    from nodes.register.batch import run_batch
+    from nodes.register.config import MapperConfig
+
+    doc = tomllib.loads((small_site / "site.toml").read_text())
+    first = json.loads((small_site / "anchors.json").read_text())["anchors"][0]
+    assert first["image"].startswith("cam-north/")
+    (tmp_path / "anchors.json").write_text(json.dumps({"anchors": [first]}))
+    kw = dict(
+        show_progress=False,
+        densify_params=None,
+        camera_folders=True,
+        bim_paths=(small_site / doc["paths"]["ifc"],),
+        tz=doc["site"]["tz"],
+        terrain_height_m=doc["site"]["terrain_height_m"],
+    )
+    recon, report = run_batch(small_site / "photos", tmp_path / "anchors.json", tmp_path / "out", **kw)
+    by_name = {d["image"]: d for d in report["images"]}
+    south = sorted(n for n in by_name if n.startswith("cam-south/"))
+    assert by_name[south[-1]]["method"] == "model", by_name[south[-1]]["message"]
+    assert all(by_name[n]["status"] != "unregistered" for n in south)
+    assert not any(r["image"].startswith("cam-south/") for r in report.get("needs_anchor", []))
+    cams = {c.name: c for c in ds.load_synth(small_site)}
+    X = ds.synth_checkpoints(small_site, list(cams.values()))
+    for im in recon.images:
+        if im.name in south:
+            c = cams[im.name]
+            px_true, vis = c.visible(X)
+            px, _ = cam.project_points(im.camera, cam.invert_rigid(im.pose), X[vis])
+            err = 100.0 * float(np.mean(np.linalg.norm(px - px_true[vis], axis=1))) / c.width_px
+            assert err < 0.5, (im.name, err)
+
+    _, off = run_batch(
+        small_site / "photos",
+        tmp_path / "anchors.json",
+        tmp_path / "out_off",
+        cfg=MapperConfig(model_search=False),
+        **kw,
+    )
+    assert off["num_registered"] < report["num_registered"]
+    assert not any(d.get("method") == "model" for d in off["images"])
+
+
+def test_register_node_anchors_a_fixed_camera_by_the_model_before_any_clicks(small_site: Path) -> None:
+    """The register node through the in-process bus: the site's BIM (with its IfcSite reference) and then the
+    south camera's last frame, no clicks anywhere: the node publishes its registration (status anchor, method
+    model) and no NeedsAnchor for it."""
+    import tomllib
+
+    from constructaide.bim.ifc import load_site_model
+    from constructaide.photos import photo_from_file
+    from constructaide.runtime import start_node
+    from constructaide.runtime.local import LocalBus
+    from nodes.ingest.revisions import to_bim_model
+    from nodes.register.node import SPEC, Config
+    from schemas import keys
+    from schemas.messages import Registration
+
+    doc = tomllib.loads((small_site / "site.toml").read_text())
+    tz, ground = doc["site"]["tz"], doc["site"]["terrain_height_m"]
+    model = to_bim_model(load_site_model([small_site / doc["paths"]["ifc"]], tz=tz), "t", "r1", ground)
+    assert model.gps is not None
+    rel = _last_frame(small_site, "cam-south")
+    photo = photo_from_file(small_site / "photos" / rel, "cam-south", "t", tz)
+    with LocalBus() as bus, start_node(SPEC, Config(site="t"), bus) as node:
+        regs = bus.collect(keys.pattern(keys.REGISTRATION, site="t"))
+        needs = bus.collect(keys.pattern(keys.NEEDS_ANCHOR, site="t"))
+        bus.publish(keys.key(keys.BIM_MODEL, site="t"), model, latched=True)
+        assert node.wait_idle(60)
+        bus.publish(keys.key(keys.PHOTO, site="t", camera="cam-south"), photo)
+        ((_, reg), *_) = regs.wait(1, timeout=120)
+        assert node.wait_idle(120)
+        assert isinstance(reg, Registration) and reg.photo_id == photo.photo_id
+        assert (reg.status, reg.method) == ("anchor", "model"), reg.message
+        assert needs.items == []

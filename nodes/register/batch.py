@@ -321,14 +321,7 @@ def load_bim_lookup(
     plane at ``terrain_height_m``), read as the ingest node reads them. UserError on a file that cannot be used."""
     try:
         site_model = load_site_model(bim_paths, tz=tz)
-        bim = BimMeshes.from_site_model(site_model, terrain_height_m)
-        return MeshDepthLookup(
-            bim.meshes,
-            elements_at=bim.refs_at(),
-            ground_height_m=terrain_height_m,
-            site_gps=bim.gps,
-            origin_offset_m=bim.origin_offset_m,
-        )
+        return BimMeshes.from_site_model(site_model, terrain_height_m).depth_lookup()
     except ValueError as e:  # IfcLoadError, ScheduleError, a model without triangles
         raise UserError(f"--bim: {e}") from e
 

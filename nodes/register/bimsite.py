@@ -10,6 +10,7 @@ import numpy as np
 from constructaide.bim.model import SiteModel
 from constructaide.bimgeom import glb_to_meshes
 from constructaide.schedule4d import standing_elements
+from nodes.register.bimdepth import MeshDepthLookup
 from schemas.messages import BimModel, BimUpdate, GeoPoint, ScheduleTask
 
 
@@ -55,6 +56,17 @@ class BimMeshes:
         self.meshes.update(glb_to_meshes(msg.geometry_glb))
         if msg.tasks is not None:
             self.tasks = msg.tasks
+
+    def depth_lookup(self) -> MeshDepthLookup:
+        """The register node's BIM view of this model (the schedule's standing elements, the terrain plane, the site
+        reference). Raises ValueError for a model without triangles."""
+        return MeshDepthLookup(
+            self.meshes,
+            elements_at=self.refs_at(),
+            ground_height_m=self.terrain_height_m,
+            site_gps=self.gps,
+            origin_offset_m=self.origin_offset_m,
+        )
 
     def refs_at(self) -> Callable[[int], set[str] | None]:
         """``refs_at(t_ns)``: the mesh refs of the elements standing at ``t_ns`` by the schedule (None: all; meshes

@@ -5,11 +5,16 @@ photo, recently registered photos (late clicks can still re-anchor them), and th
 from __future__ import annotations
 
 from collections import OrderedDict
+from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from nodes.register.photo import FrameImage, PhotoInput
 from schemas.messages import AnchorClicks, Photo, Registration
+
+if TYPE_CHECKING:
+    from nodes.register.streaming import Outcome
 
 
 def photo_input(msg: Photo) -> PhotoInput:
@@ -44,6 +49,22 @@ def dropped_registration(site: str, photo: Photo, max_pending: int) -> Registrat
         capture_time_ns=photo.capture_time_ns,
         status="failed",
         message=f"dropped from the waiting queue ({max_pending} photos wait for anchors)",
+    )
+
+
+def late_clicks_note(
+    photo_id: str, off_px: float, width_px: int, max_frac: float, kept_photos: int
+) -> tuple[bool, str]:
+    """Clicks for a photo registered meanwhile whose pixels are no longer kept (a request answered after the photo
+    registered on its own), ``off_px`` (median) from its registration: whether they confirm it (within ``max_frac``
+    of the width) and what to say (logged when they do, the error when they do not: they are kept for the photo's
+    next push, which re-anchors it)."""
+    if off_px <= max_frac * width_px:
+        return True, f"clicks for {photo_id} confirm its registration (median {off_px:.1f} px off); it registered first"
+    return False, (
+        f"clicks for {photo_id} disagree with its registration (median {off_px:.1f} px off) and its pixels are no "
+        f"longer kept (only the last {kept_photos} photos are): the clicks are kept; push the photo again to "
+        "re-anchor it with them"
     )
 
 
@@ -117,3 +138,23 @@ class Inbox:
     def waiting_by_time(self) -> list[Photo]:
         """The waiting photos in capture-time order."""
         return sorted(self.pending.values(), key=lambda p: p.capture_time_ns)
+
+    def retry_waiting(
+        self, retry: Callable[[PhotoInput], Outcome | None], publish: Callable[[Outcome, bool], None]
+    ) -> None:
+        """Try the waiting photos again (``retry``, oldest first) while the map grows: each registration can
+        connect others. A registered one leaves the queue, published without a request; a still-failed one is
+        published only when it came before any registration and was never reported (now the map says why)."""
+        grown = True
+        while grown and self.pending:
+            grown = False
+            for msg in self.waiting_by_time():
+                out = retry(photo_input(msg))
+                if out is None or out.registration.status == "failed":
+                    if out is not None and msg.photo_id in self.unreported:
+                        publish(out, True)
+                    continue
+                del self.pending[msg.photo_id]
+                publish(out, False)
+                self.remember(msg)
+                grown = grown or out.map_changed

@@ -103,9 +103,10 @@ class AlignParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     click_gate_px: float = 4.0
     """With anchor clicks: the refinement is kept only when the clicks' RMS stays within this (full-resolution
     pixels; or within their RMS at the start when that is larger); the turn and shift bounds do not apply."""
-    ground_steps: bool = True
-    """Depth steps between two ground-plane pixels count as edges (grazing ground far off steps by more than
-    ``depth_step_rel``: a band of false edges along the horizon)."""
+    ground_steps: bool = False
+    """Depth steps between two ground-plane pixels count as edges. Off: far off, grazing ground steps by more than
+    ``depth_step_rel`` between neighbouring pixels, a band of false edges along the horizon (on until 2026-12-07;
+    BENCHMARKS 'model outline polish (no ground steps, 2026-12-07)')."""
     same_view_deg: float = 0.1
     same_view_m: float = 0.1
     """Two registrations of one fixed camera within this turn and centre move (and 1 % of focal) are one view: its

@@ -221,7 +221,7 @@ def search_pose(
     )
     dmaps = oriented_distance_maps(img, p.orientation_bins, p.truncate_px)
     wide = msgspec.structs.replace(wi, f_px=wi.f_px * p.wide_focal_scale)
-    sample_params = AlignParams(sample_step_px=3.0, max_samples=2500, min_samples=30, ground_steps=False)
+    sample_params = AlignParams(sample_step_px=3.0, max_samples=2500, min_samples=30)
     steps = np.arange(-p.centre_steps, p.centre_steps + 1) * p.centre_step_m
     yaws = np.arange(-p.yaw_half_deg, p.yaw_half_deg + 1e-9, p.angle_step_deg)
     pitches = np.arange(-p.pitch_half_deg, p.pitch_half_deg + 1e-9, p.angle_step_deg)
@@ -327,7 +327,7 @@ def _refine(
         )
         trunc = p.truncate_px * max(1.0, ww / p.work_width_px) ** 0.5
         dmaps = oriented_distance_maps(img, p.orientation_bins, trunc)
-        sp = AlignParams(sample_step_px=2.0 * ww / 480, max_samples=3000, min_samples=30, ground_steps=False)
+        sp = AlignParams(sample_step_px=2.0 * ww / 480, max_samples=3000, min_samples=30)
         for _ in range(p.refine_rounds):
             wi = msgspec.structs.replace(cam.scaled_intrinsics(intr, ww, wh), k1=0.0, k2=0.0)
             s = edge_samples(view, wi, wfc, elements, ground_z_m, sp)
@@ -381,9 +381,7 @@ def virtual_clicks(
 ) -> tuple[F64, F64]:
     """Model points on visible edges at a found camera and their pixels (full resolution, with the lens's
     distortion): (pixels (N, 2), points (N, 3) m), ``count`` of them spread over the outline (farthest first)."""
-    s = edge_samples(
-        view, intr, world_from_camera, elements, ground_z_m, AlignParams(sample_step_px=8.0, ground_steps=False)
-    )
+    s = edge_samples(view, intr, world_from_camera, elements, ground_z_m, AlignParams(sample_step_px=8.0))
     pts = s.point_in_world_m
     if not len(pts):
         return np.zeros((0, 2)), np.zeros((0, 3))

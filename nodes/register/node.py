@@ -17,7 +17,7 @@ from constructaide.sparsecloud import encode_sparse_cloud
 from nodes.register import state
 from nodes.register.bimdepth import MeshDepthLookup
 from nodes.register.bimsite import BimMeshes
-from nodes.register.inbox import Inbox, click_arrays, dropped_registration, photo_input
+from nodes.register.inbox import Inbox, click_arrays, dropped_registration, late_clicks_note, photo_input
 from nodes.register.streaming import Outcome, StreamConfig, StreamingRegistrar
 from schemas import keys
 from schemas import messages as m
@@ -72,15 +72,9 @@ class RegisterNode:
     def restore_state(self, blobs: dict[str, bytes]) -> None:
         if state.load_into(self, blobs):
             self._rebuild_depth()
-        self._saved_features = {
-            im.name: (id(im.features), getattr(im.features, "descriptors_pca", None) is not None)
-            for im in self.registrar.recon.images
-        }
-        self.ctx.log.info(
-            "resumed: %d photos registered, %d waiting for anchors",
-            self.registrar.num_registered,
-            len(self.inbox.pending),
-        )
+        self._saved_features = state.saved_features(self.registrar.recon)
+        n_reg, n_wait = self.registrar.num_registered, len(self.inbox.pending)
+        self.ctx.log.info("resumed: %d photos registered, %d waiting for anchors", n_reg, n_wait)
 
     def adopt_state(self, sources: list[dict[str, bytes]], owns_camera: Callable[[str], bool]) -> None:
         """Partitioned worker: take over its cameras' state from the other workers' state files."""
@@ -103,6 +97,11 @@ class RegisterNode:
                 self._retry_pending()
                 return
         if not self.registrar.has_registrations() and not self.registrar.can_track(msg.camera_id):
+            if (found := self.registrar.register_by_model(photo)) is not None:  # a fixed camera the model finds
+                self._publish(found)
+                self.inbox.remember(msg)
+                self._retry_pending()
+                return
             self._enqueue(msg)
             self.inbox.unreported.add(msg.photo_id)
             if self.inbox.first_ask(msg):
@@ -157,9 +156,7 @@ class RegisterNode:
         if not self.config.use_bim_depth or not self.bim.meshes:
             return
         try:
-            self.registrar.depth_lookup = MeshDepthLookup(
-                self.bim.meshes, elements_at=self.bim.refs_at(), ground_height_m=self.bim.terrain_height_m
-            )
+            self.registrar.depth_lookup = self.bim.depth_lookup()
         except ValueError as e:
             self.ctx.log.warning("no depth lookup: %s", e)
             return
@@ -169,25 +166,16 @@ class RegisterNode:
                 self.ctx.log.info("BIM depth now available: %d model points for the map images before it", added)
 
     def _check_late_clicks(self, clicks: m.AnchorClicks) -> None:
-        """Clicks for a photo registered meanwhile whose pixels are no longer kept (a request answered after the
-        photo registered on its own): they check that registration. Within ``late_click_max_frac`` of the width
-        (median) they confirm it (logged); otherwise they are kept for the photo's next push (which re-anchors it)
-        and the error says so."""
+        """Clicks for a registered photo whose pixels are gone check its registration (``late_clicks_note``)."""
         off_px = self.registrar.click_disagreement_px(clicks.photo_id, *click_arrays(clicks))
         width_px = self.registrar.poses[clicks.photo_id].intrinsics.width_px
-        if off_px <= self.config.late_click_max_frac * width_px:
-            self.ctx.log.info(
-                "clicks for %s confirm its registration (median %.1f px off); it registered before they came",
-                clicks.photo_id,
-                off_px,
-            )
+        cfg = self.config
+        ok, note = late_clicks_note(clicks.photo_id, off_px, width_px, cfg.late_click_max_frac, cfg.keep_recent_photos)
+        if ok:
+            self.ctx.log.info(note)
             return
         self.inbox.keep_anchors(clicks)
-        raise ValueError(
-            f"clicks for {clicks.photo_id} disagree with its registration (median {off_px:.1f} px off) and its pixels "
-            f"are no longer kept (only the last {self.config.keep_recent_photos} photos are): the clicks are kept; "
-            "push the photo again to re-anchor it with them"
-        )
+        raise ValueError(note)
 
     def _register_anchor(self, photo: m.Photo, clicks: m.AnchorClicks) -> None:
         px, pts = click_arrays(clicks)
@@ -196,21 +184,7 @@ class RegisterNode:
         self.inbox.remember(photo)
 
     def _retry_pending(self) -> None:
-        """Try the waiting photos again while the map grows (each registration can connect others)."""
-        grown = True
-        while grown and self.inbox.pending:
-            grown = False
-            for msg in self.inbox.waiting_by_time():
-                out = self.registrar.retry(photo_input(msg))
-                if out is None or out.registration.status == "failed":
-                    if out is not None and msg.photo_id in self.inbox.unreported:
-                        # it came before any registration: now the map cannot place it either, say why
-                        self._publish(out)
-                    continue
-                del self.inbox.pending[msg.photo_id]
-                self._publish(out, ask=False)
-                self.inbox.remember(msg)
-                grown = grown or out.map_changed
+        self.inbox.retry_waiting(self.registrar.retry, self._publish)
 
     def _enqueue(self, msg: m.Photo) -> None:
         for old in self.inbox.enqueue(msg):

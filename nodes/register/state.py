@@ -51,6 +51,14 @@ def dump_map(node: Any, saved: dict[str, tuple[int, bool]] | None = None) -> dic
             im.features = f
 
 
+def saved_features(recon: Any) -> dict[str, tuple[int, bool]]:
+    """What :func:`dump_map` needs to skip features already saved: per image its features' identity and whether
+    they carry PCA descriptors (as restored)."""
+    return {
+        im.name: (id(im.features), getattr(im.features, "descriptors_pca", None) is not None) for im in recon.images
+    }
+
+
 def dump_bim(node: Any) -> bytes:
     return pickle.dumps({"version": STATE_VERSION, **{f: getattr(node, f) for f in BIM_FIELDS}}, protocol=5)
 

@@ -262,6 +262,7 @@ class StreamingRegistrar:
         sol = mapper.register_anchor(
             self.recon, idx, (np.asarray(pixels_px, float), np.asarray(points_in_world, float)), self.mcfg
         )
+        self.recon.images[idx].method = method
         flagged = int(np.sum(sol.outlier_mask))
         msg = f"{len(sol.residuals_px)} clicks, RMS {sol.rms_px:.2f} px" + (
             f"; {flagged} click(s) look mis-placed (residual > {sol.outlier_threshold_px:.1f} px)" if flagged else ""
@@ -306,6 +307,12 @@ class StreamingRegistrar:
             reason = "no registered images yet: anchor clicks are needed"
             return self._by_model(photo, Outcome(self._failed(photo, reason, t0), needs_anchor=reason))
         return self._by_model(photo, self._full_path(photo, self._ensure_image(photo), t0, note))
+
+    def register_by_model(self, photo: PhotoInput) -> Outcome | None:
+        """A fixed camera's frame anchored by the model's outlines alone (also before any registration), or None."""
+        reason = "anchor clicks are needed"
+        out = self._by_model(photo, Outcome(self._failed(photo, reason, time.perf_counter()), needs_anchor=reason))
+        return None if out.needs_anchor is not None else out
 
     def _by_model(self, photo: PhotoInput, out: Outcome) -> Outcome:
         """A fixed camera's frame that needs clicks, anchored by the model's outlines when the search finds its
