@@ -74,6 +74,10 @@ class SearchParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     distinct_m: float = 3.0
     refine_widths_px: tuple[int, ...] = (480, 960)
     refine_rounds: int = 2
+    focal_bound_rel: float = 0.08
+    """The refinement keeps the focal within this of the prior (EXIF: a few per cent)."""
+    max_focal_change_rel: float = 0.06
+    """A found camera whose focal moved further from the prior is refused (focal traded against distance)."""
     support_px: float = 1.5
     """At 960 px wide (scaled with the width)."""
     chance_shift_px: float = 12.0
@@ -87,6 +91,9 @@ class SearchParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
 
 @dataclass
 class Hypothesis:
+    """A camera the search considers: ``world_from_camera`` (4, 4), its pinhole ``intrinsics`` (full resolution)
+    and the coarse stage's score, then, refined, its edge support and chance level."""
+
     world_from_camera: F64
     intrinsics: Intrinsics
     coarse: float
@@ -212,7 +219,7 @@ def search_pose(
     middle), on the model ``view`` with ``elements`` standing and the terrain at ``ground_z_m``."""
     p = params or SearchParams()
     ground = 0.0 if ground_z_m is None else float(ground_z_m)
-    ww, wh = min(intr.width_px, p.work_width_px), 0
+    ww = min(intr.width_px, p.work_width_px)
     wh = max(1, int(round(intr.height_px * ww / intr.width_px)))
     wi = cam.scaled_intrinsics(intr, ww, wh)
     wi = msgspec.structs.replace(wi, k1=0.0, k2=0.0)
@@ -262,6 +269,9 @@ def search_pose(
         return SearchResult(None, None, f"{why} (< {p.min_contrast} over chance)", refined)
     if best.contrast - second < p.min_margin:
         return SearchResult(None, None, f"{why} (margin < {p.min_margin})", refined)
+    if abs(best.intrinsics.f_px / intr.f_px - 1.0) > p.max_focal_change_rel:
+        change = best.intrinsics.f_px / intr.f_px - 1.0
+        return SearchResult(None, None, f"{why}, but its focal is {change:+.0%} off the prior", refined)
     return SearchResult(best.world_from_camera, best.intrinsics, why, refined)
 
 
@@ -318,6 +328,7 @@ def _refine(
     visible edges rendered again between rounds), coarse to fine; its support: the share of the final edge
     samples within ``support_px`` of a like photo edge at the last width."""
     wfc, intr = h.world_from_camera, h.intrinsics
+    f_prior = intr.f_px
     sup = luck = 0.0
     for width in p.refine_widths_px:
         ww = min(intr.width_px, width)
@@ -339,9 +350,15 @@ def _refine(
 
             x0 = np.zeros(7)
             scale = np.r_[np.full(3, 2.0 / f0), np.full(3, 2.0 * depth / f0), 2.0 / f0]
+            # the focal stays within focal_bound_rel of the prior (far views trade focal against distance)
+            lo_f, hi_f = (
+                np.log((1 + b) * f_prior * ww / intr.width_px / f0) for b in (-p.focal_bound_rel, p.focal_bound_rel)
+            )
+            lower, upper = np.r_[np.full(6, -np.inf), min(lo_f, -1e-9)], np.r_[np.full(6, np.inf), max(hi_f, 1e-9)]
             r = least_squares(
                 _residuals,
                 x0,
+                bounds=(lower, upper),
                 loss="soft_l1",
                 f_scale=1.5,
                 x_scale=scale,

@@ -330,7 +330,8 @@ class StreamingRegistrar:
                 return out
             px, pts = clicks
             return self.register_anchor(photo, px, pts, method="model", note=f"found by the model's outlines ({why})")
-        except (RuntimeError, ValueError):  # no GL context, degenerate clicks: the request stands
+        except (RuntimeError, ValueError) as e:  # no GL context, degenerate clicks: the request stands
+            self.depth_error = f"model search of {photo.photo_id} failed: {e}"
             return out
 
     def _fast_path(self, photo: PhotoInput, t0: float) -> tuple[Outcome | None, str]:
