@@ -37,7 +37,6 @@ from constructaide.bim.ifc import load_site_model  # noqa: E402
 from constructaide.photos import photo_from_file  # noqa: E402
 from constructaide.synth import ensure_site  # noqa: E402
 from constructaide.synth.truth import load_cameras, load_depth, load_ids, true_camera  # noqa: E402
-from nodes.register.bimdepth import MeshDepthLookup  # noqa: E402
 from nodes.register.bimsite import BimMeshes  # noqa: E402
 from nodes.register.modelsearch import SearchParams, model_anchor  # noqa: E402
 
@@ -66,14 +65,7 @@ def run_site(size: str, seed: int, which: list[str], params: SearchParams) -> li
     tz = next((ln.split('"')[1] for ln in toml.splitlines() if ln.startswith("tz")), "UTC")
     terrain = next((float(ln.split("=")[1]) for ln in toml.splitlines() if ln.startswith("terrain_height_m")), 0.0)
     sm = load_site_model([site / "model" / "building.ifc"], tz=tz)
-    bim = BimMeshes.from_site_model(sm, terrain)
-    lookup = MeshDepthLookup(
-        bim.meshes,
-        elements_at=bim.refs_at(),
-        ground_height_m=terrain,
-        site_gps=bim.gps,
-        origin_offset_m=bim.origin_offset_m,
-    )
+    lookup = BimMeshes.from_site_model(sm, terrain).depth_lookup()  # as the register node builds it
     rows = []
     try:
         for rel in frames_of(cams, which):

@@ -153,20 +153,11 @@ def _site_lookup(site: Path):  # noqa: ANN202
     import tomllib
 
     from constructaide.bim.ifc import load_site_model
-    from nodes.register.bimdepth import MeshDepthLookup
     from nodes.register.bimsite import BimMeshes
 
     doc = tomllib.loads((site / "site.toml").read_text())
     tz, ground = doc["site"]["tz"], doc["site"]["terrain_height_m"]
-    bim = BimMeshes.from_site_model(load_site_model([site / doc["paths"]["ifc"]], tz=tz), ground)
-    lookup = MeshDepthLookup(
-        bim.meshes,
-        elements_at=bim.refs_at(),
-        ground_height_m=ground,
-        site_gps=bim.gps,
-        origin_offset_m=bim.origin_offset_m,
-    )
-    return lookup, tz
+    return BimMeshes.from_site_model(load_site_model([site / doc["paths"]["ifc"]], tz=tz), ground).depth_lookup(), tz
 
 
 def _last_frame(site: Path, camera: str) -> str:
