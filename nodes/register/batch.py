@@ -448,8 +448,7 @@ def run_batch(
 
     def by_model(i: int) -> tuple[Clicks | None, str]:
         im = recon.images[i]
-        if lookup is None:
-            return None, "no BIM (--bim)"
+        assert lookup is not None  # only passed with a lookup
         intr = cam.centered_intrinsics(im.width_px, im.height_px, focal_prior(im, cfg))
         return model_anchor(lookup, _gray(paths[im.name]), intr, im.gps, im.capture_time_ns, cfg.model_search_clicks)
 

@@ -427,13 +427,13 @@ def refine_pose(
     sup = result.support_before
     for k, half in enumerate(p.search_px):
         if k:  # render again at the refined pose (visibility, new edges)
-            wfc_k = _compose(cfw0, x)
+            wfc_k = compose_update(cfw0, x)
             samples = edge_samples(view, _focal_scaled(wi, x), wfc_k, elements, ground_z_m, p)
             if len(samples.point_in_world_m) < p.min_samples:
                 break
         x, sup, sigma = _solve(wi, cfw0, samples, gx, gy, half, p, x, depth_m, work_clicks)
         result.history.append((half, sup))
-    wfc = _compose(cfw0, x)
+    wfc = compose_update(cfw0, x)
     result.rotation_deg = cam.rotation_angle_deg(wfc[:3, :3], wfc0[:3, :3])
     result.shift_m = float(np.linalg.norm(wfc[:3, 3] - wfc0[:3, 3]))
     result.focal_change_rel = float(np.exp(x[6]) - 1.0)
@@ -479,8 +479,9 @@ def refine_pose(
     return result
 
 
-def _compose(cfw0: F64, x: F64) -> F64:
-    """world_from_camera after the camera-frame update ``x``."""
+def compose_update(cfw0: F64, x: F64) -> F64:
+    """world_from_camera (4, 4) after the camera-frame update ``x`` (rotation vector, translation m, ...) of the
+    camera_from_world ``cfw0``."""
     cfw = np.eye(4)
     R = cam.rodrigues_to_matrix(x[:3])
     cfw[:3, :3] = R @ cfw0[:3, :3]

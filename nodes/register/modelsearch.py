@@ -49,7 +49,7 @@ from constructaide import camera as cam
 from constructaide.geo import enu_m
 from constructaide.modelview import ModelView, element_bounds
 from nodes.register.bimdepth import MeshDepthLookup
-from nodes.register.modelalign import AlignParams, edge_samples
+from nodes.register.modelalign import AlignParams, compose_update, edge_samples, work_size
 from schemas.messages import GeoPoint, Intrinsics
 
 F64 = NDArray[np.float64]
@@ -118,6 +118,13 @@ class SearchResult:
     intrinsics: Intrinsics | None
     reason: str
     hypotheses: list[Hypothesis] = field(default_factory=list)
+
+
+def _work_image(gray: NDArray[np.uint8], width_px: int, height_px: int) -> NDArray[np.uint8]:
+    """The photo (H, W) at the work size (area interpolation; as is when it already has that width)."""
+    if gray.shape[1] == width_px:
+        return gray
+    return np.asarray(cv2.resize(gray, (width_px, height_px), interpolation=cv2.INTER_AREA), np.uint8)
 
 
 def oriented_distance_maps(gray: NDArray[np.uint8], bins: int, truncate_px: float) -> NDArray[np.float32]:
@@ -222,13 +229,9 @@ def search_pose(
     middle), on the model ``view`` with ``elements`` standing and the terrain at ``ground_z_m``."""
     p = params or SearchParams()
     ground = 0.0 if ground_z_m is None else float(ground_z_m)
-    ww = min(intr.width_px, p.work_width_px)
-    wh = max(1, int(round(intr.height_px * ww / intr.width_px)))
-    wi = cam.scaled_intrinsics(intr, ww, wh)
-    wi = msgspec.structs.replace(wi, k1=0.0, k2=0.0)
-    img = np.asarray(
-        cv2.resize(gray, (ww, wh), interpolation=cv2.INTER_AREA) if gray.shape[1] != ww else gray, np.uint8
-    )
+    ww, wh = work_size(intr, p.work_width_px)
+    wi = msgspec.structs.replace(cam.scaled_intrinsics(intr, ww, wh), k1=0.0, k2=0.0)
+    img = _work_image(gray, ww, wh)
     dmaps = oriented_distance_maps(img, p.orientation_bins, p.truncate_px)
     wide = msgspec.structs.replace(wi, f_px=wi.f_px * p.wide_focal_scale)
     sample_params = AlignParams(sample_step_px=3.0, max_samples=2500, min_samples=30)
@@ -278,16 +281,6 @@ def search_pose(
     return SearchResult(best.world_from_camera, best.intrinsics, why, refined)
 
 
-def _compose(wfc0: F64, x: F64) -> F64:
-    """world_from_camera after the camera-frame update ``x`` (rotation vector, translation m)."""
-    cfw0 = cam.invert_rigid(wfc0)
-    cfw = np.eye(4)
-    r = cam.rodrigues_to_matrix(x[:3])
-    cfw[:3, :3] = r @ cfw0[:3, :3]
-    cfw[:3, 3] = r @ cfw0[:3, 3] + x[3:6]
-    return cam.invert_rigid(cfw)
-
-
 def _chamfer(dmaps: NDArray[np.float32], intr: Intrinsics, wfc: F64, p: F64, q: F64, truncate_px: float) -> F64:
     """(N,) oriented distance (px, bilinear, truncated) of each edge point to the photo's edges at a camera."""
     bins, h, w = dmaps.shape
@@ -316,7 +309,7 @@ def _chamfer(dmaps: NDArray[np.float32], intr: Intrinsics, wfc: F64, p: F64, q: 
 def _residuals(x: F64, dmaps: NDArray[np.float32], wi: Intrinsics, wfc: F64, pts: F64, q: F64, trunc: float) -> F64:
     """Oriented chamfer distances (N,) after the update ``x`` (rotation vector, translation m, log focal)."""
     wi_x = msgspec.structs.replace(wi, f_px=wi.f_px * float(np.exp(x[6])))
-    return _chamfer(dmaps, wi_x, _compose(wfc, x), pts, q, trunc)
+    return _chamfer(dmaps, wi_x, compose_update(cam.invert_rigid(wfc), x), pts, q, trunc)
 
 
 def _refine(
@@ -334,11 +327,8 @@ def _refine(
     f_prior = intr.f_px
     sup = luck = 0.0
     for width in p.refine_widths_px:
-        ww = min(intr.width_px, width)
-        wh = max(1, int(round(intr.height_px * ww / intr.width_px)))
-        img = np.asarray(
-            cv2.resize(gray, (ww, wh), interpolation=cv2.INTER_AREA) if gray.shape[1] != ww else gray, np.uint8
-        )
+        ww, wh = work_size(intr, width)
+        img = _work_image(gray, ww, wh)
         trunc = p.truncate_px * max(1.0, ww / p.work_width_px) ** 0.5
         dmaps = oriented_distance_maps(img, p.orientation_bins, trunc)
         sp = AlignParams(sample_step_px=2.0 * ww / 480, max_samples=3000, min_samples=30)
@@ -369,7 +359,7 @@ def _refine(
                 max_nfev=60,
                 args=(dmaps, wi, wfc, pts, q, trunc),
             )
-            wfc = _compose(wfc, r.x)
+            wfc = compose_update(cam.invert_rigid(wfc), r.x)
             intr = msgspec.structs.replace(intr, f_px=intr.f_px * float(np.exp(r.x[6])))
         wi = msgspec.structs.replace(cam.scaled_intrinsics(intr, ww, wh), k1=0.0, k2=0.0)
         s = edge_samples(view, wi, wfc, elements, ground_z_m, sp)
