@@ -564,6 +564,9 @@ EXTRA_VARIANTS = {
     # Only when named with --variants: fixed cameras not searched for by the model before a request (the rule
     # before 2026-12-07).
     "no model search": MapperConfig(model_search=False),
+    # Only when named with --variants: a phone's automatic pose not checked by the model's outlines, relative poses
+    # at any parallax (the rules before 2026-12-07, afternoon).
+    "no outline check": MapperConfig(min_outline_contrast=None, bootstrap_max_parallax_deg=180.0),
     # Only when named with --variants: the second anchor asked in collection order (the rule before
     # MapperConfig.anchor_request_min_shared_matches).
     "second anchor: collection order": MapperConfig(anchor_request_min_shared_matches=0),

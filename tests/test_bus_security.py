@@ -6,6 +6,7 @@ import json
 import os
 import queue
 import re
+import signal
 import subprocess
 import sys
 import threading
@@ -167,6 +168,7 @@ def test_acl_drops_forbidden_publish_and_reports(site_toml: Path) -> None:
     for t in scanners:
         t.start()
     echo = None
+    echo_log = (site_toml.parent / f"echo-{os.getpid()}.log").open("w+")
     try:
         ep = listening.get(timeout=30).rstrip(";,")
         assert ep.startswith("tls/127.0.0.1:")
@@ -191,7 +193,7 @@ def test_acl_drops_forbidden_publish_and_reports(site_toml: Path) -> None:
             echo = subprocess.Popen(
                 [sys.executable, str(ECHO), "--site", SITE, "--connect", ep, "--bus-security", str(site_toml),
                  "--role", "render"],
-                env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                env=_env(), stdout=subprocess.DEVNULL, stderr=echo_log,
             )  # fmt: skip
             rec.wait_for_tokens([keys.pattern(keys.LIVELINESS, site=SITE, node="echo")], timeout=30)
             errors = rec.collect(keys.key(keys.ERRORS, site=SITE))
@@ -211,15 +213,37 @@ def test_acl_drops_forbidden_publish_and_reports(site_toml: Path) -> None:
             assert not [k for k, _ in got.items if "/registration/" in k]
             assert echo.poll() is None
     finally:
-        for p in (echo, router):
-            if p is not None and p.poll() is None:
-                p.terminate()
-                p.wait(20)
+        hung = [p for p in (echo, router) if p is not None and not _stopped(p)]
         for t in scanners:
             t.join(20)
         for f in (router.stdout, router.stderr):
             if f is not None:
                 f.close()
+        echo_log.seek(0)
+        log = echo_log.read()
+        echo_log.close()
+    # A node must stop on SIGTERM: one that did not is failed with its threads' stacks (SIGUSR1, faulthandler).
+    assert not hung, f"did not stop within 20 s of SIGTERM: {[p.args[1] for p in hung]}; echo node's stderr:\n{log}"
+
+
+def _stopped(p: subprocess.Popen[str]) -> bool:
+    """SIGTERM ``p`` and wait 20 s; a process still running then gets SIGUSR1 (its stacks to its stderr) and is
+    killed: False."""
+    if p.poll() is not None:
+        return True
+    p.terminate()
+    try:
+        p.wait(20)
+        return True
+    except subprocess.TimeoutExpired:
+        p.send_signal(signal.SIGUSR1)
+        try:
+            p.wait(2)
+        except subprocess.TimeoutExpired:
+            pass
+        p.kill()
+        p.wait(20)
+        return False
 
 
 def _scan(stream, pattern: re.Pattern[str], out: queue.Queue[str]) -> None:

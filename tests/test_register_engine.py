@@ -78,6 +78,35 @@ def test_relative_pose_refuses_a_rotation_and_a_disagreeing_scale() -> None:
         assert expect in recon.images[1].message, recon.images[1].message
 
 
+def test_relative_pose_bounds_its_parallax_and_defers_to_the_check() -> None:
+    """The arc's second view is placed from the anchored first (seeds 3 / 5 / 9 above); a median parallax above
+    ``bootstrap_max_parallax_deg`` is refused (no descriptor matches across such a change: a motion of wrong
+    matches), and so is a pose the ``check`` (the model's outlines in the nodes) refuses, its reason named."""
+    from nodes.register.matching import match_image
+
+    for seed in (3, 5):
+        rng = np.random.default_rng(seed)
+        results = {}
+        for case in ("plain", "narrow", "checked", "check passes"):
+            recon, pts, poses = arc_reconstruction(np.random.default_rng(seed), n_views=4)
+            cfg = config.MapperConfig(focal_px=F, bootstrap_max_parallax_deg=2.5 if case == "narrow" else 60.0)
+            match_image(recon, 1, [0], cfg)
+            mapper.register_anchor(recon, 0, clicks_for(rng, pts, poses[0]), cfg)
+            seen: list[int] = []
+
+            def check(i: int, intr, wfc: np.ndarray, case: str = case) -> str:  # noqa: ANN001
+                seen.append(i)
+                return "the outline says no" if case == "checked" else ""
+
+            ok = mapper.try_relative_pose(recon, 0, 1, cfg, check if case.startswith("check") else None)
+            results[case] = (ok, recon.images[1].message, list(seen))
+        assert results["plain"][0], results["plain"][1]
+        assert not results["narrow"][0] and "too wide to match" in results["narrow"][1], results["narrow"][1]
+        assert not results["checked"][0] and results["checked"][1].endswith("refused: the outline says no")
+        assert results["checked"][2] == [1]
+        assert results["check passes"][0] and results["check passes"][2] == [1]
+
+
 def test_a_fixed_camera_frame_is_placed_relative_to_its_own_camera_only() -> None:
     """A knocked frame of fixed camera A, with A's anchored frame registered, is not placed by a relative motion to
     another camera's frame (B; CI saw such a motion put a knocked camera 2.7 deg and 3 m off), while a frame of

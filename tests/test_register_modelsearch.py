@@ -295,3 +295,56 @@ def test_register_node_anchors_a_fixed_camera_by_the_model_before_any_clicks(sma
         assert isinstance(reg, Registration) and reg.photo_id == photo.photo_id
         assert (reg.status, reg.method) == ("anchor", "model"), reg.message
         assert needs.items == []
+
+
+class _Lookup:
+    """The parts of a MeshDepthLookup the outline check reads: the model view, what stands, the ground."""
+
+    def __init__(self, view: ModelView) -> None:
+        self.view = view
+        self.ground_height_m = 0.0
+
+    def elements(self, capture_time_ns: int) -> None:
+        return None  # everything stands
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_outline_check_refuses_a_phone_pose_off_the_building(seed: int) -> None:
+    """A phone 10-14 m from the frame building: at its true pose the model's outline lies on the photo's edges (the
+    check passes); the same turn 2.5 m aside (a baseline scaled wrong, as a repeated print's matches give) and a
+    pose turned 15 deg are refused with the support figures; a fixed camera's frame is not checked."""
+    from nodes.register.modelsearch import OutlineCheck
+
+    rng = np.random.default_rng(seed)
+    meshes = _scene(rng)
+    view = ModelView(meshes)
+    try:
+        allv = np.concatenate([v for v, _ in meshes.values()])
+        lo, hi = allv.min(axis=0), allv.max(axis=0)
+        mid = (lo + hi) / 2
+        ang = rng.uniform(0, 2 * np.pi)
+        dist = rng.uniform(10, 14) + 0.5 * float(np.hypot(hi[0] - lo[0], hi[1] - lo[1]))
+        centre = np.array([mid[0] + dist * np.cos(ang), mid[1] + dist * np.sin(ang), 1.6])
+        wfc = cam.look_at(centre, np.r_[mid[:2] + rng.normal(0, 1.5, 2), rng.uniform(2.0, 4.0)])
+        gray = _photo(view, wfc, rng)
+        intr = cam.centered_intrinsics(W, H, F)
+        check = OutlineCheck(_Lookup(view), 0.06)  # type: ignore[arg-type]
+        decoded: list[int] = []
+
+        def photo() -> np.ndarray:
+            decoded.append(1)
+            return gray
+
+        assert check.refusal(photo, None, 0, intr, wfc) == ""
+        aside = wfc.copy()
+        aside[:3, 3] += 2.5 * wfc[:3, 0]
+        turned = wfc.copy()
+        turned[:3, :3] = wfc[:3, :3] @ cam.rodrigues_to_matrix([0.0, np.radians(15.0), 0.0])
+        for wrong in (aside, turned):
+            why = check.refusal(photo, None, 0, intr, wrong)
+            assert "no better than slid aside" in why and "support" in why, why
+        assert check.refusal(photo, "cam-a", 0, intr, aside) == ""  # fixed cameras: not checked
+        assert len(decoded) == 3  # the photo is decoded only when checked
+        assert check.for_photo(photo, None, 0)(7, intr, aside) == check.refusal(photo, None, 0, intr, aside)
+    finally:
+        view.close()

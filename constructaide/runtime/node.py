@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import collections
 import contextlib
+import faulthandler
 import logging
 import os
 import signal
@@ -674,6 +675,10 @@ def add_node_args(parser: argparse.ArgumentParser) -> None:
     add_bus_args(parser)
 
 
+BUS_CLOSE_SECS = 15.0
+"""How long a stopping node waits for its bus session to close before it exits anyway (run_node_cli)."""
+
+
 def run_node_cli(spec: NodeSpec, argv: list[str] | None = None, *, prog: str | None = None) -> int:
     """Console entry for a node: parse args, open the bus, run until Ctrl-C / SIGTERM."""
     parser = argparse.ArgumentParser(prog=prog or f"constructaide-{spec.name}", description=spec.description)
@@ -692,6 +697,8 @@ def run_node_cli(spec: NodeSpec, argv: list[str] | None = None, *, prog: str | N
         stop = threading.Event()
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: stop.set())
+        if hasattr(signal, "SIGUSR1"):  # `kill -USR1 PID`: every thread's stack to stderr (a node that will not stop)
+            faulthandler.register(signal.SIGUSR1, all_threads=True)
         try:
             partition = Partition.parse(args.partition, args.cameras.split(",")) if args.partition else None
         except ValueError as e:
@@ -699,14 +706,26 @@ def run_node_cli(spec: NodeSpec, argv: list[str] | None = None, *, prog: str | N
         if args.ledger_keep_days < 0 or args.ledger_max_rows < 0:
             raise UserError("--ledger-keep-days and --ledger-max-rows must be >= 0")
         retention = Retention(keep_days=args.ledger_keep_days, max_rows=args.ledger_max_rows)
-        with (
-            open_bus(BusConfig.from_args(args, role=spec.name)) as bus,
-            start_node(spec, config, bus, state_dir=args.state_dir, partition=partition, retention=retention),
-        ):
-            logging.getLogger("constructaide").info(
-                "node %s live on site %s (pid %d); bus: %s", spec.name, config.site, os.getpid(), bus.topology()
-            )
-            stop.wait()
+        try:
+            with open_bus(BusConfig.from_args(args, role=spec.name)) as bus:
+                try:
+                    with start_node(
+                        spec, config, bus, state_dir=args.state_dir, partition=partition, retention=retention
+                    ):
+                        logging.getLogger("constructaide").info(
+                            "node %s live on site %s (pid %d); bus: %s",
+                            spec.name,
+                            config.site,
+                            os.getpid(),
+                            bus.topology(),
+                        )
+                        stop.wait()
+                finally:
+                    # The node has drained its queue and saved its state: a zenoh session that does not close (a
+                    # wedged link) must not keep the process; its threads' stacks go to stderr, then it exits (1).
+                    faulthandler.dump_traceback_later(BUS_CLOSE_SECS, exit=True)
+        finally:
+            faulthandler.cancel_dump_traceback_later()
         return 0
     except UserError as e:
         print(f"constructaide-{spec.name}: error: {e}", file=sys.stderr)

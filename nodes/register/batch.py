@@ -42,11 +42,11 @@ from nodes.register.config import MapperConfig
 from nodes.register.densify import DensifyParams, densify_reconstruction
 from nodes.register.features import Features, extract_features
 from nodes.register.modelalign import AlignParams, Polished, PolishPolicy, ViewPolish, polish_registration
-from nodes.register.modelsearch import model_anchor
+from nodes.register.modelsearch import OutlineCheck, model_anchor
 from nodes.register.pose import epipolar_agreement
 from nodes.register.recon import Clicks, Reconstruction, add_image, focal_prior
 from nodes.register.sfm import reconstruct
-from schemas.messages import GeoPoint
+from schemas.messages import GeoPoint, Intrinsics
 
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp"}
 DEFAULT_DENSIFY = DensifyParams()
@@ -406,7 +406,7 @@ def run_batch(
     for b in bim_paths:
         if not Path(b).exists():
             raise UserError(f"--bim {b} does not exist")
-    wants_model = bool(polish_params) or (cfg.model_search and camera_folders)
+    wants_model = bool(polish_params) or (cfg.model_search and camera_folders) or cfg.min_outline_contrast is not None
     lookup = load_bim_lookup(tuple(bim_paths), tz, terrain_height_m) if bim_paths and wants_model else None
     named = find_images(images_dir)
     if not named:
@@ -452,6 +452,15 @@ def run_batch(
         intr = cam.centered_intrinsics(im.width_px, im.height_px, focal_prior(im, cfg))
         return model_anchor(lookup, _gray(paths[im.name]), intr, im.gps, im.capture_time_ns, cfg.model_search_clicks)
 
+    outline = None
+    if lookup is not None and cfg.min_outline_contrast is not None:
+        outline = OutlineCheck(lookup, cfg.min_outline_contrast)
+
+    def check(i: int, intr: Intrinsics, world_from_camera: np.ndarray) -> str:
+        im = recon.images[i]
+        assert outline is not None  # only passed with one
+        return outline.refusal(lambda: _gray(paths[im.name]), im.camera_id, im.capture_time_ns, intr, world_from_camera)
+
     reconstruct(
         recon,
         given,
@@ -460,6 +469,7 @@ def run_batch(
         progress=prog,
         match_progress=lambda: bar_m.update(),
         by_model=by_model if lookup is not None else None,
+        check=check if outline is not None else None,
     )
     bar_m.close()
     bar_r.close()

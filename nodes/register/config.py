@@ -113,6 +113,12 @@ class MapperConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     # its camera gives the anchor solve model-point clicks in place of a person's.
     model_search: bool = True
     model_search_clicks: int = 24
+    # A phone photo's automatic pose (PnP, relative pose) is kept only when the model's visible outline at it lies on
+    # the photo's edges by at least this much more than when slid 12 px aside (modelsearch.OutlineCheck; needs the
+    # BIM view; None: off). Chosen on the batch registrations of small seeds 0 / 3 / 5 / 7 / 11 / 13 and default 0
+    # (57 phone photos, careful user, 2026-12-07): wrong automatic poses 0.011 / 0.054, anchored ones within 0.3 %
+    # of the width 0.05-0.65 (all but one above 0.066).
+    min_outline_contrast: float | None = 0.06
     # Only anchors observing at least this many triangulated track points are released: the others' poses rest on
     # their clicks alone.
     release_min_observations: int = 300
@@ -201,6 +207,10 @@ class MapperConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     # camera's frame came out 2.9 deg and 2.7 m off (the partition test's one-worker run, small site without BIM
     # depth), while a rotation homography or PnP on the camera's own model points register such frames.
     bootstrap_min_parallax_deg_own_camera: float = 5.0
+    # ... and at most this: SIFT-like descriptors do not match across a larger change of view, so a larger median
+    # parallax is a motion fitted to wrong matches (default seed 0: a phone placed at 130 deg from another across
+    # the building, 16 m off, on the hoarding print's repeats).
+    bootstrap_max_parallax_deg: float = 60.0
     # The matches' median residual after the best pure rotation (fraction of the width) must reach this: below it
     # the translation's sign in the image is within what the lens model's small errors make, and the relative
     # motion is not determined (a knocked mast camera: 0.27-0.32 % on the small sites, seeds 0, 7, 11).

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 
 import cv2
@@ -39,6 +40,10 @@ from nodes.register.recon import (
     obs_threshold_px,
 )
 from schemas.messages import Intrinsics
+
+PoseCheck = Callable[[int, Intrinsics, np.ndarray], str]
+"""Why a candidate automatic pose (image index, its lens, world_from_camera (4, 4)) contradicts what the photo shows
+("" when it does not; :class:`nodes.register.modelsearch.OutlineCheck`)."""
 
 
 def register_anchor(recon: Reconstruction, idx: int, clicks: Clicks, cfg: MapperConfig) -> AnchorSolution:
@@ -335,7 +340,9 @@ def own_camera_frames(recon: Reconstruction, idx: int) -> list[int]:
     return [j for j in recon.registered_indices() if j != idx and recon.images[j].camera_id == cam_id]
 
 
-def try_relative_pose(recon: Reconstruction, ref: int, idx: int, cfg: MapperConfig) -> bool:
+def try_relative_pose(
+    recon: Reconstruction, ref: int, idx: int, cfg: MapperConfig, check: PoseCheck | None = None
+) -> bool:
     """Register image ``idx`` from its verified matches with registered image ``ref`` when too few of them reach
     triangulated tracks: the relative motion of the two cameras (:func:`_relative_motions`, ``ref``'s intrinsics,
     ``idx``'s focal prior), ``ref``'s pose held, and the baseline's length from what is known in ``ref``'s view:
@@ -347,8 +354,9 @@ def try_relative_pose(recon: Reconstruction, ref: int, idx: int, cfg: MapperConf
     then carried into ``idx`` by local homographies of their neighbouring matches (checked against the pose and
     kept as constraints that hold the baseline in the adjustments). Needs a median ray angle of
     ``bootstrap_min_parallax_deg`` (``bootstrap_min_parallax_deg_own_camera`` between frames of one fixed camera); a
-    fixed camera's frame with registered frames of its own camera is placed relative to those only. Returns True
-    when registered."""
+    fixed camera's frame with registered frames of its own camera is placed relative to those only; at most
+    ``bootstrap_max_parallax_deg`` (descriptors match across smaller changes of view: more is a motion of wrong
+    matches). ``check`` has the last word. Returns True when registered."""
     r, im = recon.images[ref], recon.images[idx]
     p = recon.pair(ref, idx)
     if p is None or len(p[0]) < cfg.bootstrap_min_matches or r.intrinsics is None:
@@ -412,6 +420,10 @@ def try_relative_pose(recon: Reconstruction, ref: int, idx: int, cfg: MapperConf
         parallax = float(np.median(np.degrees(np.arccos(np.clip(cosang, -1, 1)))))
         if parallax < min_parallax:
             why = f"relative pose from {r.name}: median parallax {parallax:.1f} deg too small (< {min_parallax:g})"
+            continue
+        if parallax > cfg.bootstrap_max_parallax_deg:
+            most = cfg.bootstrap_max_parallax_deg
+            why = f"relative pose from {r.name}: median parallax {parallax:.0f} deg (> {most:g}: too wide to match)"
             continue
         # Baseline length: triangulated tracks among the matches, else the clicks.
         tr = tracks_all[sel]
@@ -485,6 +497,7 @@ def try_relative_pose(recon: Reconstruction, ref: int, idx: int, cfg: MapperConf
         return False
     # One registered photo with GPS already checks the baseline's length (the distance between the two centres).
     why = gps_check(recon, idx, world_from_camera, cfg, min_references=1)
+    why = why or (check(idx, intr_u, world_from_camera) if check is not None else "")
     if why:
         im.message = f"relative pose from {r.name} refused: {why}"
         return False
@@ -530,9 +543,10 @@ def usable_track_matches(recon: Reconstruction, idx: int, cfg: MapperConfig) -> 
     return feats[ok], tr[ok]
 
 
-def register_image_pnp(recon: Reconstruction, idx: int, cfg: MapperConfig) -> bool:
+def register_image_pnp(recon: Reconstruction, idx: int, cfg: MapperConfig, check: PoseCheck | None = None) -> bool:
     """Register image ``idx`` from its matches to triangulated tracks: PnP-RANSAC (inliers within
-    ``pnp_inlier_frac`` of the width) then the epipolar-constrained refinement. Returns True on success."""
+    ``pnp_inlier_frac`` of the width) then the epipolar-constrained refinement; ``check`` has the last word. Returns
+    True on success."""
     im = recon.images[idx]
     feats, tr = usable_track_matches(recon, idx, cfg)
     im.num_matched_tracks = len(feats)
@@ -618,6 +632,7 @@ def register_image_pnp(recon: Reconstruction, idx: int, cfg: MapperConfig) -> bo
         return False
     world_from_camera = cam.invert_rigid(cam.rigid(R, tv))
     why = rotation_refusal(recon, idx, intr, world_from_camera, cfg) or gps_check(recon, idx, world_from_camera, cfg)
+    why = why or (check(idx, intr, world_from_camera) if check is not None else "")
     if why:
         im.message = f"PnP pose ({int(inliers.sum())}/{len(obj)} inliers) refused: {why}"
         return False
@@ -674,7 +689,7 @@ def frame_anchor_order(recon: Reconstruction, anchored: list[int]) -> list[int]:
     return sorted(cands, key=lambda i: -strength(i))
 
 
-def bootstrap_next(recon: Reconstruction, unreg: list[int], cfg: MapperConfig) -> int:
+def bootstrap_next(recon: Reconstruction, unreg: list[int], cfg: MapperConfig, check: PoseCheck | None = None) -> int:
     """Try :func:`try_relative_pose` on (registered, unregistered) pairs, most verified matches first; returns the
     image registered, or -1."""
     reg = recon.registered_indices()
@@ -689,7 +704,7 @@ def bootstrap_next(recon: Reconstruction, unreg: list[int], cfg: MapperConfig) -
         if u in tried and len(tried) > 3:
             continue
         tried.add(u)
-        if try_relative_pose(recon, r, u, cfg):
+        if try_relative_pose(recon, r, u, cfg, check):
             return u
     return -1
 

@@ -49,7 +49,7 @@ from constructaide import camera as cam
 from constructaide.geo import enu_m
 from constructaide.modelview import ModelView, element_bounds
 from nodes.register.bimdepth import MeshDepthLookup
-from nodes.register.modelalign import AlignParams, compose_update, edge_samples, work_size
+from nodes.register.modelalign import AlignParams, EdgeSamples, compose_update, edge_samples, work_size
 from schemas.messages import GeoPoint, Intrinsics
 
 F64 = NDArray[np.float64]
@@ -364,20 +364,51 @@ def _refine(
         wi = msgspec.structs.replace(cam.scaled_intrinsics(intr, ww, wh), k1=0.0, k2=0.0)
         s = edge_samples(view, wi, wfc, elements, ground_z_m, sp)
         if len(s.point_in_world_m):
-            q = _tangent_points(wi, wfc, s.point_in_world_m, s.normal_px)
-            tol = p.support_px * ww / 960
-            d = _chamfer(dmaps, wi, wfc, s.point_in_world_m, q, trunc)
-            sup = float(np.mean(d <= tol))
-            # the same test with the outline slid aside: what the photo's texture alone gives there
-            step = p.chance_shift_px * ww / 960
-            chance = []
-            for ang in np.arange(8) * np.pi / 4:
-                shifted = msgspec.structs.replace(
-                    wi, cx_px=wi.cx_px + step * np.cos(ang), cy_px=wi.cy_px + step * np.sin(ang)
-                )
-                chance.append(float(np.mean(_chamfer(dmaps, shifted, wfc, s.point_in_world_m, q, trunc) <= tol)))
-            luck = float(np.mean(chance))
+            sup, luck = _support_and_chance(dmaps, wi, wfc, s, trunc, p)
     return Hypothesis(wfc, intr, h.coarse, sup, luck)
+
+
+def _support_and_chance(
+    dmaps: NDArray[np.float32], wi: Intrinsics, wfc: F64, s: EdgeSamples, trunc: float, p: SearchParams
+) -> tuple[float, float]:
+    """Share of the edge samples ``s`` within ``support_px`` of a like photo edge (``dmaps`` at the work size of
+    ``wi``), and the same share with the outline slid ``chance_shift_px`` aside in eight directions (what the
+    photo's texture alone gives there)."""
+    ww = wi.width_px
+    q = _tangent_points(wi, wfc, s.point_in_world_m, s.normal_px)
+    tol = p.support_px * ww / 960
+    sup = float(np.mean(_chamfer(dmaps, wi, wfc, s.point_in_world_m, q, trunc) <= tol))
+    step = p.chance_shift_px * ww / 960
+    chance = []
+    for ang in np.arange(8) * np.pi / 4:
+        shifted = msgspec.structs.replace(wi, cx_px=wi.cx_px + step * np.cos(ang), cy_px=wi.cy_px + step * np.sin(ang))
+        chance.append(float(np.mean(_chamfer(dmaps, shifted, wfc, s.point_in_world_m, q, trunc) <= tol)))
+    return sup, float(np.mean(chance))
+
+
+def outline_contrast(
+    view: ModelView,
+    gray: NDArray[np.uint8],
+    intr: Intrinsics,
+    world_from_camera: F64,
+    elements: set[str] | None,
+    ground_z_m: float | None,
+    params: SearchParams | None = None,
+) -> tuple[float, float, int]:
+    """How well the model's visible outline at a registered camera (``intr`` full resolution, distortion ignored;
+    ``world_from_camera`` (4, 4)) lies on the photo ``gray`` (H, W)'s edges, at the refinement's last work width:
+    (edge support, its chance level, number of edge samples: 0 when too few to tell); see :class:`Hypothesis`."""
+    p = params or SearchParams()
+    ww, wh = work_size(intr, p.refine_widths_px[-1])
+    trunc = p.truncate_px * max(1.0, ww / p.work_width_px) ** 0.5
+    dmaps = oriented_distance_maps(_work_image(gray, ww, wh), p.orientation_bins, trunc)
+    wi = msgspec.structs.replace(cam.scaled_intrinsics(intr, ww, wh), k1=0.0, k2=0.0)
+    sp = AlignParams(sample_step_px=2.0 * ww / 480, max_samples=3000, min_samples=30)
+    s = edge_samples(view, wi, np.asarray(world_from_camera, np.float64), elements, ground_z_m, sp)
+    if len(s.point_in_world_m) < sp.min_samples:
+        return 0.0, 0.0, 0
+    sup, luck = _support_and_chance(dmaps, wi, np.asarray(world_from_camera, np.float64), s, trunc, p)
+    return sup, luck, len(s.point_in_world_m)
 
 
 def virtual_clicks(
@@ -490,3 +521,43 @@ class ModelAnchors:
         h, w = img.shape[:2]
         intr = cam.centered_intrinsics(w, h, focal_px or cam.focal_from_fov(w, 50.0))
         return model_anchor(lookup, img, intr, gps, capture_time_ns, self.count, self.params)
+
+
+class OutlineCheck:
+    """The model's word on a phone photo's automatic pose (``mapper.PoseCheck``): refused when the standing elements'
+    visible outline at that pose lies on the photo's edges hardly better than slid aside (:func:`outline_contrast`
+    below ``min_contrast``), as on a pose fitted to a repeated print's matches. Fixed cameras' frames are not
+    checked (their poses rest on their own camera's frames), nor a pose at which the model shows too few edges."""
+
+    def __init__(self, lookup: MeshDepthLookup, min_contrast: float, params: SearchParams | None = None) -> None:
+        self.lookup = lookup
+        self.min_contrast = min_contrast
+        self.params = params
+
+    def refusal(
+        self,
+        gray: Callable[[], NDArray[np.uint8]],
+        camera_id: str | None,
+        capture_time_ns: int,
+        intr: Intrinsics,
+        world_from_camera: F64,
+    ) -> str:
+        """Why the pose is refused ("" when it is not); ``gray`` gives the photo (H, W) at full resolution."""
+        if camera_id is not None:
+            return ""
+        lk = self.lookup
+        sup, luck, n = outline_contrast(
+            lk.view, gray(), intr, world_from_camera, lk.elements(capture_time_ns), lk.ground_height_m, self.params
+        )
+        if n == 0 or sup - luck >= self.min_contrast:
+            return ""
+        return (
+            f"the model's outline there lies on the photo's edges no better than slid aside (support {sup:.2f}, "
+            f"aside {luck:.2f}; needs {self.min_contrast:+.2f})"
+        )
+
+    def for_photo(
+        self, gray: Callable[[], NDArray[np.uint8]], camera_id: str | None, capture_time_ns: int
+    ) -> Callable[[int, Intrinsics, F64], str]:
+        """The check of one photo's candidate poses, as ``mapper.PoseCheck`` (the image index is not used)."""
+        return lambda _i, intr, wfc: self.refusal(gray, camera_id, capture_time_ns, intr, wfc)

@@ -46,6 +46,7 @@ from nodes.register.features import (
     project_pca,
 )
 from nodes.register.mapper import (
+    PoseCheck,
     anchor_request_order,
     bootstrap_next,
     click_disagreement_px,
@@ -79,6 +80,7 @@ def reconstruct(
     progress: Callable[[str, int], None] | None = None,
     match_progress: Callable[[], None] | None = None,
     by_model: Callable[[int], tuple[Clicks | None, str]] | None = None,
+    check: PoseCheck | None = None,
 ) -> Reconstruction:
     """Run Algorithm 1 on a reconstruction whose images were added with :func:`add_image`.
 
@@ -88,6 +90,7 @@ def reconstruct(
     is also recorded in ``recon.needs_anchor``. ``progress(stage, registered_count)`` is called after each step.
     ``by_model(index)``: model-point clicks for a fixed camera's frame found by the model's outlines (or None and
     why not); before a request for one of a fixed camera's frames, its latest unregistered frame is searched once.
+    ``check``: the last word on each automatic PnP or relative pose (``mapper.PoseCheck``).
     """
     t_start = time.perf_counter()
     names = [im.name for im in recon.images]
@@ -272,7 +275,7 @@ def reconstruct(
             weak = [i for i in candidates if counts[i] >= cfg.fallback_min_track_matches]
             u = max(weak, key=lambda i: counts[i]) if weak else -1
         if u >= 0:
-            if register_image_pnp(recon, u, cfg):
+            if register_image_pnp(recon, u, cfg, check):
                 failed_pnp.clear()
                 if recheck_with_clicks(u):
                     dirty = True
@@ -301,7 +304,7 @@ def reconstruct(
         widest = order[:1] if n_anchors < cfg.min_anchors and request_anchor is not None else []
         got = ask_anchor(widest)
         if not got and cfg.bootstrap:
-            b = bootstrap_next(recon, unreg, cfg)
+            b = bootstrap_next(recon, unreg, cfg, check)
             if b >= 0:
                 failed_pnp.clear()
                 dirty = True
@@ -361,10 +364,13 @@ def reconstruct(
     return recon
 
 
-def register_one(recon: Reconstruction, idx: int, cfg: MapperConfig, matched_with: int = 0) -> str:
+def register_one(
+    recon: Reconstruction, idx: int, cfg: MapperConfig, matched_with: int = 0, check: PoseCheck | None = None
+) -> str:
     """Register image ``idx`` of a growing map (the streaming path) by the mapper's steps against its verified
     partners, most matches first: homography transfer, PnP on tracks, relative pose to the best four. Returns ""
-    on success, else why not (``matched_with``: how many registered photos it was matched with, for the message).
+    on success, else why not (``matched_with``: how many registered photos it was matched with, for the message;
+    ``check``: the last word on a PnP or relative pose).
     """
     r = recon
     partners = sorted(
@@ -384,11 +390,11 @@ def register_one(recon: Reconstruction, idx: int, cfg: MapperConfig, matched_wit
             return ""
         if "refused" in im.message and im.message not in notes:
             notes.append(im.message)
-    if register_image_pnp(r, idx, cfg):
+    if register_image_pnp(r, idx, cfg, check):
         return ""
     notes.append(r.images[idx].message)
     for j in partners[:4]:
-        if try_relative_pose(r, j, idx, cfg):
+        if try_relative_pose(r, j, idx, cfg, check):
             return ""
         if r.images[idx].message and r.images[idx].message not in notes:
             notes.append(r.images[idx].message)

@@ -42,7 +42,7 @@ from nodes.register.fastpath import FastPath, FastPathConfig
 from nodes.register.features import extract_features, homography_inlier_ratio
 from nodes.register.matching import Vocabulary, match_image
 from nodes.register.modelalign import AlignParams, PolishPolicy, ViewPolish, polish_registration
-from nodes.register.modelsearch import ModelAnchors
+from nodes.register.modelsearch import ModelAnchors, OutlineCheck
 from nodes.register.photo import FrameImage, PhotoInput
 from nodes.register.pose import rotation_deviation
 from nodes.register.recon import (
@@ -412,7 +412,7 @@ class StreamingRegistrar:
         self._match(idx)
         link_image_tracks(self.recon, idx)
         im = self.recon.images[idx]
-        why = self._try_register(idx)
+        why = self._try_register(idx, photo)
         if why:
             im.status = "unregistered"
             reason = f"{prefix}not registered: {why}; please click anchors"
@@ -431,9 +431,13 @@ class StreamingRegistrar:
         self._retire_camera_images(photo)
         return Outcome(reg, num_matched_tracks=im.num_matched_tracks, viewpoint_changed=changed, map_changed=True)
 
-    def _try_register(self, idx: int) -> str:
-        """Register image ``idx`` by the mapper's steps (:func:`nodes.register.sfm.register_one`)."""
-        return register_one(self.recon, idx, self.mcfg, len(self._tried.get(idx, ())))
+    def _try_register(self, idx: int, photo: PhotoInput) -> str:
+        """Register image ``idx`` (``photo``) by the mapper's steps (:func:`nodes.register.sfm.register_one`), a
+        phone's automatic pose checked by the model's outlines (:class:`~nodes.register.modelsearch.OutlineCheck`)."""
+        lookup, floor, check = self.depth_lookup, self.mcfg.min_outline_contrast, None
+        if isinstance(lookup, MeshDepthLookup) and floor is not None:
+            check = OutlineCheck(lookup, floor).for_photo(photo.image.gray, photo.camera_id, photo.capture_time_ns)
+        return register_one(self.recon, idx, self.mcfg, len(self._tried.get(idx, ())), check)
 
     def _wants_key_frame(self, photo: PhotoInput) -> bool:
         """Whether a fast-path frame joins the map: its camera has no photo in it from the last
