@@ -348,3 +348,45 @@ def test_outline_check_refuses_a_phone_pose_off_the_building(seed: int) -> None:
         assert check.for_photo(photo, None, 0)(7, intr, aside) == check.refusal(photo, None, 0, intr, aside)
     finally:
         view.close()
+
+
+def test_streaming_registrar_checks_a_phone_pose_by_the_model_outline(monkeypatch) -> None:  # noqa: ANN001
+    """The streaming path hands the mapper the model's outline check of the photo being registered: it passes the
+    phone's true pose and refuses the same turn 3 m aside; off (``min_outline_contrast`` None) or without the BIM
+    there is no check."""
+    from test_register_modelalign import INTR, _photo, _true_camera
+    from test_register_modelalign import _scene as _boxes
+
+    from nodes.register import streaming
+    from nodes.register.bimdepth import MeshDepthLookup
+    from nodes.register.config import MapperConfig
+    from nodes.register.photo import FrameImage, PhotoInput
+    from nodes.register.streaming import StreamConfig, StreamingRegistrar
+
+    handed: list = []
+
+    def register_one(recon, idx, cfg, matched_with=0, check=None) -> str:  # noqa: ANN001
+        handed.append(check)
+        return "not registered (test)"
+
+    monkeypatch.setattr(streaming, "register_one", register_one)
+    meshes = _boxes(0)
+    lookup = MeshDepthLookup(meshes, ground_height_m=0.0)
+    view = ModelView(meshes)
+    try:
+        T = _true_camera(0)
+        jpeg = cv2.imencode(".jpg", cv2.cvtColor(_photo(view, T, 0), cv2.COLOR_GRAY2BGR))[1].tobytes()
+        phone = PhotoInput("p0", FrameImage(jpeg), camera_id=None)
+        aside = T.copy()
+        aside[:3, 3] += 3.0 * T[:3, 0]
+        StreamingRegistrar(StreamConfig(), depth_lookup=lookup, site="t")._try_register(0, phone)
+        check = handed[-1]
+        assert check is not None and check(0, INTR, T) == ""
+        assert "no better than slid aside" in check(0, INTR, aside)
+        off = StreamConfig(mapper=MapperConfig(min_outline_contrast=None))
+        StreamingRegistrar(off, depth_lookup=lookup, site="t")._try_register(0, phone)
+        StreamingRegistrar(StreamConfig(), depth_lookup=None, site="t")._try_register(0, phone)
+        assert handed[-2:] == [None, None]
+    finally:
+        view.close()
+        lookup.close()
