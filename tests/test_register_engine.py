@@ -94,7 +94,7 @@ def test_relative_pose_bounds_its_parallax_and_defers_to_the_check() -> None:
             mapper.register_anchor(recon, 0, clicks_for(rng, pts, poses[0]), cfg)
             seen: list[int] = []
 
-            def check(i: int, intr, wfc: np.ndarray, case: str = case) -> str:  # noqa: ANN001
+            def check(i: int, intr, wfc: np.ndarray, case: str = case, seen: list = seen) -> str:  # noqa: ANN001
                 seen.append(i)
                 return "the outline says no" if case == "checked" else ""
 
