@@ -57,6 +57,13 @@ def _scene(rng: np.random.Generator) -> dict[str, tuple[np.ndarray, np.ndarray]]
     return meshes
 
 
+def _building(rng: np.random.Generator) -> tuple[dict, ModelView, np.ndarray, np.ndarray, np.ndarray]:
+    """A seeded frame building (:func:`_scene`), its view (the caller closes it), its vertices (N, 3) and bounds."""
+    meshes = _scene(rng)
+    allv = np.concatenate([v for v, _ in meshes.values()])
+    return meshes, ModelView(meshes), allv, allv.min(axis=0), allv.max(axis=0)
+
+
 def _photo(view: ModelView, wfc: np.ndarray, rng: np.random.Generator, with_model: bool = True) -> np.ndarray:
     """A grey photo: the model's faces shaded (per element a tone), ground and sky, clutter strokes on them."""
     intr = cam.centered_intrinsics(W, H, F)
@@ -97,11 +104,8 @@ def test_search_finds_a_fixed_camera_from_gps_and_the_model(seed: int) -> None:
     """A camera 3-4 m from where its GPS says, its focal prior 3 % off, turned up to ~5 deg from the model's middle:
     found within 0.5 % of the width (the issue's bar); the same search on a photo without the building refuses."""
     rng = np.random.default_rng(seed)
-    meshes = _scene(rng)
-    view = ModelView(meshes)
+    meshes, view, allv, lo, hi = _building(rng)
     try:
-        allv = np.concatenate([v for v, _ in meshes.values()])
-        lo, hi = allv.min(axis=0), allv.max(axis=0)
         target = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2] + 0.35 * (hi[2] - lo[2])])
         wfc = _true_camera(rng, target)
         gray = _photo(view, wfc, rng)
@@ -316,11 +320,8 @@ def test_outline_check_refuses_a_phone_pose_off_the_building(seed: int) -> None:
     from nodes.register.modelsearch import OutlineCheck
 
     rng = np.random.default_rng(seed)
-    meshes = _scene(rng)
-    view = ModelView(meshes)
+    meshes, view, allv, lo, hi = _building(rng)
     try:
-        allv = np.concatenate([v for v, _ in meshes.values()])
-        lo, hi = allv.min(axis=0), allv.max(axis=0)
         mid = (lo + hi) / 2
         ang = rng.uniform(0, 2 * np.pi)
         dist = rng.uniform(10, 14) + 0.5 * float(np.hypot(hi[0] - lo[0], hi[1] - lo[1]))
