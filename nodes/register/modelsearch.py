@@ -312,6 +312,17 @@ def _residuals(x: F64, dmaps: NDArray[np.float32], wi: Intrinsics, wfc: F64, pts
     return _chamfer(dmaps, wi_x, compose_update(cam.invert_rigid(wfc), x), pts, q, trunc)
 
 
+def _refine_maps(
+    gray: NDArray[np.uint8], intr: Intrinsics, width_px: int, p: SearchParams
+) -> tuple[int, int, float, NDArray[np.float32], AlignParams]:
+    """What a refinement round at ``width_px`` works on: the work size (w, h), the distance truncation (px), the
+    photo's oriented distance maps there and the edge sampling."""
+    ww, wh = work_size(intr, width_px)
+    trunc = p.truncate_px * max(1.0, ww / p.work_width_px) ** 0.5
+    dmaps = oriented_distance_maps(_work_image(gray, ww, wh), p.orientation_bins, trunc)
+    return ww, wh, trunc, dmaps, AlignParams(sample_step_px=2.0 * ww / 480, max_samples=3000, min_samples=30)
+
+
 def _refine(
     view: ModelView,
     gray: NDArray[np.uint8],
@@ -327,11 +338,7 @@ def _refine(
     f_prior = intr.f_px
     sup = luck = 0.0
     for width in p.refine_widths_px:
-        ww, wh = work_size(intr, width)
-        img = _work_image(gray, ww, wh)
-        trunc = p.truncate_px * max(1.0, ww / p.work_width_px) ** 0.5
-        dmaps = oriented_distance_maps(img, p.orientation_bins, trunc)
-        sp = AlignParams(sample_step_px=2.0 * ww / 480, max_samples=3000, min_samples=30)
+        ww, wh, trunc, dmaps, sp = _refine_maps(gray, intr, width, p)
         for _ in range(p.refine_rounds):
             wi = msgspec.structs.replace(cam.scaled_intrinsics(intr, ww, wh), k1=0.0, k2=0.0)
             s = edge_samples(view, wi, wfc, elements, ground_z_m, sp)
@@ -399,11 +406,8 @@ def outline_contrast(
     ``world_from_camera`` (4, 4)) lies on the photo ``gray`` (H, W)'s edges, at the refinement's last work width:
     (edge support, its chance level, number of edge samples: 0 when too few to tell); see :class:`Hypothesis`."""
     p = params or SearchParams()
-    ww, wh = work_size(intr, p.refine_widths_px[-1])
-    trunc = p.truncate_px * max(1.0, ww / p.work_width_px) ** 0.5
-    dmaps = oriented_distance_maps(_work_image(gray, ww, wh), p.orientation_bins, trunc)
+    ww, wh, trunc, dmaps, sp = _refine_maps(gray, intr, p.refine_widths_px[-1], p)
     wi = msgspec.structs.replace(cam.scaled_intrinsics(intr, ww, wh), k1=0.0, k2=0.0)
-    sp = AlignParams(sample_step_px=2.0 * ww / 480, max_samples=3000, min_samples=30)
     s = edge_samples(view, wi, np.asarray(world_from_camera, np.float64), elements, ground_z_m, sp)
     if len(s.point_in_world_m) < sp.min_samples:
         return 0.0, 0.0, 0
