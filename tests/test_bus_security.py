@@ -223,7 +223,8 @@ def test_acl_drops_forbidden_publish_and_reports(site_toml: Path) -> None:
         log = echo_log.read()
         echo_log.close()
     # A node must stop on SIGTERM: one that did not is failed with its threads' stacks (SIGUSR1, faulthandler).
-    assert not hung, f"did not stop within 20 s of SIGTERM: {[" ".join(map(str, p.args[1:4])) for p in hung]}; echo node's stderr:\n{log}"
+    names = [" ".join(map(str, p.args[1:4])) for p in hung]
+    assert not hung, f"did not stop within 20 s of SIGTERM: {names}; echo node's stderr:\n{log}"
 
 
 def _stopped(p: subprocess.Popen[str]) -> bool:
