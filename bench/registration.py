@@ -564,6 +564,7 @@ EXTRA_VARIANTS = {
     # Only when named with --variants: fixed cameras not searched for by the model before a request (the rule
     # before 2026-12-07).
     "no model search": MapperConfig(model_search=False),
+    "phone search": MapperConfig(phone_search=True),
     # Only when named with --variants: a phone's automatic pose not checked by the model's outlines, relative poses
     # at any parallax (the rules before 2026-12-07, afternoon).
     "no outline check": MapperConfig(min_outline_contrast=None, bootstrap_max_parallax_deg=180.0),

@@ -43,6 +43,7 @@ from nodes.register.densify import DensifyParams, densify_reconstruction
 from nodes.register.features import Features, extract_features
 from nodes.register.modelalign import AlignParams, Polished, PolishPolicy, ViewPolish, polish_registration
 from nodes.register.modelsearch import OutlineCheck, model_anchor
+from nodes.register.phonesearch import phone_anchor_in
 from nodes.register.pose import epipolar_agreement
 from nodes.register.recon import Clicks, Reconstruction, add_image, focal_prior
 from nodes.register.sfm import reconstruct
@@ -406,7 +407,12 @@ def run_batch(
     for b in bim_paths:
         if not Path(b).exists():
             raise UserError(f"--bim {b} does not exist")
-    wants_model = bool(polish_params) or (cfg.model_search and camera_folders) or cfg.min_outline_contrast is not None
+    wants_model = (
+        bool(polish_params)
+        or (cfg.model_search and camera_folders)
+        or cfg.min_outline_contrast is not None
+        or cfg.phone_search
+    )
     lookup = load_bim_lookup(tuple(bim_paths), tz, terrain_height_m) if bim_paths and wants_model else None
     named = find_images(images_dir)
     if not named:
@@ -452,6 +458,12 @@ def run_batch(
         intr = cam.centered_intrinsics(im.width_px, im.height_px, focal_prior(im, cfg))
         return model_anchor(lookup, _gray(paths[im.name]), intr, im.gps, im.capture_time_ns, cfg.model_search_clicks)
 
+    def by_phone(i: int) -> tuple[Clicks | None, str]:
+        im = recon.images[i]
+        assert lookup is not None  # only passed with a lookup
+        intr = cam.centered_intrinsics(im.width_px, im.height_px, focal_prior(im, cfg))
+        return phone_anchor_in(recon, i, lookup, _gray(paths[im.name]), intr, cfg)
+
     outline = None
     if lookup is not None and cfg.min_outline_contrast is not None:
         outline = OutlineCheck(lookup, cfg.min_outline_contrast)
@@ -470,6 +482,7 @@ def run_batch(
         match_progress=lambda: bar_m.update(),
         by_model=by_model if lookup is not None else None,
         check=check if outline is not None else None,
+        by_phone=by_phone if lookup is not None else None,
     )
     bar_m.close()
     bar_r.close()
@@ -563,6 +576,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--no-model-search", action="store_true", help="with --bim: ask for every fixed camera's clicks (no search)"
     )
+    ap.add_argument(
+        "--phone-search",
+        action="store_true",
+        help="with --bim: search a phone photo by the model before asking for its clicks (experimental)",
+    )
     ap.add_argument("--focal-px", type=float, default=None, help="focal prior in pixels for every image")
     ap.add_argument(
         "--max-side",
@@ -619,6 +637,7 @@ def main(argv: list[str] | None = None) -> int:
         release_anchors=not args.fixed_anchors,
         target_centre_sigma=args.target_centre_sigma,
         model_search=not args.no_model_search,
+        phone_search=args.phone_search,
     )
     _, report = run_batch(
         args.images,

@@ -119,6 +119,15 @@ class MapperConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     # (57 phone photos, careful user, 2026-12-07): wrong automatic poses 0.011 / 0.054, anchored ones within 0.3 %
     # of the width 0.05-0.65 (all but one above 0.066).
     min_outline_contrast: float | None = 0.06
+    # Experimental, off: a phone photo that would need anchor clicks is first searched for by the model
+    # (nodes/register/phonesearch.py: rotation from its straight lines, position around its GPS at hand height); a
+    # found camera is kept only when one registered fixed camera's frame's verified matches with it agree with it (at
+    # least phone_search_min_agreeing within a quarter percent of the width of their epipolar lines) and its outline
+    # contrast reaches min_outline_contrast. Outlines alone do not tell right from wrong on phone photos, and the
+    # matches' agreement let a camera 0.79 % of the width off through on the default synthetic site while finding
+    # one phone in 30 there (BENCHMARKS 'phones found by the model (notes, 2026-12-07)').
+    phone_search: bool = False
+    phone_search_min_agreeing: int = 25
     # Only anchors observing at least this many triangulated track points are released: the others' poses rest on
     # their clicks alone.
     release_min_observations: int = 300

@@ -256,6 +256,40 @@ def pose_pair_agreement(
     return n_ok / n_all if n_all else 1.0
 
 
+def fixed_partners(recon: Reconstruction, idx: int, min_matches: int = 0) -> list[int]:
+    """Registered fixed cameras' frames sharing at least ``min_matches`` verified matches with image ``idx``."""
+    out = []
+    for j in recon.registered_indices():
+        p = recon.pair(j, idx) if j != idx and recon.images[j].camera_id is not None else None
+        if p is not None and len(p[0]) >= min_matches:
+            out.append(j)
+    return out
+
+
+def best_pair_agreement(
+    recon: Reconstruction, idx: int, intr: Intrinsics, world_from_camera: np.ndarray, thr_px: float
+) -> tuple[int, str]:
+    """The most verified matches one registered fixed camera's frame (:func:`fixed_partners`) shares with image
+    ``idx`` that lie within ``thr_px`` (px, in image ``idx``) of their epipolar lines under the candidate pose, and
+    that frame's name ("" without pairs). Phone photos do not vouch for each other: two photos of one visit share
+    the hoarding print's repeats, which agree with wrong poses by the hundred (BENCHMARKS 'phones found by the
+    model')."""
+    best, name = 0, ""
+    this_from_world = cam.invert_rigid(world_from_camera)
+    for j in fixed_partners(recon, idx):
+        p = recon.pair(j, idx)
+        if p is None:
+            continue
+        m, _ = p
+        o = recon.images[j]
+        xj = cam.pixels_to_normalized(o.camera, o.features.keypoints_px[m[:, 0]].astype(np.float64))
+        xi = cam.pixels_to_normalized(intr, recon.images[idx].features.keypoints_px[m[:, 1]].astype(np.float64))
+        ok, _n = epipolar_agreement(xj, xi, this_from_world @ o.pose, intr.f_px, thr_px)
+        if ok > best:
+            best, name = ok, o.name
+    return best, name
+
+
 def pair_rotation(recon: Reconstruction, a: int, b: int, intr_b: Intrinsics, cfg: MapperConfig) -> np.ndarray | None:
     """Rotation ``b_from_a`` (3, 3) of images ``a`` (registered) and ``b`` (intrinsics ``intr_b``) from their
     verified matches alone: the pair's fundamental matrix made essential, decomposed with the cheirality test.

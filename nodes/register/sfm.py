@@ -81,6 +81,7 @@ def reconstruct(
     match_progress: Callable[[], None] | None = None,
     by_model: Callable[[int], tuple[Clicks | None, str]] | None = None,
     check: PoseCheck | None = None,
+    by_phone: Callable[[int], tuple[Clicks | None, str]] | None = None,
 ) -> Reconstruction:
     """Run Algorithm 1 on a reconstruction whose images were added with :func:`add_image`.
 
@@ -90,7 +91,9 @@ def reconstruct(
     is also recorded in ``recon.needs_anchor``. ``progress(stage, registered_count)`` is called after each step.
     ``by_model(index)``: model-point clicks for a fixed camera's frame found by the model's outlines (or None and
     why not); before a request for one of a fixed camera's frames, its latest unregistered frame is searched once.
-    ``check``: the last word on each automatic PnP or relative pose (``mapper.PoseCheck``).
+    ``check``: the last word on each automatic PnP or relative pose (``mapper.PoseCheck``). ``by_phone(index)``:
+    the same for a phone photo (:func:`nodes.register.phonesearch.phone_anchor`, confirmed by its matches with the
+    registered photos as they stand), searched once before its first request.
     """
     t_start = time.perf_counter()
     names = [im.name for im in recon.images]
@@ -186,15 +189,23 @@ def reconstruct(
     searched: set[str] = set()
 
     def model_anchor(u: int) -> bool:
-        """Anchor the latest unregistered frame of ``u``'s fixed camera by the model, once per camera."""
+        """Anchor the latest unregistered frame of ``u``'s fixed camera by the model, once per camera; a phone
+        photo ``u`` itself, once."""
         nonlocal dirty
         cid = recon.images[u].camera_id
-        if by_model is None or not cfg.model_search or cid is None or cid in searched:
-            return False
-        searched.add(cid)
-        frames = [i for i, im in enumerate(recon.images) if im.camera_id == cid and im.status == "unregistered"]
-        v = max(frames, key=lambda i: (recon.images[i].capture_time_ns, recon.images[i].name))
-        clicks, why = by_model(v)
+        if cid is None:  # a phone photo: itself, once
+            if by_phone is None or not cfg.phone_search or recon.images[u].name in searched:
+                return False
+            searched.add(recon.images[u].name)
+            v = u
+            clicks, why = by_phone(v)
+        else:
+            if by_model is None or not cfg.model_search or cid in searched:
+                return False
+            searched.add(cid)
+            frames = [i for i, im in enumerate(recon.images) if im.camera_id == cid and im.status == "unregistered"]
+            v = max(frames, key=lambda i: (recon.images[i].capture_time_ns, recon.images[i].name))
+            clicks, why = by_model(v)
         if clicks is None:
             return False
         try:

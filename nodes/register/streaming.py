@@ -43,6 +43,7 @@ from nodes.register.features import extract_features, homography_inlier_ratio
 from nodes.register.matching import Vocabulary, match_image
 from nodes.register.modelalign import AlignParams, PolishPolicy, ViewPolish, polish_registration
 from nodes.register.modelsearch import ModelAnchors, OutlineCheck
+from nodes.register.phonesearch import phone_anchor_in
 from nodes.register.photo import FrameImage, PhotoInput
 from nodes.register.pose import rotation_deviation
 from nodes.register.recon import (
@@ -318,7 +319,11 @@ class StreamingRegistrar:
         """A fixed camera's frame that needs clicks, anchored by the model's outlines when the search finds its
         camera (:class:`~nodes.register.modelsearch.ModelAnchors`); else ``out``."""
         lookup = self.depth_lookup
-        if out.needs_anchor is None or not self.mcfg.model_search or not isinstance(lookup, MeshDepthLookup):
+        if out.needs_anchor is None or not isinstance(lookup, MeshDepthLookup):
+            return out
+        if photo.camera_id is None:
+            return self._phone_by_model(photo, out, lookup)
+        if not self.mcfg.model_search:
             return out
         try:
             focal = self.mcfg.focal_px or photo.focal_px
@@ -330,6 +335,25 @@ class StreamingRegistrar:
                 return out
             px, pts = clicks
             return self.register_anchor(photo, px, pts, method="model", note=f"found by the model's outlines ({why})")
+        except (RuntimeError, ValueError) as e:  # no GL context, degenerate clicks: the request stands
+            self.depth_error = f"model search of {photo.photo_id} failed: {e}"
+            return out
+
+    def _phone_by_model(self, photo: PhotoInput, out: Outcome, lookup: MeshDepthLookup) -> Outcome:
+        """A phone photo that needs clicks, anchored by the model when its matches with registered photos confirm the
+        camera the outlines find (:func:`~nodes.register.phonesearch.phone_anchor_in`, once per photo); else ``out``."""
+        tried: set[str] = self.__dict__.setdefault("phones_searched", set())
+        if not self.mcfg.phone_search or photo.photo_id in tried or photo.photo_id not in self.recon:
+            return out
+        tried.add(photo.photo_id)
+        idx = self.recon.index(photo.photo_id)
+        w, h = self.recon.images[idx].width_px, self.recon.images[idx].height_px
+        intr = cam.centered_intrinsics(w, h, self.mcfg.focal_px or photo.focal_px or cam.focal_from_fov(w, 50.0))
+        try:
+            clicks, why = phone_anchor_in(self.recon, idx, lookup, photo.image.gray(), intr, self.mcfg)
+            if clicks is None:
+                return out
+            return self.register_anchor(photo, *clicks, method="model", note=f"found by the model's outlines ({why})")
         except (RuntimeError, ValueError) as e:  # no GL context, degenerate clicks: the request stands
             self.depth_error = f"model search of {photo.photo_id} failed: {e}"
             return out

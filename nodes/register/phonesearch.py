@@ -1,0 +1,311 @@
+"""A phone photo's camera from the model's outlines: the rotation from its straight lines, the position by sliding
+the model's outline over the photo around its GPS position (pure: arrays and
+:class:`~constructaide.modelview.ModelView` renders; no bus).
+
+A phone photo is taken by a person standing outside the building, at hand height, within a few metres of the
+photo's GPS position, looking at the building from close up (2-25 m). The fixed-camera search of
+:mod:`nodes.register.modelsearch` (a 3 m grid of centres, turns about an aim) is too coarse for such views: at 5 m a
+metre aside moves the outline by a third of the image. So:
+
+1. the rotation from vanishing directions (:func:`nodes.register.vanishing.vanishing_rotations`, within a degree
+   on most photos), each solution as its four quarter turns; turns that do not face the model are dropped;
+2. for each turn, cameras at hand height on a grid of offsets along and across the view around the GPS position;
+   from each the standing elements' visible edges are rendered once, and their oriented chamfer gain against the
+   photo's edges is computed for every image shift at once (``cv2.matchTemplate`` per orientation bin): a shift of
+   the outline is a camera moved across the view; the score of a shift is its gain less the mean gain of the
+   shifts ``chance_shift_px`` around it (the model search's chance level, so the photo's texture alone scores 0);
+3. the best distinct cameras (outside the standing elements' footprint, the model's edges at least
+   ``min_depth_m`` away) are refined and scored as in the model search (:func:`nodes.register.modelsearch._refine`:
+   pose and focal on the oriented chamfer, edge support against its chance level).
+
+The result is a ranked list, not a verdict: on the default synthetic site the best-scored camera is right for a
+third of the phone photos and wrong ones score as high on outlines alone (a wall of brick matches many views), so
+the caller keeps a camera only when the photo's own feature matches with registered photos agree with it
+(``nodes.register.sfm``). Poses: ``world_from_camera`` (4, 4), OpenCV camera frame, model metres, z up.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import cv2
+import msgspec
+import numpy as np
+from numpy.typing import NDArray
+
+from constructaide import camera as cam
+from constructaide.geo import enu_m
+from constructaide.modelview import ModelView, element_bounds
+from nodes.register.bimdepth import MeshDepthLookup
+from nodes.register.config import MapperConfig
+from nodes.register.modelalign import AlignParams, edge_samples, work_size
+from nodes.register.modelsearch import (
+    Hypothesis,
+    SearchParams,
+    _distinct,
+    _refine,
+    _tangent_points,
+    _work_image,
+    model_target,
+    oriented_distance_maps,
+    virtual_clicks,
+)
+from nodes.register.pose import best_pair_agreement, fixed_partners
+from nodes.register.recon import Reconstruction
+from nodes.register.vanishing import VanishingParams, model_axes_yaw_deg, vanishing_rotations
+from schemas.messages import GeoPoint, Intrinsics
+
+F64 = NDArray[np.float64]
+
+
+class PhoneSearchParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """Phone search. Lengths in metres, pixels at ``work_width_px``."""
+
+    work_width_px: int = 480
+    hand_height_m: float = 1.6
+    forward_offsets_m: tuple[float, ...] = (-6.0, -4.5, -3.0, -1.5, 0.0, 1.5, 3.0, 4.5, 6.0)
+    lateral_offsets_m: tuple[float, ...] = (-3.0, 0.0, 3.0)
+    shift_range_rel: float = 0.35
+    """Image shifts tried, as a share of the work width each way."""
+    peaks_per_render: int = 3
+    peak_spacing_px: int = 9
+    facing_deg: float = 75.0
+    """A turn whose view points further than this from the model's middle is not tried."""
+    min_depth_m: float = 2.0
+    """Renders whose edges lie nearer than this (median) are a camera inside something: skipped."""
+    keep: int = 6
+    """Distinct cameras refined."""
+    distinct_m: float = 1.0
+    distinct_deg: float = 3.0
+    agree_rel: float = 0.0025
+    """A found camera is confirmed by matches within this share of the width of their epipolar lines
+    (:func:`phone_anchor`)."""
+    coarse_agree_rel: float = 0.015
+    """... and a coarse camera is refined only when as many agree within this (it is a metre and a degree off)."""
+
+
+def _footprint(view: ModelView, elements: set[str] | None) -> tuple[F64, F64] | None:
+    lo, hi, has = element_bounds(view.scene)
+    has = has & view.visible(elements)
+    if not has.any():
+        return None
+    return lo[has].min(axis=0), hi[has].max(axis=0)
+
+
+def outside(footprint: tuple[F64, F64], centre_m: F64) -> bool:
+    """Whether a camera centre (3,) lies outside the standing elements' horizontal bounds."""
+    lo, hi = footprint
+    return not bool(np.all(centre_m[:2] > lo[:2]) and np.all(centre_m[:2] < hi[:2]))
+
+
+def shift_contrast(
+    gain: NDArray[np.float32], uv_px: NDArray[np.int64], bins: NDArray[np.int64], pad: int, chance_px: float
+) -> NDArray[np.float32]:
+    """(2 pad + 1, 2 pad + 1) score of the outline points ``uv_px`` (N, 2) (orientation ``bins`` (N,)) shifted by
+    (dv, du) - pad: the mean gain (``gain`` (B, H, W), 1 on a like photo edge, 0 beyond the truncation) less the
+    mean of the same score at the eight shifts ``chance_px`` around."""
+    n_bins, h, w = gain.shape
+    total = np.zeros((2 * pad + 1, 2 * pad + 1), np.float32)
+    for b in range(n_bins):
+        sel = bins == b
+        if not sel.any():
+            continue
+        tmpl = np.zeros((h, w), np.float32)
+        np.add.at(tmpl, (uv_px[sel, 1], uv_px[sel, 0]), 1.0)
+        padded = cv2.copyMakeBorder(gain[b], pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0.0)
+        total += cv2.matchTemplate(padded, tmpl, cv2.TM_CCORR)
+    total /= max(len(uv_px), 1)
+    k = max(1, int(round(chance_px)))
+    ext = cv2.copyMakeBorder(total, k, k, k, k, cv2.BORDER_REPLICATE)
+    around = np.zeros_like(total)
+    for ang in np.arange(8) * np.pi / 4:
+        dx, dy = int(round(k * math.cos(ang))), int(round(k * math.sin(ang)))
+        around += ext[k + dy : k + dy + total.shape[0], k + dx : k + dx + total.shape[1]]
+    return total - around / 8.0
+
+
+def search_phone(
+    view: ModelView,
+    gray: NDArray[np.uint8],
+    intr: Intrinsics,
+    centre_xy_m: tuple[float, float],
+    elements: set[str] | None,
+    ground_z_m: float | None,
+    params: PhoneSearchParams | None = None,
+    search: SearchParams | None = None,
+    vanishing: VanishingParams | None = None,
+    worth_refining: Callable[[Hypothesis], bool] | None = None,
+) -> list[Hypothesis]:
+    """Cameras of the phone photo ``gray`` (H, W) (lens prior ``intr``, full resolution, EXIF focal) near its GPS
+    position ``centre_xy_m`` (model metres) on the model ``view`` with ``elements`` standing and the terrain at
+    ``ground_z_m``: refined hypotheses outside the model's footprint, best edge contrast first (empty when the
+    photo shows no straight lines or the model no edges). ``worth_refining``: a cheap test of a coarse camera
+    before its refinement (the refinements are most of the cost)."""
+    p = params or PhoneSearchParams()
+    sp = search or SearchParams()
+    box = _footprint(view, elements)
+    target = model_target(view, elements)
+    if box is None or target is None:
+        return []
+    scene = view.scene
+    tri = scene.positions_m.reshape(-1, 3, 3).astype(np.float64)
+    areas = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    axes_yaw = model_axes_yaw_deg(scene.normals.reshape(-1, 3, 3)[:, 0].astype(np.float64), areas)
+    rotations = vanishing_rotations(gray, intr, axes_yaw, vanishing)
+    ground = 0.0 if ground_z_m is None else float(ground_z_m)
+    ww, wh = work_size(intr, p.work_width_px)
+    wi = msgspec.structs.replace(cam.scaled_intrinsics(intr, ww, wh), k1=0.0, k2=0.0)
+    trunc = sp.truncate_px * ww / 480
+    dmaps = oriented_distance_maps(_work_image(gray, ww, wh), sp.orientation_bins, trunc)
+    gain = (1.0 - dmaps / trunc).astype(np.float32)
+    pad = int(p.shift_range_rel * ww)
+    chance_px = sp.chance_shift_px * ww / 960
+    samples = AlignParams(sample_step_px=3.0 * ww / 480, max_samples=3000, min_samples=30)
+    gps = np.array([centre_xy_m[0], centre_xy_m[1], ground + p.hand_height_m])
+    coarse: list[Hypothesis] = []
+    for rot, _share in rotations:
+        fwd = rot[2]
+        to_model = (target - gps) / max(float(np.linalg.norm(target - gps)), 1e-9)
+        if float(to_model @ fwd) < math.cos(math.radians(p.facing_deg)):
+            continue
+        ahead = np.array([fwd[0], fwd[1], 0.0]) / max(math.hypot(fwd[0], fwd[1]), 1e-9)
+        across = np.array([-ahead[1], ahead[0], 0.0])
+        for a in p.forward_offsets_m:
+            for b in p.lateral_offsets_m:
+                wfc = np.eye(4)
+                wfc[:3, :3] = rot.T
+                wfc[:3, 3] = gps + a * ahead + b * across
+                s = edge_samples(view, wi, wfc, elements, ground_z_m, samples)
+                pts = s.point_in_world_m
+                if len(pts) < samples.min_samples:
+                    continue
+                cfw = cam.invert_rigid(wfc)
+                uv, z = cam.project_points(wi, cfw, pts)
+                uq, _ = cam.project_points(wi, cfw, _tangent_points(wi, wfc, pts, s.normal_px))
+                ij = np.rint(uv).astype(np.int64)
+                ok = (ij[:, 0] >= 0) & (ij[:, 0] < ww) & (ij[:, 1] >= 0) & (ij[:, 1] < wh) & (z > 0)
+                if ok.sum() < samples.min_samples:
+                    continue
+                depth = float(np.median(z[ok]))
+                if depth < p.min_depth_m:
+                    continue
+                ang = np.mod(np.arctan2(uq[:, 1] - uv[:, 1], uq[:, 0] - uv[:, 0]), np.pi)
+                bins = np.minimum((ang / np.pi * sp.orientation_bins).astype(np.int64), sp.orientation_bins - 1)
+                score = shift_contrast(gain, ij[ok], bins[ok], pad, chance_px)
+                top = cv2.dilate(score, np.ones((p.peak_spacing_px,) * 2, np.uint8))
+                peaks = np.argwhere((score >= top) & (score > 0))
+                values = score[peaks[:, 0], peaks[:, 1]]
+                for k in np.argsort(-values)[: p.peaks_per_render]:
+                    dv, du = peaks[k] - pad
+                    # the outline moved by (du, dv) px: the camera moved the other way across the view at its depth
+                    moved = wfc.copy()
+                    moved[:3, 3] = wfc[:3, 3] + rot.T @ np.array([-du * depth / wi.f_px, -dv * depth / wi.f_px, 0.0])
+                    if outside(box, moved[:3, 3]):
+                        coarse.append(Hypothesis(moved, intr, float(values[k])))
+    coarse.sort(key=lambda h: -h.coarse)
+    apart = msgspec.structs.replace(sp, distinct_m=p.distinct_m, distinct_deg=p.distinct_deg)
+    chosen: list[Hypothesis] = []
+    for h in coarse:
+        if all(_distinct(h, c, apart) for c in chosen) and (worth_refining is None or worth_refining(h)):
+            chosen.append(h)
+        if len(chosen) >= p.keep:
+            break
+    refined = [_refine(view, gray, h, elements, ground_z_m, sp) for h in chosen]
+    refined = [h for h in refined if outside(box, h.world_from_camera[:3, 3])]
+    refined.sort(key=lambda h: -h.contrast)
+    return refined
+
+
+def phone_anchor(
+    lookup: MeshDepthLookup,
+    gray: NDArray[np.uint8],
+    intr: Intrinsics,
+    gps: GeoPoint | None,
+    capture_time_ns: int,
+    agree: Callable[[Intrinsics, F64, float], tuple[int, str]],
+    min_agreeing: int,
+    min_contrast: float,
+    count: int = 24,
+    params: PhoneSearchParams | None = None,
+) -> tuple[tuple[F64, F64] | None, str]:
+    """A phone photo ``gray`` (H, W) found by the model (:func:`search_phone`, lens prior ``intr``, GPS ``gps``)
+    and confirmed by its own matches, turned into model-point clicks (pixels (N, 2) full resolution, points (N, 3)
+    m) for the anchor solve; or None and why not. ``agree(intrinsics, world_from_camera, tolerance_rel)`` gives the
+    most verified matches one registered photo shares with it that lie within ``tolerance_rel`` of the width of
+    their epipolar lines under a camera, and that photo's name. A coarse camera is refined only when
+    ``min_agreeing`` of them agree within ``coarse_agree_rel``; the first refined camera (best outline contrast
+    first, at least ``min_contrast``) with ``min_agreeing`` within ``agree_rel`` is taken."""
+    if gps is None:
+        return None, "the photo has no GPS position"
+    if lookup.site_gps is None:
+        return None, "the model has no site reference (IfcSite latitude / longitude)"
+    e, n = enu_m(gps, lookup.site_gps)
+    xy = (e - lookup.origin_offset_m[0], n - lookup.origin_offset_m[1])
+    elements = lookup.elements(capture_time_ns)
+    p = params or PhoneSearchParams()
+    loose: list[int] = [0]
+
+    def worth(h: Hypothesis) -> bool:
+        n = agree(h.intrinsics, h.world_from_camera, p.coarse_agree_rel)[0]
+        loose[0] = max(loose[0], n)
+        return n >= min_agreeing
+
+    found = search_phone(lookup.view, gray, intr, xy, elements, lookup.ground_height_m, p, worth_refining=worth)
+    best_agree = 0
+    for h in found:
+        if h.contrast < min_contrast:
+            break
+        agreeing, partner = agree(h.intrinsics, h.world_from_camera, p.agree_rel)
+        best_agree = max(best_agree, agreeing)
+        if agreeing < min_agreeing:
+            continue
+        ground = lookup.ground_height_m
+        px, pts = virtual_clicks(lookup.view, h.intrinsics, h.world_from_camera, elements, ground, count)
+        if len(px) < 6:
+            continue
+        why = f"edge support {h.support:.2f} against {h.chance:.2f} by chance; {agreeing} matches with {partner} agree"
+        return (px, pts), why
+    if not found:
+        return None, (
+            f"the model's outlines do not find the camera: at most {loose[0]} of the photo's matches agree roughly "
+            f"with any camera they suggest (< {min_agreeing})"
+        )
+    top = found[0]
+    return None, (
+        f"the model's outlines do not find the camera: best edge support {top.support:.2f} against {top.chance:.2f} "
+        f"by chance, at most {best_agree} of the photo's matches agree (< {min_agreeing})"
+    )
+
+
+def phone_anchor_in(
+    recon: Reconstruction,
+    idx: int,
+    lookup: MeshDepthLookup,
+    gray: NDArray[np.uint8],
+    intr: Intrinsics,
+    cfg: MapperConfig,
+) -> tuple[tuple[F64, F64] | None, str]:
+    """:func:`phone_anchor` for image ``idx`` of a reconstruction: its matches with one registered fixed camera's frame
+    confirm (``cfg.phone_search_min_agreeing`` within ``PhoneSearchParams.agree_rel`` of the width; not searched
+    when no such frame shares that many matches), its outline contrast reaches ``cfg.min_outline_contrast`` (0 when
+    off)."""
+    im = recon.images[idx]
+    if not fixed_partners(recon, idx, cfg.phone_search_min_agreeing):
+        n = cfg.phone_search_min_agreeing
+        return None, f"no registered fixed camera's frame shares {n} matches to confirm a camera"
+
+    def agree(i: Intrinsics, wfc: F64, tolerance_rel: float) -> tuple[int, str]:
+        return best_pair_agreement(recon, idx, i, wfc, tolerance_rel * im.width_px)
+
+    return phone_anchor(
+        lookup,
+        gray,
+        intr,
+        im.gps,
+        im.capture_time_ns,
+        agree,
+        cfg.phone_search_min_agreeing,
+        cfg.min_outline_contrast or 0.0,
+        cfg.model_search_clicks,
+    )

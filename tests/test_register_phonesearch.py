@@ -1,0 +1,148 @@
+"""Phone photos found by the model (nodes/register/vanishing.py, nodes/register/phonesearch.py): the rotation from
+straight lines and the position search around GPS on seeded box scenes; the matches' word before a camera is taken.
+Truth is read by the tests only (they are the scoring)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from constructaide import camera as cam
+from nodes.register.phonesearch import phone_anchor, search_phone
+from nodes.register.vanishing import camera_from_world, model_axes_yaw_deg, vanishing_rotations
+from schemas.messages import GeoPoint
+from tests.test_register_modelsearch import H, W, _building, _error_pct, _photo
+
+F = 560.0
+
+
+def _phone_camera(rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """A person 9-14 m from the building's side, at hand height, looking at a point of it, rolled a few degrees."""
+    mid = (lo + hi) / 2
+    ang = rng.uniform(0, 2 * np.pi)
+    half = np.hypot(*(hi[:2] - lo[:2])) / 2
+    centre = np.r_[mid[:2] + (half + rng.uniform(9, 14)) * np.array([np.cos(ang), np.sin(ang)]), rng.uniform(1.45, 1.8)]
+    aim = np.r_[mid[:2] + rng.uniform(-0.25, 0.25, 2) * (hi[:2] - lo[:2]), rng.uniform(2.5, 5.0)]
+    wfc = cam.look_at(centre, aim)
+    a = math.radians(rng.uniform(-4, 4))
+    wfc[:3, :3] = wfc[:3, :3] @ np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])
+    return wfc
+
+
+def test_model_axes_follow_the_walls() -> None:
+    """The heading of a model's axes (mod 90 deg) from its vertical faces, whatever the area of each."""
+    rng = np.random.default_rng(0)
+    for yaw in (0.0, 17.0, 62.5, 89.0):
+        a = np.radians(yaw + 90.0 * rng.integers(0, 4, 40))
+        n = np.c_[np.cos(a), np.sin(a), np.zeros(40)]
+        flat = np.tile([0.0, 0.0, 1.0], (10, 1))  # slabs do not count
+        got = model_axes_yaw_deg(np.r_[n, flat], rng.uniform(0.5, 9.0, 50))
+        assert abs((got - yaw + 45.0) % 90.0 - 45.0) < 1e-6
+
+
+def test_camera_from_world_looks_where_it_is_told() -> None:
+    rot = camera_from_world(np.radians(30.0), np.radians(10.0), 0.0)
+    fwd = rot[2]  # the optical axis in the world
+    pitch, heading = math.radians(10), math.radians(30)
+    c10, s10, c30, s30 = math.cos(pitch), math.sin(pitch), math.cos(heading), math.sin(heading)
+    assert np.allclose(fwd, [c10 * c30, c10 * s30, s10])
+    assert abs(rot[0, 2]) < 1e-12  # level: the image's x axis is horizontal
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_rotation_from_vanishing_lines(seed: int) -> None:
+    """A phone view of a seeded frame building (columns, slabs, core; clutter strokes around): one of the returned
+    rotations within 2 deg of the truth, with the focal prior 3 % off (these views hold a few dozen lines; on the
+    default synthetic site's 30 phone photos the median is 0.4 deg)."""
+    rng = np.random.default_rng(seed)
+    _, view, _, lo, hi = _building(rng)
+    try:
+        wfc = _phone_camera(rng, lo, hi)
+        gray = _photo(view, wfc, rng)
+        rots = vanishing_rotations(gray, cam.centered_intrinsics(W, H, F * 1.03), 0.0)
+        assert len(rots) % 4 == 0 and rots
+        err = min(cam.rotation_angle_deg(r.T, wfc[:3, :3]) for r, _ in rots)
+        assert err < 2.0, err
+    finally:
+        view.close()
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_phone_search_finds_the_camera_near_its_gps(seed: int) -> None:
+    """The same views, GPS 3.5 m off, focal prior 3 % off: a camera within 0.5 % of the width among the three best
+    the search returns, and none of them inside the building."""
+    rng = np.random.default_rng(seed)
+    _, view, allv, lo, hi = _building(rng)
+    try:
+        wfc = _phone_camera(rng, lo, hi)
+        gray = _photo(view, wfc, rng)
+        off = rng.normal(0, 1, 2)
+        gps = wfc[:2, 3] + 3.5 * off / np.linalg.norm(off)
+        prior = cam.centered_intrinsics(W, H, F * 1.03)
+        found = search_phone(view, gray, prior, (float(gps[0]), float(gps[1])), None, 0.0)
+        truth = cam.centered_intrinsics(W, H, F)
+        errs = [_error_pct(h.world_from_camera, h.intrinsics, wfc, truth, allv) for h in found[:3]]
+        assert errs and min(errs) < 0.5, errs
+        for h in found:
+            c = h.world_from_camera[:3, 3]
+            assert not (np.all(c[:2] > lo[:2]) and np.all(c[:2] < hi[:2]))
+    finally:
+        view.close()
+
+
+class _Lookup:
+    """What phone_anchor reads of the register node's depth lookup: the view, the site's GPS reference at the model's
+    origin, standing elements and the terrain."""
+
+    def __init__(self, view) -> None:  # noqa: ANN001
+        self.view = view
+        self.site_gps = GeoPoint(lat_deg=51.0, lon_deg=5.0)
+        self.origin_offset_m = (0.0, 0.0, 0.0)
+        self.ground_height_m = 0.0
+
+    def elements(self, capture_time_ns: int) -> None:
+        return None
+
+
+def _gps_at(xy: np.ndarray) -> GeoPoint:
+    r = 6371008.8  # constructaide.geo's Earth radius
+    lat = 51.0 + math.degrees(xy[1] / r)
+    return GeoPoint(lat_deg=lat, lon_deg=5.0 + math.degrees(xy[0] / (r * math.cos(math.radians(0.5 * (lat + 51.0))))))
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_camera_is_taken_only_when_the_matches_agree(seed: int) -> None:
+    """phone_anchor takes the first camera (by outline contrast) that the photo's matches confirm: with simulated
+    matches that agree only near the true camera it returns clicks of that camera (pixels within 0.5 % of the width
+    of the model points' true projections); with matches that agree with nothing it refuses and says so."""
+    rng = np.random.default_rng(seed)
+    _, view, allv, lo, hi = _building(rng)
+    try:
+        wfc = _phone_camera(rng, lo, hi)
+        gray = _photo(view, wfc, rng)
+        off = rng.normal(0, 1, 2)
+        gps = _gps_at(wfc[:2, 3] + 3.0 * off / np.linalg.norm(off))
+        lookup = _Lookup(view)
+        prior = cam.centered_intrinsics(W, H, F * 1.03)
+        truth = cam.centered_intrinsics(W, H, F)
+
+        def near_truth(intr, world_from_camera, tolerance_rel):  # noqa: ANN001, ANN202
+            """Matches with a registered frame as they would agree: many where the camera lays the model where the
+            truth does (within the tolerance's scale), few elsewhere."""
+            err = _error_pct(world_from_camera, intr, wfc, truth, allv)
+            return (60 if err < (0.5 if tolerance_rel < 0.01 else 10.0) else 5), "cam-a/frame.jpg"
+
+        clicks, why = phone_anchor(lookup, gray, prior, gps, 0, near_truth, 25, 0.06)  # type: ignore[arg-type]
+        assert clicks is not None, why
+        px, pts = clicks
+        true_px, _ = cam.project_points(truth, cam.invert_rigid(wfc), pts)
+        assert 100.0 * np.median(np.linalg.norm(px - true_px, axis=1)) / W < 0.5
+        assert "60 matches with cam-a/frame.jpg agree" in why
+        clicks, why = phone_anchor(lookup, gray, prior, gps, 0, lambda i, w, t: (3, "cam-a/frame.jpg"), 25, 0.06)  # type: ignore[arg-type]
+        assert clicks is None and "at most 3 of the photo's matches agree roughly" in why
+        clicks, why = phone_anchor(lookup, gray, prior, None, 0, near_truth, 25, 0.06)  # type: ignore[arg-type]
+        assert clicks is None and "no GPS" in why
+    finally:
+        view.close()
