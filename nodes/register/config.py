@@ -128,6 +128,9 @@ class MapperConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     # one phone in 30 there (BENCHMARKS 'phones found by the model (notes, 2026-12-07)').
     phone_search: bool = False
     phone_search_min_agreeing: int = 25
+    # ... and, after its refinement on those matches and its outline (phonesearch.refine_on_matches), agree again and
+    # lie on the photo's edges by at least this much more than slid aside.
+    phone_search_min_contrast: float = 0.15
     # Only anchors observing at least this many triangulated track points are released: the others' poses rest on
     # their clicks alone.
     release_min_observations: int = 300

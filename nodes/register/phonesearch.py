@@ -33,18 +33,22 @@ import cv2
 import msgspec
 import numpy as np
 from numpy.typing import NDArray
+from scipy.optimize import least_squares
 
 from constructaide import camera as cam
 from constructaide.geo import enu_m
 from constructaide.modelview import ModelView, element_bounds
 from nodes.register.bimdepth import MeshDepthLookup
 from nodes.register.config import MapperConfig
-from nodes.register.modelalign import AlignParams, edge_samples, work_size
+from nodes.register.modelalign import AlignParams, compose_update, edge_samples, work_size
 from nodes.register.modelsearch import (
     Hypothesis,
     SearchParams,
     _distinct,
     _refine,
+    _refine_maps,
+    _residuals,
+    _support_and_chance,
     _tangent_points,
     _work_image,
     model_target,
@@ -217,6 +221,73 @@ def search_phone(
     return refined
 
 
+def epipolar_distances_px(x_other: F64, other_wfc: F64, px_this: F64, intr: Intrinsics, world_from_camera: F64) -> F64:
+    """(M,) distance (px, this image, pinhole) of each matched pixel ``px_this`` (M, 2) to the epipolar line of its
+    match in another registered camera (normalised points ``x_other`` (M, 2), pose ``other_wfc`` (4, 4)) when this
+    camera is at ``world_from_camera``."""
+    T = cam.invert_rigid(world_from_camera) @ other_wfc
+    t = T[:3, 3]
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    ln = np.c_[x_other, np.ones(len(x_other))] @ (tx @ T[:3, :3]).T
+    x = cam.pixels_to_normalized(intr, px_this)
+    d = np.abs(np.sum(ln[:, :2] * x, axis=1) + ln[:, 2]) / np.maximum(np.linalg.norm(ln[:, :2], axis=1), 1e-12)
+    return d * intr.f_px
+
+
+def refine_on_matches(
+    view: ModelView,
+    gray: NDArray[np.uint8],
+    h: Hypothesis,
+    elements: set[str] | None,
+    ground_z_m: float | None,
+    matches: list[tuple[F64, F64, F64]],
+    near_rel: float = 0.01,
+    search: SearchParams | None = None,
+) -> Hypothesis:
+    """A found camera refined on the model's outline and the photo's matches together (pose; the focal held): the
+    epipolar test leaves a camera free along the baseline, the outline alone drifts on texture. ``matches``: per
+    registered photo (its normalised points (M, 2), its world_from_camera (4, 4), this photo's pixels (M, 2)); only
+    matches within ``near_rel`` of the width of their epipolar lines at ``h`` take part. Support and chance level
+    recomputed at the end."""
+    sp = search or SearchParams()
+    intr = h.intrinsics
+    ww, wh, trunc, dmaps, samp = _refine_maps(gray, intr, sp.refine_widths_px[-1], sp)
+    wi = msgspec.structs.replace(cam.scaled_intrinsics(intr, ww, wh), k1=0.0, k2=0.0)
+    pin = msgspec.structs.replace(intr, k1=0.0, k2=0.0)
+    wfc = h.world_from_camera
+    s = edge_samples(view, wi, wfc, elements, ground_z_m, samp)
+    pts = s.point_in_world_m
+    if len(pts) < samp.min_samples:
+        return h
+    q = _tangent_points(wi, wfc, pts, s.normal_px)
+    kept = []
+    for xo, ow, px in matches:
+        near = epipolar_distances_px(xo, ow, px, pin, wfc) < near_rel * intr.width_px
+        if near.any():
+            kept.append((xo[near], ow, px[near]))
+    n_match = sum(len(k[0]) for k in kept)
+    if not n_match:
+        return h
+    weight = math.sqrt(len(pts) / n_match) * ww / intr.width_px  # matches as a whole weigh as much as the outline
+    cfw = cam.invert_rigid(wfc)
+    depth = float(np.median((pts - wfc[:3, 3]) @ wfc[:3, 2]))
+
+    def res(x6: F64) -> F64:
+        x = np.r_[x6, 0.0]
+        moved = compose_update(cfw, x)
+        epi = [epipolar_distances_px(xo, ow, px, pin, moved) for xo, ow, px in kept]
+        return np.r_[_residuals(x, dmaps, wi, wfc, pts, q, trunc), weight * np.concatenate(epi)]
+
+    scale = np.r_[np.full(3, 2.0 / wi.f_px), np.full(3, 2.0 * depth / wi.f_px)]
+    r = least_squares(res, np.zeros(6), loss="cauchy", f_scale=1.5, x_scale=scale, diff_step=1e-3, max_nfev=80)
+    moved = compose_update(cfw, np.r_[r.x, 0.0])
+    s2 = edge_samples(view, wi, moved, elements, ground_z_m, samp)
+    if len(s2.point_in_world_m) < samp.min_samples:
+        return h
+    sup, luck = _support_and_chance(dmaps, wi, moved, s2, trunc, sp)
+    return Hypothesis(moved, intr, h.coarse, sup, luck)
+
+
 def phone_anchor(
     lookup: MeshDepthLookup,
     gray: NDArray[np.uint8],
@@ -228,6 +299,8 @@ def phone_anchor(
     min_contrast: float,
     count: int = 24,
     params: PhoneSearchParams | None = None,
+    polish: Callable[[Hypothesis], Hypothesis] | None = None,
+    min_contrast_polished: float = 0.0,
 ) -> tuple[tuple[F64, F64] | None, str]:
     """A phone photo ``gray`` (H, W) found by the model (:func:`search_phone`, lens prior ``intr``, GPS ``gps``)
     and confirmed by its own matches, turned into model-point clicks (pixels (N, 2) full resolution, points (N, 3)
@@ -235,7 +308,9 @@ def phone_anchor(
     most verified matches one registered photo shares with it that lie within ``tolerance_rel`` of the width of
     their epipolar lines under a camera, and that photo's name. A coarse camera is refined only when
     ``min_agreeing`` of them agree within ``coarse_agree_rel``; the first refined camera (best outline contrast
-    first, at least ``min_contrast``) with ``min_agreeing`` within ``agree_rel`` is taken."""
+    first, at least ``min_contrast``) with ``min_agreeing`` within ``agree_rel`` is taken, after ``polish`` (a
+    refinement on the matches) when given, which it must pass again (its contrast then at least
+    ``min_contrast_polished``)."""
     if gps is None:
         return None, "the photo has no GPS position"
     if lookup.site_gps is None:
@@ -260,6 +335,11 @@ def phone_anchor(
         best_agree = max(best_agree, agreeing)
         if agreeing < min_agreeing:
             continue
+        if polish is not None:  # refined on the matches and the outline, then tested again
+            h = polish(h)
+            agreeing, partner = agree(h.intrinsics, h.world_from_camera, p.agree_rel)
+            if agreeing < min_agreeing or h.contrast < max(min_contrast, min_contrast_polished):
+                continue
         ground = lookup.ground_height_m
         px, pts = virtual_clicks(lookup.view, h.intrinsics, h.world_from_camera, elements, ground, count)
         if len(px) < 6:
@@ -291,12 +371,25 @@ def phone_anchor_in(
     when no such frame shares that many matches), its outline contrast reaches ``cfg.min_outline_contrast`` (0 when
     off)."""
     im = recon.images[idx]
-    if not fixed_partners(recon, idx, cfg.phone_search_min_agreeing):
+    partners = fixed_partners(recon, idx, cfg.phone_search_min_agreeing)
+    if not partners:
         n = cfg.phone_search_min_agreeing
         return None, f"no registered fixed camera's frame shares {n} matches to confirm a camera"
 
     def agree(i: Intrinsics, wfc: F64, tolerance_rel: float) -> tuple[int, str]:
         return best_pair_agreement(recon, idx, i, wfc, tolerance_rel * im.width_px)
+
+    matches = []
+    for j in partners:
+        pair = recon.pair(j, idx)
+        assert pair is not None  # a partner has a pair
+        o = recon.images[j]
+        x_other = cam.pixels_to_normalized(o.camera, o.features.keypoints_px[pair[0][:, 0]].astype(np.float64))
+        matches.append((x_other, o.pose, im.features.keypoints_px[pair[0][:, 1]].astype(np.float64)))
+    elements = lookup.elements(im.capture_time_ns)
+
+    def polish(h: Hypothesis) -> Hypothesis:
+        return refine_on_matches(lookup.view, gray, h, elements, lookup.ground_height_m, matches)
 
     return phone_anchor(
         lookup,
@@ -308,4 +401,6 @@ def phone_anchor_in(
         cfg.phone_search_min_agreeing,
         cfg.min_outline_contrast or 0.0,
         cfg.model_search_clicks,
+        polish=polish,
+        min_contrast_polished=cfg.phone_search_min_contrast,
     )
