@@ -31,6 +31,17 @@ def _phone_camera(rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray) -> n
     return wfc
 
 
+def _view_photo_gps(seed: int, gps_off_m: float):  # noqa: ANN202
+    """A seeded frame building's view (the caller closes it), its vertices (N, 3), a phone camera (4, 4), its photo
+    and a GPS position (x, y) m ``gps_off_m`` from the camera."""
+    rng = np.random.default_rng(seed)
+    _, view, allv, lo, hi = _building(rng)
+    wfc = _phone_camera(rng, lo, hi)
+    gray = _photo(view, wfc, rng)
+    off = rng.normal(0, 1, 2)
+    return view, allv, wfc, gray, wfc[:2, 3] + gps_off_m * off / np.linalg.norm(off)
+
+
 def test_model_axes_follow_the_walls() -> None:
     """The heading of a model's axes (mod 90 deg) from its vertical faces, whatever the area of each."""
     rng = np.random.default_rng(0)
@@ -73,13 +84,8 @@ def test_rotation_from_vanishing_lines(seed: int) -> None:
 def test_phone_search_finds_the_camera_near_its_gps(seed: int) -> None:
     """The same views, GPS 3.5 m off, focal prior 3 % off: a camera within 0.5 % of the width among the three best
     the search returns, and none of them inside the building."""
-    rng = np.random.default_rng(seed)
-    _, view, allv, lo, hi = _building(rng)
+    view, allv, wfc, gray, gps = _view_photo_gps(seed, 3.5)
     try:
-        wfc = _phone_camera(rng, lo, hi)
-        gray = _photo(view, wfc, rng)
-        off = rng.normal(0, 1, 2)
-        gps = wfc[:2, 3] + 3.5 * off / np.linalg.norm(off)
         prior = cam.centered_intrinsics(W, H, F * 1.03)
         found = search_phone(view, gray, prior, (float(gps[0]), float(gps[1])), None, 0.0)
         truth = cam.centered_intrinsics(W, H, F)
@@ -87,7 +93,7 @@ def test_phone_search_finds_the_camera_near_its_gps(seed: int) -> None:
         assert errs and min(errs) < 0.5, errs
         for h in found:
             c = h.world_from_camera[:3, 3]
-            assert not (np.all(c[:2] > lo[:2]) and np.all(c[:2] < hi[:2]))
+            assert not (np.all(c[:2] > allv.min(axis=0)[:2]) and np.all(c[:2] < allv.max(axis=0)[:2]))
     finally:
         view.close()
 
@@ -117,13 +123,9 @@ def test_a_camera_is_taken_only_when_the_matches_agree(seed: int) -> None:
     """phone_anchor takes the first camera (by outline contrast) that the photo's matches confirm: with simulated
     matches that agree only near the true camera it returns clicks of that camera (pixels within 0.5 % of the width
     of the model points' true projections); with matches that agree with nothing it refuses and says so."""
-    rng = np.random.default_rng(seed)
-    _, view, allv, lo, hi = _building(rng)
+    view, allv, wfc, gray, xy = _view_photo_gps(seed, 3.0)
     try:
-        wfc = _phone_camera(rng, lo, hi)
-        gray = _photo(view, wfc, rng)
-        off = rng.normal(0, 1, 2)
-        gps = _gps_at(wfc[:2, 3] + 3.0 * off / np.linalg.norm(off))
+        gps = _gps_at(xy)
         lookup = _Lookup(view)
         prior = cam.centered_intrinsics(W, H, F * 1.03)
         truth = cam.centered_intrinsics(W, H, F)

@@ -456,6 +456,17 @@ def model_target(view: ModelView, elements: set[str] | None) -> F64 | None:
     return np.array([0.5 * (a[0] + b[0]), 0.5 * (a[1] + b[1]), a[2] + 0.35 * (b[2] - a[2])])
 
 
+def gps_in_model(lookup: MeshDepthLookup, gps: GeoPoint | None) -> tuple[tuple[float, float] | None, str]:
+    """A photo's GPS position in the model frame (x, y) m, placed by the site reference of ``lookup``; or None
+    and why not."""
+    if gps is None:
+        return None, "the photo has no GPS position"
+    if lookup.site_gps is None:
+        return None, "the model has no site reference (IfcSite latitude / longitude)"
+    e, n = enu_m(gps, lookup.site_gps)
+    return (e - lookup.origin_offset_m[0], n - lookup.origin_offset_m[1]), ""
+
+
 def model_anchor(
     lookup: MeshDepthLookup,
     gray: NDArray[np.uint8],
@@ -470,12 +481,9 @@ def model_anchor(
     (pixels (N, 2) full resolution, model points (N, 3) m) for the anchor solve, or None and why not. ``intr``:
     the photo's lens prior (EXIF focal); ``gps``: the photo's position, placed in the model by the site
     reference of ``lookup``. ``details`` receives the refined hypotheses, best first."""
-    if gps is None:
-        return None, "the photo has no GPS position"
-    if lookup.site_gps is None:
-        return None, "the model has no site reference (IfcSite latitude / longitude)"
-    e, n = enu_m(gps, lookup.site_gps)
-    xy = (e - lookup.origin_offset_m[0], n - lookup.origin_offset_m[1])
+    xy, why = gps_in_model(lookup, gps)
+    if xy is None:
+        return None, why
     elements = lookup.elements(capture_time_ns)
     target = model_target(lookup.view, elements)
     if target is None:

@@ -36,7 +36,6 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from constructaide import camera as cam
-from constructaide.geo import enu_m
 from constructaide.modelview import ModelView, element_bounds
 from nodes.register.bimdepth import MeshDepthLookup
 from nodes.register.config import MapperConfig
@@ -51,11 +50,12 @@ from nodes.register.modelsearch import (
     _support_and_chance,
     _tangent_points,
     _work_image,
+    gps_in_model,
     model_target,
     oriented_distance_maps,
     virtual_clicks,
 )
-from nodes.register.pose import best_pair_agreement, fixed_partners
+from nodes.register.pose import best_pair_agreement, epipolar_distances, fixed_partners
 from nodes.register.recon import Reconstruction
 from nodes.register.vanishing import VanishingParams, model_axes_yaw_deg, vanishing_rotations
 from schemas.messages import GeoPoint, Intrinsics
@@ -225,12 +225,8 @@ def epipolar_distances_px(x_other: F64, other_wfc: F64, px_this: F64, intr: Intr
     """(M,) distance (px, this image, pinhole) of each matched pixel ``px_this`` (M, 2) to the epipolar line of its
     match in another registered camera (normalised points ``x_other`` (M, 2), pose ``other_wfc`` (4, 4)) when this
     camera is at ``world_from_camera``."""
-    T = cam.invert_rigid(world_from_camera) @ other_wfc
-    t = T[:3, 3]
-    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-    ln = np.c_[x_other, np.ones(len(x_other))] @ (tx @ T[:3, :3]).T
-    x = cam.pixels_to_normalized(intr, px_this)
-    d = np.abs(np.sum(ln[:, :2] * x, axis=1) + ln[:, 2]) / np.maximum(np.linalg.norm(ln[:, :2], axis=1), 1e-12)
+    this_from_other = cam.invert_rigid(world_from_camera) @ other_wfc
+    d = epipolar_distances(x_other, cam.pixels_to_normalized(intr, px_this), this_from_other)
     return d * intr.f_px
 
 
@@ -311,12 +307,9 @@ def phone_anchor(
     first, at least ``min_contrast``) with ``min_agreeing`` within ``agree_rel`` is taken, after ``polish`` (a
     refinement on the matches) when given, which it must pass again (its contrast then at least
     ``min_contrast_polished``)."""
-    if gps is None:
-        return None, "the photo has no GPS position"
-    if lookup.site_gps is None:
-        return None, "the model has no site reference (IfcSite latitude / longitude)"
-    e, n = enu_m(gps, lookup.site_gps)
-    xy = (e - lookup.origin_offset_m[0], n - lookup.origin_offset_m[1])
+    xy, why = gps_in_model(lookup, gps)
+    if xy is None:
+        return None, why
     elements = lookup.elements(capture_time_ns)
     p = params or PhoneSearchParams()
     loose: list[int] = [0]

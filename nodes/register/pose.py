@@ -193,6 +193,17 @@ def horizontal_apart_m(a: GeoPoint | None, b: GeoPoint | None) -> float:
     return horizontal_distance_m(a, b)
 
 
+def epipolar_distances(x_other: np.ndarray, x_this: np.ndarray, this_from_other: np.ndarray) -> np.ndarray:
+    """(M,) distance (normalised units of this camera) of matched normalised points ``x_this`` (M, 2) to the
+    epipolar lines of their matches ``x_other`` (M, 2) in another camera, under the relative pose
+    ``this_from_other`` (4, 4)."""
+    T = np.asarray(this_from_other, np.float64)
+    t = T[:3, 3]
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    ln = np.c_[x_other, np.ones(len(x_other))] @ (tx @ T[:3, :3]).T
+    return np.abs(np.sum(ln[:, :2] * x_this, axis=1) + ln[:, 2]) / np.maximum(np.linalg.norm(ln[:, :2], axis=1), 1e-12)
+
+
 def epipolar_agreement(
     x_other: np.ndarray, x_this: np.ndarray, this_from_other: np.ndarray, f_px: float, thr_px: float
 ) -> tuple[int, int]:
@@ -200,12 +211,9 @@ def epipolar_agreement(
     (this image's px, ``f_px``) of their epipolar lines under the relative pose ``this_from_other`` (4, 4): (agreeing,
     counted). Cameras sharing a centre have no epipolar geometry: nothing is counted."""
     T = np.asarray(this_from_other, np.float64)
-    t = T[:3, 3]
-    if np.linalg.norm(t) < 1e-9 * max(1.0, float(np.abs(T[:3, :3]).max())):
+    if np.linalg.norm(T[:3, 3]) < 1e-9 * max(1.0, float(np.abs(T[:3, :3]).max())):
         return 0, 0
-    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-    ln = np.c_[x_other, np.ones(len(x_other))] @ (tx @ T[:3, :3]).T
-    d = np.abs(np.sum(ln[:, :2] * x_this, axis=1) + ln[:, 2]) / np.maximum(np.linalg.norm(ln[:, :2], axis=1), 1e-12)
+    d = epipolar_distances(x_other, x_this, T)
     return int(np.sum(d * f_px < thr_px)), len(x_this)
 
 
@@ -244,16 +252,24 @@ def pose_pair_agreement(
     this_from_world = cam.invert_rigid(world_from_camera)
     partners = agreement_partners(recon, idx, max_gps_apart_m)
     for j in partners:
-        p = recon.pair(j, idx)
-        if p is None:
-            continue
-        m, _ = p
-        o = recon.images[j]
-        xj = cam.pixels_to_normalized(o.camera, o.features.keypoints_px[m[:, 0]].astype(np.float64))
-        xi = cam.pixels_to_normalized(intr, recon.images[idx].features.keypoints_px[m[:, 1]].astype(np.float64))
-        ok, n = epipolar_agreement(xj, xi, this_from_world @ o.pose, intr.f_px, thr_px)
+        ok, n = _pair_agreement(recon, j, idx, intr, this_from_world, thr_px)
         n_ok, n_all = n_ok + ok, n_all + n
     return n_ok / n_all if n_all else 1.0
+
+
+def _pair_agreement(
+    recon: Reconstruction, j: int, idx: int, intr: Intrinsics, this_from_world: np.ndarray, thr_px: float
+) -> tuple[int, int]:
+    """(agreeing, counted) verified matches of registered image ``j`` with image ``idx`` (:func:`epipolar_agreement`
+    under the candidate ``this_from_world``); (0, 0) without a pair."""
+    p = recon.pair(j, idx)
+    if p is None:
+        return 0, 0
+    m, _ = p
+    o = recon.images[j]
+    xj = cam.pixels_to_normalized(o.camera, o.features.keypoints_px[m[:, 0]].astype(np.float64))
+    xi = cam.pixels_to_normalized(intr, recon.images[idx].features.keypoints_px[m[:, 1]].astype(np.float64))
+    return epipolar_agreement(xj, xi, this_from_world @ o.pose, intr.f_px, thr_px)
 
 
 def fixed_partners(recon: Reconstruction, idx: int, min_matches: int = 0) -> list[int]:
@@ -277,16 +293,9 @@ def best_pair_agreement(
     best, name = 0, ""
     this_from_world = cam.invert_rigid(world_from_camera)
     for j in fixed_partners(recon, idx):
-        p = recon.pair(j, idx)
-        if p is None:
-            continue
-        m, _ = p
-        o = recon.images[j]
-        xj = cam.pixels_to_normalized(o.camera, o.features.keypoints_px[m[:, 0]].astype(np.float64))
-        xi = cam.pixels_to_normalized(intr, recon.images[idx].features.keypoints_px[m[:, 1]].astype(np.float64))
-        ok, _n = epipolar_agreement(xj, xi, this_from_world @ o.pose, intr.f_px, thr_px)
+        ok, _n = _pair_agreement(recon, j, idx, intr, this_from_world, thr_px)
         if ok > best:
-            best, name = ok, o.name
+            best, name = ok, recon.images[j].name
     return best, name
 
 
