@@ -124,8 +124,8 @@ class MapperConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     # found camera is kept only when one registered fixed camera's frame's verified matches with it agree with it (at
     # least phone_search_min_agreeing within a quarter percent of the width of their epipolar lines) and its outline
     # contrast reaches min_outline_contrast. Outlines alone do not tell right from wrong on phone photos, and the
-    # matches' agreement let a camera 0.79 % of the width off through on the default synthetic site while finding
-    # one phone in 30 there (BENCHMARKS 'phones found by the model (notes, 2026-12-07)').
+    # matches' agreement let a camera 0.68-0.99 % of the width off through on the default synthetic site while finding
+    # one phone in 30 there (BENCHMARKS 'phones found by the model (notes, 2026-12-07)' and the section after it).
     phone_search: bool = False
     phone_search_min_agreeing: int = 25
     # ... and, after its refinement on those matches and its outline (phonesearch.refine_on_matches), agree again and
