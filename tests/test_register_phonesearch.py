@@ -185,3 +185,53 @@ def test_refinement_on_matches_and_outline(seed: int) -> None:
         assert got.contrast > 0.1
     finally:
         view.close()
+
+
+def test_streaming_registrar_searches_a_phone_once_when_on(monkeypatch) -> None:  # noqa: ANN001
+    """With ``phone_search`` on, a phone photo that needs clicks goes to ``phone_anchor_in`` once (not again on its
+    next try) and a camera it returns registers the photo by the model (no request); off, nothing is searched."""
+    import cv2
+    from test_register_modelalign import INTR, _true_camera
+    from test_register_modelalign import _photo as _box_photo
+    from test_register_modelalign import _scene as _boxes
+
+    from constructaide.modelview import ModelView
+    from nodes.register import streaming
+    from nodes.register.bimdepth import MeshDepthLookup
+    from nodes.register.config import MapperConfig
+    from nodes.register.modelsearch import virtual_clicks
+    from nodes.register.photo import FrameImage, PhotoInput
+    from nodes.register.streaming import Outcome, StreamConfig, StreamingRegistrar
+
+    meshes = _boxes(0)
+    lookup = MeshDepthLookup(meshes, ground_height_m=0.0)
+    view = ModelView(meshes)
+    try:
+        T = _true_camera(0)
+        clicks = virtual_clicks(view, INTR, T, None, 0.0, 24)
+        calls: list[str] = []
+
+        def found(recon, idx, lk, gray, intr, cfg):  # noqa: ANN001, ANN202
+            calls.append(recon.images[idx].name)
+            assert gray.shape == (INTR.height_px, INTR.width_px)
+            return clicks, "test camera; 40 matches with cam-a/f.jpg agree"
+
+        monkeypatch.setattr(streaming, "phone_anchor_in", found)
+        jpeg = cv2.imencode(".jpg", cv2.cvtColor(_box_photo(view, T, 0), cv2.COLOR_GRAY2BGR))[1].tobytes()
+        phone = PhotoInput("p0", FrameImage(jpeg), camera_id=None, focal_px=INTR.f_px)
+        for on, expected in ((False, 0), (True, 1)):
+            reg = StreamingRegistrar(StreamConfig(mapper=MapperConfig(phone_search=on)), depth_lookup=lookup, site="t")
+            reg._ensure_image(phone)
+            asked = Outcome(reg._failed(phone, "needs clicks (test)", 0.0), needs_anchor="needs clicks (test)")
+            got = reg._by_model(phone, asked)
+            assert len(calls) == expected
+            if not on:
+                assert got is asked
+                continue
+            assert got.needs_anchor is None and got.registration.method == "model"
+            assert "test camera" in got.registration.message
+            reg._by_model(phone, asked)  # searched once: the request stands, no second search
+            assert len(calls) == 1
+    finally:
+        view.close()
+        lookup.close()
