@@ -445,14 +445,22 @@ def virtual_clicks(
     return px[keep], pts[keep]
 
 
-def model_target(view: ModelView, elements: set[str] | None) -> F64 | None:
-    """Where a site camera aims, roughly (3,) m: the middle of the standing elements' bounds, a third of the way
-    up. None when nothing stands."""
+def standing_bounds(view: ModelView, elements: set[str] | None) -> tuple[F64, F64] | None:
+    """Bounds (lo (3,), hi (3,)) m of the ``elements`` standing (None: all) in the model ``view``; None when none."""
     lo, hi, has = element_bounds(view.scene)
     has = has & view.visible(elements)
     if not has.any():
         return None
-    a, b = lo[has].min(axis=0), hi[has].max(axis=0)
+    return lo[has].min(axis=0), hi[has].max(axis=0)
+
+
+def model_target(view: ModelView, elements: set[str] | None) -> F64 | None:
+    """Where a site camera aims, roughly (3,) m: the middle of the standing elements' bounds, a third of the way
+    up. None when nothing stands."""
+    box = standing_bounds(view, elements)
+    if box is None:
+        return None
+    a, b = box
     return np.array([0.5 * (a[0] + b[0]), 0.5 * (a[1] + b[1]), a[2] + 0.35 * (b[2] - a[2])])
 
 

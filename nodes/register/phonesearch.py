@@ -36,7 +36,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from constructaide import camera as cam
-from constructaide.modelview import ModelView, element_bounds
+from constructaide.modelview import ModelView
 from nodes.register.bimdepth import MeshDepthLookup
 from nodes.register.config import MapperConfig
 from nodes.register.modelalign import AlignParams, compose_update, edge_samples, work_size
@@ -53,6 +53,7 @@ from nodes.register.modelsearch import (
     gps_in_model,
     model_target,
     oriented_distance_maps,
+    standing_bounds,
     virtual_clicks,
 )
 from nodes.register.pose import best_pair_agreement, epipolar_distances, fixed_partners
@@ -87,14 +88,6 @@ class PhoneSearchParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True)
     (:func:`phone_anchor`)."""
     coarse_agree_rel: float = 0.015
     """... and a coarse camera is refined only when as many agree within this (it is a metre and a degree off)."""
-
-
-def _footprint(view: ModelView, elements: set[str] | None) -> tuple[F64, F64] | None:
-    lo, hi, has = element_bounds(view.scene)
-    has = has & view.visible(elements)
-    if not has.any():
-        return None
-    return lo[has].min(axis=0), hi[has].max(axis=0)
 
 
 def outside(footprint: tuple[F64, F64], centre_m: F64) -> bool:
@@ -148,7 +141,7 @@ def search_phone(
     before its refinement (the refinements are most of the cost)."""
     p = params or PhoneSearchParams()
     sp = search or SearchParams()
-    box = _footprint(view, elements)
+    box = standing_bounds(view, elements)
     target = model_target(view, elements)
     if box is None or target is None:
         return []

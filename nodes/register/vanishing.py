@@ -11,9 +11,9 @@ and the model's outlines tell them apart (:mod:`nodes.register.phonesearch`).
 
 The model's horizontal axes come from its vertical faces (:func:`model_axes_yaw_deg`). Lens distortion is ignored
 (phones' lenses bend a line by a pixel or two). Frames: ``camera_from_world`` (3, 3), OpenCV camera (x right, y down,
-z forward), model z up. Measured on the default synthetic site's 30 phone photos (BENCHMARKS 'phones found by the
-model'): median 0.5 deg from the true rotation, 23 of 30 within 2 deg; close-ups filled with brick fail (the courses
-of one wall give a single direction).
+z forward), model z up. Measured on the phone photos of default seeds 0 / 7 / 3 and small seeds 0 / 7
+(BENCHMARKS 'phones found by the model (notes, 2026-12-07)'): median 0.31-0.59 deg from the true rotation, 26 / 28 /
+27 of 30 and 5 / 4 of 5 within 2 deg; close-ups filled with brick fail (one wall's courses give one direction).
 """
 
 from __future__ import annotations
