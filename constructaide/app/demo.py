@@ -229,7 +229,7 @@ def main(argv: list[str]) -> int:
     counts: Counter[str] = Counter()
     # the demo's own session is the hub, on a loopback port the system picks; the nodes join it
     with (
-        open_bus(BusConfig(listen=["tcp/127.0.0.1:0"])) as bus,
+        open_bus(BusConfig(listen=["tcp/127.0.0.1:0"], name="demo")) as bus,
         Launcher(
             site=args.site,
             bus=BusConfig(hub_port=bus.listen_port()),

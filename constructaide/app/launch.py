@@ -56,6 +56,9 @@ from constructaide.runtime.security import load_security
 from schemas import keys
 from schemas.messages import NodeError
 
+MESH_REPAIRS = 2  # restarts of a node the mesh did not reach, before the start fails
+MESH_POLL_SECS = 0.2
+
 
 @dataclass
 class NodeProcess:
@@ -66,6 +69,11 @@ class NodeProcess:
     _log: object = None
     stopping: bool = False
     env: dict[str, str] = field(default_factory=dict)
+    kind: str = ""
+    """The node kind (its liveliness token's node); the name when empty."""
+
+    def __post_init__(self) -> None:
+        self.kind = self.kind or self.name
 
     def returncode(self) -> int | None:
         return None if self.proc is None else self.proc.poll()
@@ -116,6 +124,8 @@ class Launcher:
     """Passed to the nodes as ``--state-dir`` (ledger and state: a restarted node resumes and gets what it missed)."""
     supervisor: Supervisor | None = None
     security_toml: Path | None = None  # site TOML with [bus.tls]: each node loads its own certificate from it
+    mesh_secs: float = 20.0
+    """How long :meth:`wait_live` waits for every pair of sessions to connect before it restarts a node."""
 
     def bus_argv(self) -> list[str]:
         argv = ["--hub-port", str(self.bus.hub_port), "--mode", self.bus.mode]
@@ -154,7 +164,7 @@ class Launcher:
                 argv += ["--cameras", ",".join(cameras)]
             name = f"{node}-{partition.replace('/', 'of')}"
         log = self.log_dir / f"{name}.log" if self.log_dir else None
-        p = NodeProcess(name, argv, log)
+        p = NodeProcess(name, argv, log, kind=node)
         env = dict(os.environ)
         env.setdefault("PYOPENGL_PLATFORM", "egl")
         p.start(env)
@@ -202,7 +212,40 @@ class Launcher:
             watcher.close()
 
     def wait_live(self, bus: Bus, names: list[str], timeout: float = 120.0) -> None:
-        """Block until every named node has declared its liveliness token; fail early if one died."""
+        """Block until every named node has declared its liveliness token and every session on the bus has a
+        transport to every other one; fail early if a node died.
+
+        Peers do not relay each other's publications: a pair of peers that failed to connect when they joined (a
+        loaded machine) would silently miss each other's data (a recorder without the overlays). A node of such a
+        pair is restarted (the one started last; it joins the mesh again) up to twice, with a note on stderr;
+        then the start fails and names the pairs."""
+        self._wait_tokens(bus, names, timeout)
+        for attempt in range(MESH_REPAIRS + 1):
+            gaps = self._wait_mesh(bus)
+            if not gaps:
+                return
+            started = [p for p in self.procs if p.returncode() is None]
+            order = {p.name: i for i, p in enumerate(started)}
+            targets: dict[str, NodeProcess] = {}
+            for a, b in gaps:
+                ours = [n for n in (a, b) if n in order]
+                if ours:
+                    last = max(ours, key=order.__getitem__)
+                    targets[last] = started[order[last]]
+            pairs = ", ".join(f"{a} - {b}" for a, b in gaps)
+            if attempt == MESH_REPAIRS or not targets:
+                raise UserError(
+                    f"no bus transport between {pairs} after {self.mesh_secs:.0f} s: they would miss each other's "
+                    f"messages (see logs in {self.log_dir})"
+                )
+            print(f"bus: no transport between {pairs}; restarting {', '.join(sorted(targets))}", file=sys.stderr)
+            for proc in targets.values():
+                proc.stop()
+                proc.stopping = False
+                proc.restart()
+            self._wait_tokens(bus, sorted({p.kind for p in targets.values()}), timeout)
+
+    def _wait_tokens(self, bus: Bus, names: list[str], timeout: float) -> None:
         dead = [p.name for p in self.procs if p.proc is not None and p.proc.poll() is not None]
         if dead:
             raise UserError(f"node(s) exited at start: {', '.join(dead)} (see logs in {self.log_dir})")
@@ -211,6 +254,14 @@ class Launcher:
         except TimeoutError as e:
             dead = [p.name for p in self.procs if p.proc is not None and p.proc.poll() is not None]
             raise UserError(f"{e}; exited: {dead or 'none'} (see logs in {self.log_dir})") from None
+
+    def _wait_mesh(self, bus: Bus) -> list[tuple[str, str]]:
+        """The sessions' missing transports, once none is missing or after ``mesh_secs`` (zenoh's Python API has no
+        event for a new transport: polled)."""
+        deadline = time.monotonic() + self.mesh_secs
+        while (gaps := bus.mesh_gaps()) and time.monotonic() < deadline:
+            time.sleep(MESH_POLL_SECS)
+        return gaps
 
     def supervise(self, bus: Bus, policy: RestartPolicy | None = None) -> Supervisor:
         """Restart crashed nodes with back-off (:mod:`constructaide.app.supervise`), NodeErrors on ``bus``."""

@@ -134,6 +134,12 @@ class Bus:
         """This session's place on the bus, for logs."""
         return type(self).__name__
 
+    def mesh_gaps(self) -> list[tuple[str, str]]:
+        """Pairs of sessions on the bus with no transport between them (each named by its ``BusConfig.name``, else
+        its zenoh id's first 8 digits): in a peer mesh neither gets the other's publications. Empty when every
+        session reaches every other (always for the in-process bus)."""
+        return []
+
     def history(self, keyexpr: str, since_ns: int = 0, timeout: float = 10.0) -> list[Publication]:
         """Publications under ``keyexpr`` since ``since_ns`` still cached by any session, oldest first."""
         return []
@@ -232,6 +238,8 @@ class BusConfig:
     mesh_join_secs: float = 3.0
     """How long a peer joining the embedded hub waits at open to reach the other peers the hub knows."""
     security: BusSecurity | None = None  # TLS / mTLS / ACL from the site TOML (constructaide.runtime.security)
+    name: str = ""
+    """This session's name on the bus (zenoh ``metadata/name``; a node's name), shown by :meth:`Bus.mesh_gaps`."""
 
     @classmethod
     def from_args(cls, args: argparse.Namespace, role: str = "admin") -> BusConfig:
@@ -249,6 +257,7 @@ class BusConfig:
                 getattr(args, "hub_port", None) or os.environ.get("CONSTRUCTAIDE_HUB_PORT") or DEFAULT_HUB_PORT
             ),
             security=security,
+            name=role,
         )
 
     @property
@@ -292,6 +301,8 @@ class BusConfig:
         if any(_port_of(e) == 0 for e in listen) or (self.embedded and as_hub):
             # Read back: the port the system picked; the hub's peers, for a joining peer to reach them all.
             c.insert_json5("adminspace/enabled", "true")
+        if self.name:
+            c.insert_json5("metadata", json.dumps({"name": self.name}))
         for k, v in (self.security.json5() if self.security else {}).items():
             c.insert_json5(k, json.dumps(v))
         for k, v in self.extra_json5.items():
@@ -552,6 +563,34 @@ class ZenohBus(Bus):
         routers = sorted(str(z)[:8] for z in info.routers_zid())
         role = "hub" if self.is_hub else self.config.mode
         return f"zid {str(info.zid())[:8]} ({role}), peers {peers}, routers {routers}"
+
+    def mesh_gaps(self) -> list[tuple[str, str]]:
+        """See :meth:`Bus.mesh_gaps`; read from the admin space of every session this one reaches that serves one
+        (the embedded hub and the peers that joined it: ``@/<zid>/peer`` lists each one's transports). A session
+        this one does not reach is known from the others' lists (named by its id then): ask the hub, which reaches
+        every session, for names throughout. A pair neither of which answered (an ACL that hides the admin space)
+        is not judged."""
+        adj: dict[str, set[str]] = {}
+        names: dict[str, str] = {}
+        try:
+            for reply in self.session.get("@/*/peer", timeout=1.0):
+                if reply.ok is None:
+                    continue
+                doc = json.loads(reply.ok.payload.to_bytes())
+                zid = str(doc.get("zid") or str(reply.ok.key_expr).split("/")[1])
+                names[zid] = str((doc.get("metadata") or {}).get("name") or zid[:8])
+                for other in (str(x.get("peer")) for x in doc.get("sessions", []) if x.get("peer")):
+                    adj.setdefault(zid, set()).add(other)
+                    adj.setdefault(other, set()).add(zid)
+        except Exception:  # an admin space this zenoh does not serve: nothing known to be missing
+            return []
+        zids = sorted(adj)
+        return [
+            (names.get(a, a[:8]), names.get(b, b[:8]))
+            for i, a in enumerate(zids)
+            for b in zids[i + 1 :]
+            if b not in adj[a] and (a in names or b in names)  # known from an answer, not only from lists
+        ]
 
     def close(self) -> None:
         for q in self._queryables.values():

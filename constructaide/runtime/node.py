@@ -707,7 +707,10 @@ def run_node_cli(spec: NodeSpec, argv: list[str] | None = None, *, prog: str | N
             raise UserError("--ledger-keep-days and --ledger-max-rows must be >= 0")
         retention = Retention(keep_days=args.ledger_keep_days, max_rows=args.ledger_max_rows)
         try:
-            with open_bus(BusConfig.from_args(args, role=spec.name)) as bus:
+            bus_config = BusConfig.from_args(args, role=spec.name)
+            if args.partition:  # workers of one kind apart in Bus.mesh_gaps, named as the launcher names them
+                bus_config.name = f"{spec.name}-{args.partition.replace('/', 'of')}"
+            with open_bus(bus_config) as bus:
                 try:
                     with start_node(
                         spec, config, bus, state_dir=args.state_dir, partition=partition, retention=retention
