@@ -93,6 +93,44 @@ def test_supervisor_restarts_after_the_delay_and_stops_a_crash_loop() -> None:
     assert sup2.events == []
 
 
+def test_a_pair_of_sessions_left_unlinked_is_reported_once() -> None:
+    """A restarted node that did not reach a peer: the bus's missing transport, seen for mesh_report_secs, becomes a
+    NodeError once; a short gap (a node restarting) does not; linked again, a new gap is news again."""
+    now = [0.0]
+    gaps: list[tuple[str, str]] = []
+    reports: list[tuple[str, str]] = []
+    sup = Supervisor(
+        lambda: [],
+        lambda n, r: reports.append((n, r)),
+        clock=lambda: now[0],
+        gaps=lambda: list(gaps),
+        mesh_every_secs=5.0,
+        mesh_report_secs=20.0,
+    )
+    gaps[:] = [("render", "recorder")]
+    for t in (0.0, 5.0, 10.0):
+        now[0] = t
+        sup.check()
+    gaps[:] = []  # linked within 20 s: nothing to report
+    now[0] = 15.0
+    sup.check()
+    gaps[:] = [("recorder", "render")]  # the same pair, named the other way round
+    for t in range(20, 60, 5):
+        now[0] = float(t)
+        sup.check()
+    assert reports == [
+        ("recorder", "no bus transport between recorder and render for 20 s: they miss each other's messages")
+    ]
+    gaps[:] = []
+    now[0] = 62.0
+    sup.check()  # linked again
+    gaps[:] = [("recorder", "render")]
+    for t in (70.0, 80.0, 90.0):
+        now[0] = t
+        sup.check()
+    assert len(reports) == 2 and [e.kind for e in sup.events] == ["mesh_gap", "mesh_gap"]
+
+
 @pytest.mark.zenoh
 def test_sigkilled_node_is_restarted_and_reported(hub_port: int, tmp_path: Path) -> None:
     site = "sup"

@@ -264,7 +264,8 @@ class Launcher:
         return gaps
 
     def supervise(self, bus: Bus, policy: RestartPolicy | None = None) -> Supervisor:
-        """Restart crashed nodes with back-off (:mod:`constructaide.app.supervise`), NodeErrors on ``bus``."""
+        """Restart crashed nodes with back-off (:mod:`constructaide.app.supervise`), NodeErrors on ``bus``; a pair
+        of sessions left without a transport (a restarted node that did not reach a peer) is reported too."""
 
         def report(node: str, reason: str) -> None:
             err = NodeError(
@@ -272,7 +273,9 @@ class Launcher:
             )
             bus.publish(keys.key(keys.ERRORS, site=self.site), err)
 
-        self.supervisor = Supervisor(lambda: list(self.procs), report, policy or RestartPolicy()).start()
+        self.supervisor = Supervisor(
+            lambda: list(self.procs), report, policy or RestartPolicy(), gaps=bus.mesh_gaps
+        ).start()
         return self.supervisor
 
     def stop_all(self) -> dict[str, int | None]:

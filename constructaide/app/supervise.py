@@ -76,7 +76,7 @@ class Supervised(Protocol):
 class Event:
     time: float
     node: str
-    kind: str  # "crash", "restart", "give_up"
+    kind: str  # "crash", "restart", "give_up", "mesh_gap"
     detail: str
 
 
@@ -90,8 +90,17 @@ class Supervisor:
     poll_secs: float = 0.2
     clock: Callable[[], float] = time.monotonic
     events: list[Event] = field(default_factory=list)
+    gaps: Callable[[], list[tuple[str, str]]] | None = None
+    """The bus's missing transports (:meth:`~constructaide.runtime.bus.Bus.mesh_gaps`): a pair of sessions without
+    one for ``mesh_report_secs`` is reported once (it misses each other's messages; a restart would not bring
+    back what was lost)."""
+    mesh_every_secs: float = 5.0
+    mesh_report_secs: float = 20.0
 
     def __post_init__(self) -> None:
+        self._gap_since: dict[tuple[str, ...], float] = {}
+        self._gap_reported: set[tuple[str, ...]] = set()
+        self._next_mesh = 0.0
         self._crashes: dict[str, list[float]] = {}
         self._due: dict[int, tuple[float, Any]] = {}
         self._given_up: set[int] = set()
@@ -154,6 +163,27 @@ class Supervisor:
             else:
                 self._given_up.add(pid)
                 self._event(p.name, "give_up", why)
+        self._check_mesh(now)
+
+    def _check_mesh(self, now: float) -> None:
+        if self.gaps is None or now < self._next_mesh:
+            return
+        self._next_mesh = now + self.mesh_every_secs
+        current = {tuple(sorted(g)) for g in self.gaps()}
+        for pair in [p for p in self._gap_since if p not in current]:  # linked again: a new gap is news again
+            del self._gap_since[pair]
+            self._gap_reported.discard(pair)
+        for pair in current:
+            since = self._gap_since.setdefault(pair, now)
+            if now - since >= self.mesh_report_secs and pair not in self._gap_reported:
+                self._gap_reported.add(pair)
+                why = (
+                    f"no bus transport between {' and '.join(pair)} for {now - since:.0f} s: they miss each other's "
+                    "messages"
+                )
+                log.warning("%s", why)
+                self._event(pair[0], "mesh_gap", why)
+                self.report(pair[0], why)
 
     def _loop(self) -> None:
         while not self._stop.wait(self.poll_secs):
