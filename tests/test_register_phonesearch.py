@@ -211,9 +211,10 @@ def test_streaming_registrar_searches_a_phone_once_when_on(monkeypatch) -> None:
         clicks = virtual_clicks(view, INTR, T, None, 0.0, 24)
         calls: list[str] = []
 
-        def found(recon, idx, lk, gray, intr, cfg):  # noqa: ANN001, ANN202
+        def found(recon, idx, lk, gray, intr, cfg, frames):  # noqa: ANN001, ANN202
             calls.append(recon.images[idx].name)
             assert gray.shape == (INTR.height_px, INTR.width_px)
+            assert frames == []  # the texture's sources: no fixed camera's frame registered yet
             return clicks, "test camera; 40 matches with cam-a/f.jpg agree"
 
         monkeypatch.setattr(streaming, "phone_anchor_in", found)

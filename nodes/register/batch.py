@@ -43,7 +43,7 @@ from nodes.register.densify import DensifyParams, densify_reconstruction
 from nodes.register.features import Features, extract_features
 from nodes.register.modelalign import AlignParams, Polished, PolishPolicy, ViewPolish, polish_registration
 from nodes.register.modelsearch import OutlineCheck, model_anchor
-from nodes.register.phonesearch import phone_anchor_in
+from nodes.register.phonesearch import nearest_fixed_frames, phone_anchor_in
 from nodes.register.pose import epipolar_agreement
 from nodes.register.recon import Clicks, Reconstruction, add_image, focal_prior
 from nodes.register.sfm import reconstruct
@@ -462,7 +462,11 @@ def run_batch(
         im = recon.images[i]
         assert lookup is not None  # only passed with a lookup
         intr = cam.centered_intrinsics(im.width_px, im.height_px, focal_prior(im, cfg))
-        return phone_anchor_in(recon, i, lookup, _gray(paths[im.name]), intr, cfg)
+        frames = [
+            (_gray(paths[o.name]), o.camera, o.pose, o.capture_time_ns)
+            for o in (recon.images[j] for j in nearest_fixed_frames(recon, im.capture_time_ns))
+        ]
+        return phone_anchor_in(recon, i, lookup, _gray(paths[im.name]), intr, cfg, frames)
 
     outline = None
     if lookup is not None and cfg.min_outline_contrast is not None:

@@ -131,6 +131,11 @@ class MapperConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     # ... and, after its refinement on those matches and its outline (phonesearch.refine_on_matches), agree again and
     # lie on the photo's edges by at least this much more than slid aside.
     phone_search_min_contrast: float = 0.15
+    # With the phone search on, a found camera is confirmed by the fixed cameras' texture carried through the model
+    # instead of by matches (phonesearch.phone_anchor_by_texture: refined by dense flow against it, kept when it
+    # correlates best by a margin and stands where a person can); needs the registered frames' pixels (batch: their
+    # files; streaming: each fixed camera's latest registered frame).
+    phone_search_texture: bool = True
     # Only anchors observing at least this many triangulated track points are released: the others' poses rest on
     # their clicks alone.
     release_min_observations: int = 300

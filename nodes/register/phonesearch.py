@@ -58,6 +58,14 @@ from nodes.register.modelsearch import (
 )
 from nodes.register.pose import best_pair_agreement, epipolar_distances, fixed_partners
 from nodes.register.recon import Reconstruction
+from nodes.register.texture import (
+    TextureParams,
+    TextureSource,
+    refine_by_texture,
+    texture_score,
+    texture_source,
+    work_gray,
+)
 from nodes.register.vanishing import VanishingParams, model_axes_yaw_deg, vanishing_rotations
 from schemas.messages import GeoPoint, Intrinsics
 
@@ -88,6 +96,25 @@ class PhoneSearchParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True)
     (:func:`phone_anchor`)."""
     coarse_agree_rel: float = 0.015
     """... and a coarse camera is refined only when as many agree within this (it is a metre and a degree off)."""
+    texture_hypotheses: int = 30
+    """Distinct coarse cameras refined on the registered photos' texture (:func:`phone_anchor_by_texture`)."""
+    min_texture_ncc: float = 0.15
+    """A camera found by the texture needs at least this mean local correlation with the carried texture ..."""
+    texture_margin: float = 0.03
+    """... this much more than any other refined camera that draws the model elsewhere in the photo (by more than
+    ``distinct_image_rel`` of the width) ..."""
+    distinct_image_rel: float = 0.01
+    stand_height_m: tuple[float, float] = (1.0, 2.3)
+    """... its centre this high above the terrain (a person's hand) ..."""
+    max_from_gps_m: float = 9.0
+    """... this near the GPS position (horizontally) ..."""
+    max_turn_deg: float = 5.0
+    """... turned at most this far by the refinement from the rotation the photo's lines gave (within a degree
+    on most photos) ..."""
+    ambiguity_shifts_rel: tuple[float, ...] = (0.05, 0.12)
+    """... and unique: started again with the model moved this share of the width left, right, up and down in the
+    photo, no refinement that lands elsewhere (``distinct_image_rel``) scores within ``texture_margin`` of it (a
+    wall of bricks filling the view lines up one brick aside as well)."""
 
 
 def outside(footprint: tuple[F64, F64], centre_m: F64) -> bool:
@@ -133,12 +160,14 @@ def search_phone(
     search: SearchParams | None = None,
     vanishing: VanishingParams | None = None,
     worth_refining: Callable[[Hypothesis], bool] | None = None,
+    refine: bool = True,
 ) -> list[Hypothesis]:
     """Cameras of the phone photo ``gray`` (H, W) (lens prior ``intr``, full resolution, EXIF focal) near its GPS
     position ``centre_xy_m`` (model metres) on the model ``view`` with ``elements`` standing and the terrain at
     ``ground_z_m``: refined hypotheses outside the model's footprint, best edge contrast first (empty when the
     photo shows no straight lines or the model no edges). ``worth_refining``: a cheap test of a coarse camera
-    before its refinement (the refinements are most of the cost)."""
+    before its refinement (the refinements are most of the cost). ``refine`` False: the distinct coarse cameras,
+    best coarse score first, unrefined."""
     p = params or PhoneSearchParams()
     sp = search or SearchParams()
     box = standing_bounds(view, elements)
@@ -208,6 +237,8 @@ def search_phone(
             chosen.append(h)
         if len(chosen) >= p.keep:
             break
+    if not refine:
+        return chosen
     refined = [_refine(view, gray, h, elements, ground_z_m, sp) for h in chosen]
     refined = [h for h in refined if outside(box, h.world_from_camera[:3, 3])]
     refined.sort(key=lambda h: -h.contrast)
@@ -344,6 +375,115 @@ def phone_anchor(
     )
 
 
+def phone_anchor_by_texture(
+    lookup: MeshDepthLookup,
+    gray: NDArray[np.uint8],
+    intr: Intrinsics,
+    gps: GeoPoint | None,
+    capture_time_ns: int,
+    sources: list[TextureSource],
+    count: int = 24,
+    params: PhoneSearchParams | None = None,
+    texture: TextureParams | None = None,
+) -> tuple[tuple[F64, F64] | None, str]:
+    """A phone photo ``gray`` (H, W) found by the model (:func:`search_phone`'s coarse cameras, lens prior ``intr``,
+    GPS ``gps``), each refined on the texture of registered photos carried through the model
+    (:func:`~nodes.register.texture.refine_by_texture`, ``sources``) and scored by its correlation with it
+    (:func:`~nodes.register.texture.texture_score`); the best is taken when it stands where a person can (height,
+    near the GPS, outside the building), correlates by at least ``min_texture_ncc`` and beats every camera that draws
+    the model elsewhere by ``texture_margin``. Returns model-point clicks (pixels (N, 2) full resolution, points (N,
+    3) m) for the anchor solve, or None, and why."""
+    xy, why = gps_in_model(lookup, gps)
+    if xy is None:
+        return None, why
+    if not sources:
+        return None, "no registered fixed camera's frame to carry texture from"
+    p = params or PhoneSearchParams()
+    tp = texture or TextureParams()
+    elements = lookup.elements(capture_time_ns)
+    view, ground = lookup.view, lookup.ground_height_m
+    coarse = search_phone(
+        view, gray, intr, xy, elements, ground, msgspec.structs.replace(p, keep=p.texture_hypotheses), refine=False
+    )
+    if not coarse:
+        return None, "the model's outlines suggest no camera (no straight lines, or no model edges in view)"
+    widths = {*tp.levels_px, tp.score_width_px}
+    photo = {w: work_gray(gray, w) for w in widths}
+    box = standing_bounds(view, elements)
+    lo, hi = p.stand_height_m
+    terrain = 0.0 if ground is None else float(ground)
+
+    def refined(start: F64) -> tuple[float, F64] | None:
+        """A camera refined on the texture from ``start`` and scored; None where no person stands or it turned."""
+        wfc = refine_by_texture(view, photo, intr, start, elements, ground, sources, tp)
+        if wfc is None or cam.rotation_angle_deg(wfc[:3, :3], start[:3, :3]) > p.max_turn_deg:
+            return None
+        c = wfc[:3, 3]
+        if not lo <= c[2] - terrain <= hi or math.hypot(c[0] - xy[0], c[1] - xy[1]) > p.max_from_gps_m:
+            return None
+        if box is not None and not outside(box, c):
+            return None
+        return texture_score(view, photo[tp.score_width_px], intr, wfc, elements, ground, sources, tp)[0], wfc
+
+    found = [f for f in (refined(h.world_from_camera) for h in coarse) if f is not None]
+    if not found:
+        return None, f"none of {len(coarse)} cameras the outlines suggest lines up with the fixed cameras' texture"
+    found.sort(key=lambda f: -f[0])
+    best, wfc = found[0]
+    px, pts = virtual_clicks(view, intr, wfc, elements, ground, count)
+    if len(px) < 6:
+        return None, "the camera the texture finds sees too little of the model to click"
+    rival = max(
+        (s for s, other in found[1:] if _image_shift_rel(intr, other, pts, px) > p.distinct_image_rel), default=-1.0
+    )
+    why = f"texture correlation {best:.2f}, next camera that draws the model elsewhere {max(rival, 0.0):.2f}"
+    if best < p.min_texture_ncc or best - rival < p.texture_margin:
+        return None, f"the fixed cameras' texture does not single out a camera: {why}"
+    depth = float(np.median((pts - wfc[:3, 3]) @ wfc[:3, 2]))
+    for q in p.ambiguity_shifts_rel:
+        step = q * intr.width_px * depth / intr.f_px
+        for axis, sign in ((0, 1.0), (0, -1.0), (1, 1.0), (1, -1.0)):
+            start = wfc.copy()
+            start[:3, 3] += sign * step * wfc[:3, axis]
+            again = refined(start)
+            if again is None or _image_shift_rel(intr, again[1], pts, px) <= p.distinct_image_rel:
+                continue
+            if again[0] > best - p.texture_margin:
+                return None, (
+                    f"the fixed cameras' texture lines up as well elsewhere: {again[0]:.2f} against {best:.2f} with "
+                    f"the model moved {q:.0%} of the width (repeated texture)"
+                )
+    return (px, pts), why
+
+
+TextureFrame = tuple[NDArray[np.uint8], Intrinsics, F64, int]
+"""A registered fixed camera's frame as a texture source: grey pixels (H, W), lens, world_from_camera (4, 4),
+capture time (ns)."""
+
+
+def nearest_fixed_frames(recon: Reconstruction, capture_time_ns: int) -> list[int]:
+    """Per fixed camera, its registered frame nearest in time to ``capture_time_ns`` (image indices)."""
+    best: dict[str, int] = {}
+    for j in recon.registered_indices():
+        o = recon.images[j]
+        if o.camera_id is None:
+            continue
+        k = best.get(o.camera_id)
+        dt = abs(o.capture_time_ns - capture_time_ns)
+        if k is None or dt < abs(recon.images[k].capture_time_ns - capture_time_ns):
+            best[o.camera_id] = j
+    return [best[c] for c in sorted(best)]
+
+
+def _image_shift_rel(intr: Intrinsics, world_from_camera: F64, pts: F64, px: F64) -> float:
+    """Median distance (share of the width) between pixels ``px`` (N, 2) and where a camera draws their model
+    points ``pts`` (N, 3)."""
+    uv, z = cam.project_points(intr, cam.invert_rigid(world_from_camera), pts)
+    d = np.linalg.norm(uv - px, axis=1)
+    d[~np.isfinite(d) | (z <= 0)] = np.inf
+    return float(np.median(d)) / intr.width_px
+
+
 def phone_anchor_in(
     recon: Reconstruction,
     idx: int,
@@ -351,12 +491,21 @@ def phone_anchor_in(
     gray: NDArray[np.uint8],
     intr: Intrinsics,
     cfg: MapperConfig,
+    frames: list[TextureFrame] | None = None,
 ) -> tuple[tuple[F64, F64] | None, str]:
-    """:func:`phone_anchor` for image ``idx`` of a reconstruction: its matches with one registered fixed camera's frame
-    confirm (``cfg.phone_search_min_agreeing`` within ``PhoneSearchParams.agree_rel`` of the width; not searched
-    when no such frame shares that many matches), its outline contrast reaches ``cfg.min_outline_contrast`` (0 when
-    off)."""
+    """A camera for image ``idx`` of a reconstruction found by the model. With ``cfg.phone_search_texture`` and
+    ``frames`` (registered fixed cameras' frames, e.g. :func:`nearest_fixed_frames`): :func:`phone_anchor_by_texture`.
+    Else :func:`phone_anchor`: its matches with one registered fixed camera's frame confirm
+    (``cfg.phone_search_min_agreeing`` within ``PhoneSearchParams.agree_rel`` of the width; not searched when no such
+    frame shares that many matches), its outline contrast reaches ``cfg.min_outline_contrast`` (0 when off)."""
     im = recon.images[idx]
+    if cfg.phone_search_texture and frames is not None:
+        ground = lookup.ground_height_m
+        sources = [
+            texture_source(lookup.view, pixels, intr_f, wfc_f, lookup.elements(t_f), ground)
+            for pixels, intr_f, wfc_f, t_f in frames
+        ]
+        return phone_anchor_by_texture(lookup, gray, intr, im.gps, im.capture_time_ns, sources, cfg.model_search_clicks)
     partners = fixed_partners(recon, idx, cfg.phone_search_min_agreeing)
     if not partners:
         n = cfg.phone_search_min_agreeing

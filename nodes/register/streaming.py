@@ -340,8 +340,9 @@ class StreamingRegistrar:
             return out
 
     def _phone_by_model(self, photo: PhotoInput, out: Outcome, lookup: MeshDepthLookup) -> Outcome:
-        """A phone photo that needs clicks, anchored by the model when its matches with registered photos confirm the
-        camera the outlines find (:func:`~nodes.register.phonesearch.phone_anchor_in`, once per photo); else ``out``."""
+        """A phone photo that needs clicks, anchored by the model when the fixed cameras' latest frames' texture (or its
+        matches with registered photos) confirm a camera the outlines suggest
+        (:func:`~nodes.register.phonesearch.phone_anchor_in`, once per photo); else ``out``."""
         tried: set[str] = self.__dict__.setdefault("phones_searched", set())
         if not self.mcfg.phone_search or photo.photo_id in tried or photo.photo_id not in self.recon:
             return out
@@ -350,7 +351,10 @@ class StreamingRegistrar:
         w, h = self.recon.images[idx].width_px, self.recon.images[idx].height_px
         intr = cam.centered_intrinsics(w, h, self.mcfg.focal_px or photo.focal_px or cam.focal_from_fov(w, 50.0))
         try:
-            clicks, why = phone_anchor_in(self.recon, idx, lookup, photo.image.gray(), intr, self.mcfg)
+            latest: dict[str, tuple[str, np.ndarray]] = self.__dict__.get("latest_frames", {})
+            frames = [(px, self.poses[p].intrinsics, self.poses[p].world_from_camera, self.poses[p].capture_time_ns)
+                      for p, px in latest.values() if p in self.poses]  # fmt: skip
+            clicks, why = phone_anchor_in(self.recon, idx, lookup, photo.image.gray(), intr, self.mcfg, frames)
             if clicks is None:
                 return out
             return self.register_anchor(photo, *clicks, method="model", note=f"found by the model's outlines ({why})")
@@ -705,6 +709,8 @@ class StreamingRegistrar:
         self.viewpoints.add_photo(photo.photo_id)
         if photo.camera_id is None:
             return changed
+        if self.mcfg.phone_search and self.mcfg.phone_search_texture:  # each fixed camera's latest frame: texture
+            self.__dict__.setdefault("latest_frames", {})[photo.camera_id] = (photo.photo_id, photo.image.gray())
         frames = self.by_camera.setdefault(photo.camera_id, [])
         if fast_ratio is not None:
             ratio, n = fast_ratio
