@@ -211,10 +211,12 @@ def test_streaming_registrar_searches_a_phone_once_when_on(monkeypatch) -> None:
         clicks = virtual_clicks(view, INTR, T, None, 0.0, 24)
         calls: list[str] = []
 
+        sources: list = []
+
         def found(recon, idx, lk, gray, intr, cfg, frames):  # noqa: ANN001, ANN202
             calls.append(recon.images[idx].name)
             assert gray.shape == (INTR.height_px, INTR.width_px)
-            assert frames == []  # the texture's sources: no fixed camera's frame registered yet
+            sources.extend(frames)
             return clicks, "test camera; 40 matches with cam-a/f.jpg agree"
 
         monkeypatch.setattr(streaming, "phone_anchor_in", found)
@@ -222,6 +224,10 @@ def test_streaming_registrar_searches_a_phone_once_when_on(monkeypatch) -> None:
         phone = PhotoInput("p0", FrameImage(jpeg), camera_id=None, focal_px=INTR.f_px)
         for on, expected in ((False, 0), (True, 1)):
             reg = StreamingRegistrar(StreamConfig(mapper=MapperConfig(phone_search=on)), depth_lookup=lookup, site="t")
+            fixed = PhotoInput("f0", FrameImage(jpeg), camera_id="cam-a", focal_px=INTR.f_px, capture_time_ns=7)
+            reg.register_anchor(fixed, *clicks)  # a fixed camera's frame: the texture source the search is given
+            rec = reg.poses["f0"]
+            as_registered = (rec.intrinsics, rec.world_from_camera.copy())
             reg._ensure_image(phone)
             asked = Outcome(reg._failed(phone, "needs clicks (test)", 0.0), needs_anchor="needs clicks (test)")
             got = reg._by_model(phone, asked)
@@ -231,6 +237,9 @@ def test_streaming_registrar_searches_a_phone_once_when_on(monkeypatch) -> None:
                 continue
             assert got.needs_anchor is None and got.registration.method == "model"
             assert "test camera" in got.registration.message
+            [(pixels, intr_f, wfc_f, t_f)] = sources  # the fixed camera's latest registered frame, as registered
+            assert pixels.shape == (INTR.height_px, INTR.width_px) and t_f == 7
+            assert intr_f == as_registered[0] and np.array_equal(wfc_f, as_registered[1])
             reg._by_model(phone, asked)  # searched once: the request stands, no second search
             assert len(calls) == 1
     finally:
