@@ -523,7 +523,13 @@ def real_protocols(cams: list[GtCamera], which: tuple[str, ...]) -> dict[str, Wr
 
 
 def synth_rows(
-    size: str, seed: int, runs: int, cfgs: dict, first_draw: int = 0, pycolmap_runs: int = 3
+    size: str,
+    seed: int,
+    runs: int,
+    cfgs: dict,
+    first_draw: int = 0,
+    pycolmap_runs: int = 3,
+    which: tuple[str, ...] = ("one", "answered", "realistic"),
 ) -> tuple[list[dict], str]:
     try:
         from constructaide.synth import ensure_site
@@ -533,7 +539,13 @@ def synth_rows(
     cams = load_synth(site)
     X = synth_checkpoints(site, cams)
     protocols: dict[str, Writer] = {}
-    for answer, label in (("none", "one anchor"), ("careful", "requests answered"), ("realistic", "realistic user")):
+    for key, answer, label in (
+        ("one", "none", "one anchor"),
+        ("answered", "careful", "requests answered"),
+        ("realistic", "realistic", "realistic user"),
+    ):
+        if key not in which:
+            continue
 
         def write(path: Path, draw: int, answer: str = answer) -> float | None:
             write_synth_anchor_file(site, cams, path, seed=draw, answer=answer)
@@ -597,7 +609,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--first-draw", type=int, default=0, help="click-noise draw of the first run (default 0)")
     ap.add_argument("--sets", default=None, help=f"comma-separated subset of {','.join(SETS)} (default: all)")
     ap.add_argument(
-        "--protocols", default=",".join(PROTOCOLS), help="real sets: 'one' anchor and/or requests 'answered'"
+        "--protocols",
+        default=",".join(PROTOCOLS),
+        help="'one' anchor and/or requests 'answered' (synthetic sites also 'realistic'; by default all three)",
     )
     ap.add_argument(
         "--variants",
@@ -685,7 +699,8 @@ def main(argv: list[str] | None = None) -> int:
                 "min here); its rows are from the earlier run named in the section 'registration (selected draws, "
                 "sets or variants)' of 2026-12-03 08:18"
             )
-        srows, note = synth_rows(size, seed, n, cfgs, first, pycolmap_runs=pyc)
+        synth_which = protocols if args.protocols != ",".join(PROTOCOLS) else ("one", "answered", "realistic")
+        srows, note = synth_rows(size, seed, n, cfgs, first, pycolmap_runs=pyc, which=synth_which)
         rows += srows
         if note:
             notes.append(note)

@@ -108,13 +108,16 @@ class PhoneSearchParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True)
     """... its centre this high above the terrain (a person's hand) ..."""
     max_from_gps_m: float = 9.0
     """... this near the GPS position (horizontally) ..."""
-    max_turn_deg: float = 5.0
+    max_turn_deg: float = 8.0
     """... turned at most this far by the refinement from the rotation the photo's lines gave (within a degree
     on most photos) ..."""
     ambiguity_shifts_rel: tuple[float, ...] = (0.05, 0.12)
     """... and unique: started again with the model moved this share of the width left, right, up and down in the
     photo, no refinement that lands elsewhere (``distinct_image_rel``) scores within ``texture_margin`` of it (a
-    wall of bricks filling the view lines up one brick aside as well)."""
+    wall of bricks filling the view lines up one brick aside as well) ..."""
+    ambiguity_steps_m: tuple[float, ...] = (1.5, 3.0, 4.5, 6.0)
+    """... nor started again this far aside (horizontally, across the view, both ways): a close-up of one bay of a
+    facade of like bays lines up a bay aside too, and the GPS cannot tell which."""
 
 
 def outside(footprint: tuple[F64, F64], centre_m: F64) -> bool:
@@ -440,19 +443,24 @@ def phone_anchor_by_texture(
     if best < p.min_texture_ncc or best - rival < p.texture_margin:
         return None, f"the fixed cameras' texture does not single out a camera: {why}"
     depth = float(np.median((pts - wfc[:3, 3]) @ wfc[:3, 2]))
-    for q in p.ambiguity_shifts_rel:
-        step = q * intr.width_px * depth / intr.f_px
-        for axis, sign in ((0, 1.0), (0, -1.0), (1, 1.0), (1, -1.0)):
-            start = wfc.copy()
-            start[:3, 3] += sign * step * wfc[:3, axis]
-            again = refined(start)
-            if again is None or _image_shift_rel(intr, again[1], pts, px) <= p.distinct_image_rel:
-                continue
-            if again[0] > best - p.texture_margin:
-                return None, (
-                    f"the fixed cameras' texture lines up as well elsewhere: {again[0]:.2f} against {best:.2f} with "
-                    f"the model moved {q:.0%} of the width (repeated texture)"
-                )
+    across = np.array([wfc[0, 0], wfc[1, 0], 0.0]) / max(math.hypot(wfc[0, 0], wfc[1, 0]), 1e-9)
+    moves = [
+        (sign * q * intr.width_px * depth / intr.f_px * wfc[:3, axis], f"the model moved {q:.0%} of the width")
+        for q in p.ambiguity_shifts_rel
+        for axis in (0, 1)
+        for sign in (1.0, -1.0)
+    ] + [(sign * m * across, f"the camera {m:g} m aside") for m in p.ambiguity_steps_m for sign in (1.0, -1.0)]
+    for move, how in moves:
+        start = wfc.copy()
+        start[:3, 3] += move
+        again = refined(start)
+        if again is None or _image_shift_rel(intr, again[1], pts, px) <= p.distinct_image_rel:
+            continue
+        if again[0] > best - p.texture_margin:
+            return None, (
+                f"the fixed cameras' texture lines up as well elsewhere: {again[0]:.2f} against {best:.2f} with {how} "
+                "(repeated texture)"
+            )
     return (px, pts), why
 
 

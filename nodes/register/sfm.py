@@ -187,6 +187,7 @@ def reconstruct(
     since_full = 0
 
     searched: set[str] = set()
+    not_found: dict[int, str] = {}  # why the model did not find an image's camera
 
     def model_anchor(u: int) -> bool:
         """Anchor the latest unregistered frame of ``u``'s fixed camera by the model, once per camera; a phone
@@ -207,6 +208,7 @@ def reconstruct(
             v = max(frames, key=lambda i: (recon.images[i].capture_time_ns, recon.images[i].name))
             clicks, why = by_model(v)
         if clicks is None:
+            not_found[v] = why
             return False
         try:
             register_anchor(recon, v, clicks, cfg)
@@ -230,6 +232,8 @@ def reconstruct(
             reason = f"only {counts[u]} matches to triangulated tracks (< {cfg.min_track_matches})"
             if u in failed_pnp and recon.images[u].message:
                 reason = recon.images[u].message.removeprefix("needs anchor clicks: ")
+            if u in not_found and "the model:" not in reason:
+                reason += f"; not found by the model: {not_found[u]}"
             recon.needs_anchor = [r for r in recon.needs_anchor if r[0] != name] + [(name, reason, counts[u])]
             clicks = clicks_for(u, reason, counts[u])
             if clicks is None:

@@ -164,7 +164,7 @@ def local_ncc(a: F32, b: F32, valid: NDArray[np.bool_], window_px: int, min_text
     k = (window_px, window_px)
 
     def box(x: F64) -> F64:
-        return cv2.boxFilter(x, -1, k, normalize=False)
+        return np.asarray(cv2.boxFilter(x, -1, k, normalize=False), np.float64)
 
     n = box(v)
     sa, sb = box(a * v), box(b * v)
@@ -214,7 +214,7 @@ def refine_by_texture(
     step has too few carried pixels or inliers."""
     p = params or TextureParams()
     wfc = np.asarray(world_from_camera, np.float64)
-    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)  # one per call: not thread-safe
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)  # type: ignore[attr-defined]  # per call
     for width in p.levels_px:
         photo = photo_by_width[width]
         hh, ww = photo.shape
