@@ -120,21 +120,21 @@ class MapperConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     # of the width 0.05-0.65 (all but one above 0.066).
     min_outline_contrast: float | None = 0.06
     # Experimental, off: a phone photo that would need anchor clicks is first searched for by the model
-    # (nodes/register/phonesearch.py: rotation from its straight lines, position around its GPS at hand height); a
-    # found camera is kept only when one registered fixed camera's frame's verified matches with it agree with it (at
-    # least phone_search_min_agreeing within a quarter percent of the width of their epipolar lines) and its outline
-    # contrast reaches min_outline_contrast. Outlines alone do not tell right from wrong on phone photos, and the
-    # matches' agreement let a camera 0.68-0.99 % of the width off through on the default synthetic site while finding
-    # one phone in 30 there (BENCHMARKS 'phones found by the model (notes, 2026-12-07)' and the section after it).
+    # (nodes/register/phonesearch.py: rotation from its straight lines, candidate positions around its GPS at hand
+    # height from the outline), each candidate refined and scored on the fixed cameras' texture carried through the
+    # model (phone_search_texture, below). BENCHMARKS 'phones found by the texture (notes, 2026-12-07)'.
     phone_search: bool = False
     phone_search_min_agreeing: int = 25
-    # ... and, after its refinement on those matches and its outline (phonesearch.refine_on_matches), agree again and
-    # lie on the photo's edges by at least this much more than slid aside.
+    # The older rule (phone_search_texture off): a found camera is kept only when one registered fixed camera's
+    # frame's verified matches agree with it (phone_search_min_agreeing within a quarter percent of the width of
+    # their epipolar lines), and after its refinement on those matches and its outline (phonesearch.refine_on_matches)
+    # agree again and lie on the photo's edges by at least phone_search_min_contrast more than slid aside. On the
+    # default site it let a camera 0.68-0.99 % of the width off through while finding one phone in 30.
     phone_search_min_contrast: float = 0.15
-    # With the phone search on, a found camera is confirmed by the fixed cameras' texture carried through the model
-    # instead of by matches (phonesearch.phone_anchor_by_texture: refined by dense flow against it, kept when it
-    # correlates best by a margin and stands where a person can); needs the registered frames' pixels (batch: their
-    # files; streaming: each fixed camera's latest registered frame).
+    # A found camera is confirmed by the fixed cameras' texture carried through the model instead of by matches
+    # (phonesearch.phone_anchor_by_texture: refined by dense flow against it, kept when it correlates best by a
+    # margin, stands where a person can and lines up nowhere else near); needs the registered frames' pixels (batch:
+    # their files; streaming: each fixed camera's latest registered frame).
     phone_search_texture: bool = True
     # Only anchors observing at least this many triangulated track points are released: the others' poses rest on
     # their clicks alone.

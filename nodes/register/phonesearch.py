@@ -19,9 +19,11 @@ metre aside moves the outline by a third of the image. So:
    pose and focal on the oriented chamfer, edge support against its chance level).
 
 The result is a ranked list, not a verdict: on the default synthetic site the best-scored camera is right for a
-third of the phone photos and wrong ones score as high on outlines alone (a wall of brick matches many views), so
-the caller keeps a camera only when the photo's own feature matches with registered photos agree with it
-(``nodes.register.sfm``). Poses: ``world_from_camera`` (4, 4), OpenCV camera frame, model metres, z up.
+third of the phone photos and wrong ones score as high on outlines alone (a wall of brick matches many views). So
+:func:`phone_anchor_by_texture` refines the coarse cameras on the fixed cameras' texture carried through the model
+(:mod:`nodes.register.texture`) and keeps the best only when it is plausible and unique; the older
+:func:`phone_anchor` keeps a camera when the photo's own feature matches with a registered fixed frame agree.
+Poses: ``world_from_camera`` (4, 4), OpenCV camera frame, model metres, z up.
 """
 
 from __future__ import annotations
