@@ -64,6 +64,7 @@ from nodes.register.texture import (
     TextureParams,
     TextureSource,
     refine_by_texture,
+    structure_score,
     texture_score,
     texture_source,
     work_gray,
@@ -72,6 +73,7 @@ from nodes.register.vanishing import VanishingParams, model_axes_yaw_deg, vanish
 from schemas.messages import GeoPoint, Intrinsics
 
 F64 = NDArray[np.float64]
+F32 = NDArray[np.float32]
 
 
 class PhoneSearchParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
@@ -120,6 +122,22 @@ class PhoneSearchParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True)
     ambiguity_steps_m: tuple[float, ...] = (1.5, 3.0, 4.5, 6.0)
     """... nor started again this far aside (horizontally, across the view, both ways): a close-up of one bay of a
     facade of like bays lines up a bay aside too, and the GPS cannot tell which."""
+    bay_scan_steps_m: tuple[float, float] = (0.5, 8.0)
+    """Before those tests the found camera is also tried moved along each of the model's horizontal axes by
+    multiples of the first (m) up to the second, unrefined, scored by the large structures
+    (:func:`~nodes.register.texture.structure_score`): the fine texture of a facade of like bays lines up a bay
+    aside nearly as well as in the right one, the columns, beams and windows around it do not ..."""
+    bay_scan_gain: float = 0.1
+    """... and where a move scores this much better than the found camera, the camera refined from there is taken
+    instead when its structures line up better too."""
+
+
+def model_axes_yaw(view: ModelView) -> float:
+    """Heading (deg, [0, 90)) of the model's first horizontal axis (:func:`model_axes_yaw_deg` of its faces)."""
+    scene = view.scene
+    tri = scene.positions_m.reshape(-1, 3, 3).astype(np.float64)
+    areas = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    return model_axes_yaw_deg(scene.normals.reshape(-1, 3, 3)[:, 0].astype(np.float64), areas)
 
 
 def outside(footprint: tuple[F64, F64], centre_m: F64) -> bool:
@@ -179,11 +197,7 @@ def search_phone(
     target = model_target(view, elements)
     if box is None or target is None:
         return []
-    scene = view.scene
-    tri = scene.positions_m.reshape(-1, 3, 3).astype(np.float64)
-    areas = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    axes_yaw = model_axes_yaw_deg(scene.normals.reshape(-1, 3, 3)[:, 0].astype(np.float64), areas)
-    rotations = vanishing_rotations(gray, intr, axes_yaw, vanishing)
+    rotations = vanishing_rotations(gray, intr, model_axes_yaw(view), vanishing)
     ground = 0.0 if ground_z_m is None else float(ground_z_m)
     ww, wh = work_size(intr, p.work_width_px)
     wi = msgspec.structs.replace(cam.scaled_intrinsics(intr, ww, wh), k1=0.0, k2=0.0)
@@ -435,11 +449,21 @@ def phone_anchor_by_texture(
         return None, f"none of {len(coarse)} cameras the outlines suggest lines up with the fixed cameras' texture"
     found.sort(key=lambda f: -f[0])
     best, wfc = found[0]
+    moved = bay_scan(view, photo[tp.score_width_px], intr, wfc, elements, ground, sources, xy, p, tp)
+    if moved is not None:
+        again = refined(moved)
+        own = structure_score(view, photo[tp.score_width_px], intr, wfc, elements, ground, sources, tp)[0]
+        if again is not None:
+            theirs = structure_score(view, photo[tp.score_width_px], intr, again[1], elements, ground, sources, tp)[0]
+            if theirs > own + p.bay_scan_gain:
+                found.append((best, wfc))
+                best, wfc = again
     px, pts = virtual_clicks(view, intr, wfc, elements, ground, count)
     if len(px) < 6:
         return None, "the camera the texture finds sees too little of the model to click"
     rival = max(
-        (s for s, other in found[1:] if _image_shift_rel(intr, other, pts, px) > p.distinct_image_rel), default=-1.0
+        (s for s, other in found if other is not wfc and _image_shift_rel(intr, other, pts, px) > p.distinct_image_rel),
+        default=-1.0,
     )
     why = f"texture correlation {best:.2f}, next camera that draws the model elsewhere {max(rival, 0.0):.2f}"
     if best < p.min_texture_ncc or best - rival < p.texture_margin:
@@ -464,6 +488,39 @@ def phone_anchor_by_texture(
                 "(repeated texture)"
             )
     return (px, pts), why
+
+
+def bay_scan(
+    view: ModelView,
+    photo_work: F32,
+    intr: Intrinsics,
+    wfc: F64,
+    elements: set[str] | None,
+    ground: float | None,
+    sources: list[TextureSource],
+    gps_xy: tuple[float, float],
+    p: PhoneSearchParams,
+    tp: TextureParams,
+) -> F64 | None:
+    """The camera ``wfc`` (world_from_camera (4, 4)) moved along one of the model's horizontal axes (steps
+    ``bay_scan_steps_m``, within ``max_from_gps_m`` of the GPS) whose large structures line up best with the photo,
+    when by ``bay_scan_gain`` better than ``wfc``'s own; else None."""
+    own = structure_score(view, photo_work, intr, wfc, elements, ground, sources, tp)[0]
+    step, reach = p.bay_scan_steps_m
+    yaw = math.radians(model_axes_yaw(view))
+    best, best_score = None, own + p.bay_scan_gain
+    for axis in (np.array([math.cos(yaw), math.sin(yaw), 0.0]), np.array([-math.sin(yaw), math.cos(yaw), 0.0])):
+        for k in range(-int(reach / step), int(reach / step) + 1):
+            if k == 0:
+                continue
+            start = wfc.copy()
+            start[:3, 3] += k * step * axis
+            if math.hypot(start[0, 3] - gps_xy[0], start[1, 3] - gps_xy[1]) > p.max_from_gps_m:
+                continue
+            score = structure_score(view, photo_work, intr, start, elements, ground, sources, tp)[0]
+            if score > best_score:
+                best, best_score = start, score
+    return best
 
 
 TextureFrame = tuple[NDArray[np.uint8], Intrinsics, F64, int]
