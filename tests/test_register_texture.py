@@ -20,7 +20,6 @@ from nodes.register.texture import (
     carry,
     local_ncc,
     refine_by_texture,
-    structure_score,
     texture_score,
     texture_source,
     work_gray,
@@ -120,10 +119,12 @@ def test_the_large_structures_line_up_at_the_true_pose_only(seed: int) -> None:
     try:
         sources = [texture_source(view, src, INTR, fixed, None, 0.0)]
         photo = work_gray(dst, 480)
-        true_score, n = structure_score(view, photo, INTR, phone, None, 0.0, sources)
+        true_score, n = texture_score(view, photo, INTR, phone, None, 0.0, sources, structures=True)
         assert n > 5000 and true_score > 0.5, (true_score, n)
         for step in (0.5, 2.0):
-            aside, _ = structure_score(view, photo, INTR, _moved(phone, step * phone[:3, 0], 0.0), None, 0.0, sources)
+            aside, _ = texture_score(
+                view, photo, INTR, _moved(phone, step * phone[:3, 0], 0.0), None, 0.0, sources, structures=True
+            )
             assert aside < true_score - 0.2, (step, aside, true_score)
         yaw = math.radians(model_axes_yaw(view))
         moved = _moved(phone, 2.0 * np.array([math.cos(yaw), math.sin(yaw), 0.0]), 0.0)

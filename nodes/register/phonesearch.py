@@ -64,7 +64,6 @@ from nodes.register.texture import (
     TextureParams,
     TextureSource,
     refine_by_texture,
-    structure_score,
     texture_score,
     texture_source,
     work_gray,
@@ -125,8 +124,8 @@ class PhoneSearchParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True)
     bay_scan_steps_m: tuple[float, float] = (0.5, 8.0)
     """Before those tests the found camera is also tried moved along each of the model's horizontal axes by
     multiples of the first (m) up to the second, unrefined, scored by the large structures
-    (:func:`~nodes.register.texture.structure_score`): the fine texture of a facade of like bays lines up a bay
-    aside nearly as well as in the right one, the columns, beams and windows around it do not ..."""
+    (:func:`~nodes.register.texture.texture_score` ``structures``): the fine texture of a facade of like bays
+    lines up a bay aside nearly as well as in the right one, the columns, beams and windows around it do not ..."""
     bay_scan_gain: float = 0.1
     """... and where a move scores this much better than the found camera, the camera refined from there is taken
     instead when its structures line up better too."""
@@ -452,9 +451,10 @@ def phone_anchor_by_texture(
     moved = bay_scan(view, photo[tp.score_width_px], intr, wfc, elements, ground, sources, xy, p, tp)
     if moved is not None:
         again = refined(moved)
-        own = structure_score(view, photo[tp.score_width_px], intr, wfc, elements, ground, sources, tp)[0]
+        work = photo[tp.score_width_px]
+        own = texture_score(view, work, intr, wfc, elements, ground, sources, tp, structures=True)[0]
         if again is not None:
-            theirs = structure_score(view, photo[tp.score_width_px], intr, again[1], elements, ground, sources, tp)[0]
+            theirs = texture_score(view, work, intr, again[1], elements, ground, sources, tp, structures=True)[0]
             if theirs > own + p.bay_scan_gain:
                 found.append((best, wfc))
                 best, wfc = again
@@ -505,7 +505,7 @@ def bay_scan(
     """The camera ``wfc`` (world_from_camera (4, 4)) moved along one of the model's horizontal axes (steps
     ``bay_scan_steps_m``, within ``max_from_gps_m`` of the GPS) whose large structures line up best with the photo,
     when by ``bay_scan_gain`` better than ``wfc``'s own; else None."""
-    own = structure_score(view, photo_work, intr, wfc, elements, ground, sources, tp)[0]
+    own = texture_score(view, photo_work, intr, wfc, elements, ground, sources, tp, structures=True)[0]
     step, reach = p.bay_scan_steps_m
     yaw = math.radians(model_axes_yaw(view))
     best, best_score = None, own + p.bay_scan_gain
@@ -517,7 +517,7 @@ def bay_scan(
             start[:3, 3] += k * step * axis
             if math.hypot(start[0, 3] - gps_xy[0], start[1, 3] - gps_xy[1]) > p.max_from_gps_m:
                 continue
-            score = structure_score(view, photo_work, intr, start, elements, ground, sources, tp)[0]
+            score = texture_score(view, photo_work, intr, start, elements, ground, sources, tp, structures=True)[0]
             if score > best_score:
                 best, best_score = start, score
     return best

@@ -59,8 +59,8 @@ class TextureParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     """A window counts only where both images vary by at least this grey-level variance."""
     min_scored_px: int = 200
     structure_sigma_px: float = 3.0
-    """Blur (Gaussian sigma, at ``score_width_px``) before the structure correlation (:func:`structure_score`): a
-    brick course or a joint is gone, a column, a beam or a window stays."""
+    """Blur (Gaussian sigma, at ``score_width_px``) before the structure correlation (:func:`texture_score`
+    ``structures``): a brick course or a joint is gone, a column, a beam or a window stays."""
     structure_window_px: int = 31
     """Side of the structure correlation's windows."""
 
@@ -190,43 +190,29 @@ def texture_score(
     ground_z_m: float | None,
     sources: list[TextureSource],
     params: TextureParams | None = None,
+    structures: bool = False,
 ) -> tuple[float, int]:
     """Mean local NCC between the photo (``photo_work``, :func:`work_gray` at ``score_width_px``) and the texture
     carried to the camera (``intr`` full resolution, pose), and the pixels it averages (-1 below
-    ``min_scored_px``)."""
+    ``min_scored_px``).
+
+    ``structures``: of both images blurred (``structure_sigma_px``, windows ``structure_window_px``; the carried
+    one over its valid pixels only, a normalised convolution): how well the photo's large structures (columns,
+    beams, windows, slab edges) line up with the carried ones, blind to a repeated fine texture (bricks, joints)
+    that lines up as well a course or a bay aside."""
     p = params or TextureParams()
     hh, ww = photo_work.shape
     wi = msgspec.structs.replace(cam.scaled_intrinsics(intr, ww, hh), k1=0.0, k2=0.0)
     c = carry(view, wi, world_from_camera, elements, ground_z_m, sources, p)
-    ncc, ok = local_ncc(photo_work, c.image, c.valid, p.window_px, p.min_texture)
-    n = int(ok.sum())
-    return (float(ncc[ok].mean()) if n >= p.min_scored_px else -1.0), n
-
-
-def structure_score(
-    view: ModelView,
-    photo_work: F32,
-    intr: Intrinsics,
-    world_from_camera: F64,
-    elements: set[str] | None,
-    ground_z_m: float | None,
-    sources: list[TextureSource],
-    params: TextureParams | None = None,
-) -> tuple[float, int]:
-    """:func:`texture_score` of the blurred images (``structure_sigma_px``, windows ``structure_window_px``): how
-    well the photo's large structures (columns, beams, windows, slab edges) line up with the carried ones, blind to
-    a repeated fine texture (bricks, joints) that lines up as well a course or a bay aside. The carried image is
-    blurred over its valid pixels only (normalised convolution); -1 below ``min_scored_px`` pixels."""
-    p = params or TextureParams()
-    hh, ww = photo_work.shape
-    wi = msgspec.structs.replace(cam.scaled_intrinsics(intr, ww, hh), k1=0.0, k2=0.0)
-    c = carry(view, wi, world_from_camera, elements, ground_z_m, sources, p)
-    s = p.structure_sigma_px
-    photo = np.asarray(cv2.GaussianBlur(photo_work.astype(np.float32), (0, 0), s), np.float32)
-    weight = cv2.GaussianBlur(c.valid.astype(np.float32), (0, 0), s)
-    blurred = cv2.GaussianBlur(np.where(c.valid, c.image, 0.0).astype(np.float32), (0, 0), s)
-    carried = (blurred / np.maximum(weight, 1e-3)).astype(np.float32)
-    ncc, ok = local_ncc(photo, carried, c.valid & (weight > 0.7), p.structure_window_px, 1.0)
+    if structures:
+        s = p.structure_sigma_px
+        photo = np.asarray(cv2.GaussianBlur(photo_work.astype(np.float32), (0, 0), s), np.float32)
+        weight = cv2.GaussianBlur(c.valid.astype(np.float32), (0, 0), s)
+        blurred = cv2.GaussianBlur(np.where(c.valid, c.image, 0.0).astype(np.float32), (0, 0), s)
+        carried = (blurred / np.maximum(weight, 1e-3)).astype(np.float32)
+        ncc, ok = local_ncc(photo, carried, c.valid & (weight > 0.7), p.structure_window_px, 1.0)
+    else:
+        ncc, ok = local_ncc(photo_work, c.image, c.valid, p.window_px, p.min_texture)
     n = int(ok.sum())
     return (float(ncc[ok].mean()) if n >= p.min_scored_px else -1.0), n
 
