@@ -407,10 +407,10 @@ def phone_anchor_by_texture(
     """A phone photo ``gray`` (H, W) found by the model (:func:`search_phone`'s coarse cameras, lens prior ``intr``,
     GPS ``gps``), each refined on the texture of registered photos carried through the model
     (:func:`~nodes.register.texture.refine_by_texture`, ``sources``) and scored by its correlation with it
-    (:func:`~nodes.register.texture.texture_score`); the best is taken when it stands where a person can (height,
-    near the GPS, outside the building), correlates by at least ``min_texture_ncc`` and beats every camera that draws
-    the model elsewhere by ``texture_margin``. Returns model-point clicks (pixels (N, 2) full resolution, points (N,
-    3) m) for the anchor solve, or None, and why."""
+    (:func:`~nodes.register.texture.texture_score`), the best also tried a bay aside (:func:`bay_scan`); it is
+    taken when it stands where a person can (height, near the GPS, outside the building), correlates by at least
+    ``min_texture_ncc`` and beats every camera that draws the model elsewhere by ``texture_margin``. Returns
+    model-point clicks (pixels (N, 2) full resolution, points (N, 3) m) for the anchor solve, or None, and why."""
     xy, why = gps_in_model(lookup, gps)
     if xy is None:
         return None, why
