@@ -130,9 +130,9 @@ def test_the_large_structures_line_up_at_the_true_pose_only(seed: int) -> None:
         moved = _moved(phone, 2.0 * np.array([math.cos(yaw), math.sin(yaw), 0.0]), 0.0)
         gps = (float(phone[0, 3]), float(phone[1, 3]))
         p, tp = PhoneSearchParams(), TextureParams()
-        back = bay_scan(view, photo, INTR, moved, None, 0.0, sources, gps, p, tp)
+        back, _ = bay_scan(view, photo, INTR, moved, None, 0.0, sources, gps, p, tp)
         assert back is not None and np.linalg.norm(back[:3, 3] - phone[:3, 3]) < 1e-6
-        assert bay_scan(view, photo, INTR, phone, None, 0.0, sources, gps, p, tp) is None
+        assert bay_scan(view, photo, INTR, phone, None, 0.0, sources, gps, p, tp)[0] is None
     finally:
         view.close()
 

@@ -448,11 +448,10 @@ def phone_anchor_by_texture(
         return None, f"none of {len(coarse)} cameras the outlines suggest lines up with the fixed cameras' texture"
     found.sort(key=lambda f: -f[0])
     best, wfc = found[0]
-    moved = bay_scan(view, photo[tp.score_width_px], intr, wfc, elements, ground, sources, xy, p, tp)
+    work = photo[tp.score_width_px]
+    moved, own = bay_scan(view, work, intr, wfc, elements, ground, sources, xy, p, tp)
     if moved is not None:
         again = refined(moved)
-        work = photo[tp.score_width_px]
-        own = texture_score(view, work, intr, wfc, elements, ground, sources, tp, structures=True)[0]
         if again is not None:
             theirs = texture_score(view, work, intr, again[1], elements, ground, sources, tp, structures=True)[0]
             if theirs > own + p.bay_scan_gain:
@@ -501,10 +500,10 @@ def bay_scan(
     gps_xy: tuple[float, float],
     p: PhoneSearchParams,
     tp: TextureParams,
-) -> F64 | None:
+) -> tuple[F64 | None, float]:
     """The camera ``wfc`` (world_from_camera (4, 4)) moved along one of the model's horizontal axes (steps
     ``bay_scan_steps_m``, within ``max_from_gps_m`` of the GPS) whose large structures line up best with the photo,
-    when by ``bay_scan_gain`` better than ``wfc``'s own; else None."""
+    when by ``bay_scan_gain`` better than ``wfc``'s own, else None; and ``wfc``'s own structure score."""
     own = texture_score(view, photo_work, intr, wfc, elements, ground, sources, tp, structures=True)[0]
     step, reach = p.bay_scan_steps_m
     yaw = math.radians(model_axes_yaw(view))
@@ -520,7 +519,7 @@ def bay_scan(
             score = texture_score(view, photo_work, intr, start, elements, ground, sources, tp, structures=True)[0]
             if score > best_score:
                 best, best_score = start, score
-    return best
+    return best, own
 
 
 TextureFrame = tuple[NDArray[np.uint8], Intrinsics, F64, int]
