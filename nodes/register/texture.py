@@ -131,31 +131,37 @@ def carry(
     z = depth[vv, uu].astype(np.float64)
     xy = cam.pixels_to_normalized(work_intr, np.c_[uu, vv].astype(np.float64))
     points = np.c_[xy * z[:, None], z] @ world_from_camera[:3, :3].T + world_from_camera[:3, 3]
+    nearest = np.full(len(points), np.inf, np.float32)
+    chosen = np.full(len(points), -1)
+    pts32 = points.astype(np.float32)
+    for k, s in enumerate(sources):  # which source sees each point nearest (its depth render agrees)
+        cfw = cam.invert_rigid(s.world_from_camera)
+        p_cam = pts32 @ cfw[:3, :3].T.astype(np.float32) + cfw[:3, 3].astype(np.float32)  # pinhole render: no lens
+        zs = p_cam[:, 2]
+        (fx, fy), di = cam.focal_xy(s.depth_intrinsics), s.depth_intrinsics
+        with np.errstate(divide="ignore", invalid="ignore"):
+            col = np.rint(fx * p_cam[:, 0] / zs + di.cx_px)
+            row = np.rint(fy * p_cam[:, 1] / zs + di.cy_px)
+        dh, dw = s.depth_m.shape
+        at = np.flatnonzero((zs > 0.1) & (col >= 0) & (col < dw) & (row >= 0) & (row < dh))  # NaN compares False
+        seen = s.depth_m[row[at].astype(np.int64), col[at].astype(np.int64)]
+        zt = zs[at]
+        at = at[(np.abs(seen - zt) < p.visible_rel * zt + p.visible_m) & (zt < nearest[at])]
+        nearest[at] = zs[at]
+        chosen[at] = k
     image = np.zeros((hh, ww), np.float32)
     valid = np.zeros((hh, ww), bool)
-    nearest = np.full(len(points), np.inf)
-    for s in sources:
-        cfw = cam.invert_rigid(s.world_from_camera)
-        uv, zs = cam.project_points(s.depth_intrinsics, cfw, points)
-        dh, dw = s.depth_m.shape
-        inside = np.isfinite(uv).all(axis=1) & (zs > 0.1)
-        ij = np.zeros((len(points), 2), np.int64)
-        ij[inside] = np.rint(uv[inside]).astype(np.int64)
-        inside &= (ij[:, 0] >= 0) & (ij[:, 0] < dw) & (ij[:, 1] >= 0) & (ij[:, 1] < dh)
-        seen = np.full(len(points), np.inf)
-        seen[inside] = s.depth_m[ij[inside, 1], ij[inside, 0]]
-        take = inside & (np.abs(seen - zs) < p.visible_rel * zs + p.visible_m) & (zs < nearest)
-        if not take.any():
+    for k, s in enumerate(sources):
+        at = np.flatnonzero(chosen == k)
+        if len(at) == 0:
             continue
-        nearest[take] = zs[take]
-        uv_full, _ = cam.project_points(s.intrinsics, cfw, points[take])  # with the source's lens distortion
-        map_x = np.full((hh, ww), -10.0, np.float32)
-        map_y = np.full((hh, ww), -10.0, np.float32)
-        map_x[vv[take], uu[take]] = uv_full[:, 0]
-        map_y[vv[take], uu[take]] = uv_full[:, 1]
-        sampled = cv2.remap(s.gray, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        image[vv[take], uu[take]] = sampled[vv[take], uu[take]]
-        valid[vv[take], uu[take]] = True
+        uv_full, _ = cam.project_points(s.intrinsics, cam.invert_rigid(s.world_from_camera), points[at])  # lens on
+        rows = -(-len(at) // 256)  # remap wants a 2-D map under 32767 a side: rows of 256
+        maps = np.full((rows * 256, 2), -10.0, np.float32)
+        maps[: len(at)] = uv_full
+        sampled = cv2.remap(s.gray, maps.reshape(rows, 256, 2), None, cv2.INTER_LINEAR, borderValue=0)
+        image[vv[at], uu[at]] = sampled.ravel()[: len(at)]
+        valid[vv[at], uu[at]] = True
     grid = np.zeros((hh, ww, 3))
     grid[vv, uu] = points
     return Carried(image, valid, grid)
