@@ -521,3 +521,51 @@ def test_pair_rotation_agreement_refuses_a_turned_pose(synthetic_run, turn_deg):
     bad, n_bad = pose.pair_rotation_agreement(recon, k, im.intrinsics, turned, cfg)
     assert n_bad == n and bad < cfg.min_pair_rotation_agreement
     assert "strong pairs" in mapper.rotation_refusal(recon, k, im.intrinsics, turned, cfg)
+
+
+def test_the_model_searches_fixed_cameras_before_phones_and_a_phone_again_when_more_cameras_register():
+    """One anchor (cam-0's view0), a second fixed camera (cam-far, view3) the model does not find, two phone photos
+    of another scene (no matches). Every model search comes before a person is asked; in each round the fixed
+    camera's frame before the phones; a phone searched once more only after the person's clicks registered
+    cam-far (more fixed cameras carry texture to it), never a third time."""
+    rng = np.random.default_rng(5)
+    pts = scene_points(rng)
+    desc = rng.normal(size=(len(pts), 128))
+    poses = arc_cameras(4)
+    recon = rc.Reconstruction()
+    rc.add_image(recon, "view0", make_features(rng, pts, desc, poses[0])[0], camera_id="cam-0")
+    rc.add_image(recon, "view3", make_features(rng, pts, desc, poses[3])[0], camera_id="cam-far")
+    for k in (1, 2):
+        other = scene_points(rng, 600) + [0, 0, 50 * k]
+        pose_k = cam.look_at([0, -20, 50 * k + 3], [0, 0, 50 * k + 3])
+        rc.add_image(recon, f"phone{k}", make_features(rng, other, rng.normal(size=(600, 128)), pose_k)[0])
+    log: list[tuple[str, str, frozenset]] = []
+
+    def fixed_now() -> frozenset:
+        return frozenset(recon.images[j].camera_id for j in recon.registered_indices())
+
+    def by_model(i: int):
+        log.append(("model", recon.images[i].name, fixed_now()))
+        return None, "not found (stub)"
+
+    def by_phone(i: int):
+        log.append(("phone", recon.images[i].name, fixed_now()))
+        return None, "not found (stub)"
+
+    def request(name: str, reason: str, n: int):
+        log.append(("person", name, fixed_now()))
+        return clicks_for(np.random.default_rng(3), pts, poses[3]) if name == "view3" else None
+
+    cfg = config.MapperConfig(focal_px=F, bootstrap=False, min_anchors=1, model_search=True, phone_search=True)
+    sfm.reconstruct(
+        recon, {"view0": clicks_for(rng, pts, poses[0])}, cfg, request, by_model=by_model, by_phone=by_phone
+    )
+    assert recon.images[recon.index("view3")].registered
+    first_person = next(k for k, e in enumerate(log) if e[0] == "person")
+    searches = [e for e in log[:first_person]]
+    assert searches[0][:2] == ("model", "view3")  # the fixed camera's frame first
+    assert {e[1] for e in searches[1:]} == {"phone1", "phone2"} and all(e[0] == "phone" for e in searches[1:])
+    for name in ("phone1", "phone2"):
+        seen = [e[2] for e in log if e[0] == "phone" and e[1] == name]
+        assert seen == [frozenset({"cam-0"}), frozenset({"cam-0", "cam-far"})], (name, seen)
+    assert sum(1 for e in log if e[0] == "model") == 1  # a fixed camera is searched once

@@ -449,14 +449,14 @@ def phone_anchor_by_texture(
     found.sort(key=lambda f: -f[0])
     best, wfc = found[0]
     work = photo[tp.score_width_px]
-    moved, own = bay_scan(view, work, intr, wfc, elements, ground, sources, xy, p, tp)
+    moved, structure = bay_scan(view, work, intr, wfc, elements, ground, sources, xy, p, tp)
     if moved is not None:
         again = refined(moved)
         if again is not None:
             theirs = texture_score(view, work, intr, again[1], elements, ground, sources, tp, structures=True)[0]
-            if theirs > own + p.bay_scan_gain:
+            if theirs > structure + p.bay_scan_gain:
                 found.append((best, wfc))
-                best, wfc = again
+                (best, wfc), structure = again, theirs
     px, pts = virtual_clicks(view, intr, wfc, elements, ground, count)
     if len(px) < 6:
         return None, "the camera the texture finds sees too little of the model to click"
@@ -464,7 +464,10 @@ def phone_anchor_by_texture(
         (s for s, other in found if other is not wfc and _image_shift_rel(intr, other, pts, px) > p.distinct_image_rel),
         default=-1.0,
     )
-    why = f"texture correlation {best:.2f}, next camera that draws the model elsewhere {max(rival, 0.0):.2f}"
+    why = (
+        f"texture correlation {best:.2f} (large structures {structure:.2f}), next camera that draws the model "
+        f"elsewhere {max(rival, 0.0):.2f}"
+    )
     if best < p.min_texture_ncc or best - rival < p.texture_margin:
         return None, f"the fixed cameras' texture does not single out a camera: {why}"
     depth = float(np.median((pts - wfc[:3, 3]) @ wfc[:3, 2]))

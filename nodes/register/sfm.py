@@ -186,18 +186,22 @@ def reconstruct(
     pruned: set[int] = set()  # registered images detached from the tracks their camera does not explain
     since_full = 0
 
-    searched: set[str] = set()
+    searched: set[str] = set()  # fixed cameras searched by the model
+    phone_searched: dict[str, frozenset[str | None]] = {}  # phone photo -> the fixed cameras registered then
     not_found: dict[int, str] = {}  # why the model did not find an image's camera
 
     def model_anchor(u: int) -> bool:
         """Anchor the latest unregistered frame of ``u``'s fixed camera by the model, once per camera; a phone
-        photo ``u`` itself, once."""
+        photo ``u`` itself, again only when more fixed cameras are registered than at its last search."""
         nonlocal dirty
         cid = recon.images[u].camera_id
-        if cid is None:  # a phone photo: itself, once
-            if by_phone is None or not cfg.phone_search or recon.images[u].name in searched:
+        if cid is None:  # a phone photo: itself, again only once more fixed cameras carry texture to it
+            fixed = frozenset(recon.images[j].camera_id for j in recon.registered_indices()) - {None}
+            name = recon.images[u].name
+            last = phone_searched.get(name)
+            if by_phone is None or not cfg.phone_search or (last is not None and not fixed > last):
                 return False
-            searched.add(recon.images[u].name)
+            phone_searched[name] = fixed
             v = u
             clicks, why = by_phone(v)
         else:
@@ -222,12 +226,14 @@ def reconstruct(
         return True
 
     def ask_anchor(candidates: list[int]) -> bool:
-        """Ask for clicks on ``candidates`` in turn (each request recorded); True once one is anchored. A fixed
-        camera's frame is first searched for by the model (:func:`model_anchor`)."""
+        """Ask for clicks on ``candidates`` in turn (each request recorded); True once one is anchored. First the
+        model searches them (:func:`model_anchor`): every fixed camera's frame, then the phone photos (found on the
+        texture the fixed cameras registered by then carry), and only then is a person asked."""
         nonlocal dirty
-        for u in candidates:
+        for u in sorted(candidates, key=lambda i: recon.images[i].camera_id is None):  # stable: fixed cameras first
             if model_anchor(u):
                 return True
+        for u in candidates:
             name = recon.images[u].name
             reason = f"only {counts[u]} matches to triangulated tracks (< {cfg.min_track_matches})"
             if u in failed_pnp and recon.images[u].message:
