@@ -189,7 +189,8 @@ def test_refinement_on_matches_and_outline(seed: int) -> None:
 
 def test_streaming_registrar_searches_a_phone_once_when_on(monkeypatch) -> None:  # noqa: ANN001
     """With ``phone_search`` on, a phone photo that needs clicks goes to ``phone_anchor_in`` once (not again on its
-    next try) and a camera it returns registers the photo by the model (no request); off, nothing is searched."""
+    next try, only once more fixed cameras carry texture) and a camera it returns registers the photo by the model
+    (no request); off, nothing is searched."""
     import cv2
     from test_register_modelalign import INTR, _true_camera
     from test_register_modelalign import _photo as _box_photo
@@ -240,8 +241,15 @@ def test_streaming_registrar_searches_a_phone_once_when_on(monkeypatch) -> None:
             [(pixels, intr_f, wfc_f, t_f)] = sources  # the fixed camera's latest registered frame, as registered
             assert pixels.shape == (INTR.height_px, INTR.width_px) and t_f == 7
             assert intr_f == as_registered[0] and np.array_equal(wfc_f, as_registered[1])
-            reg._by_model(phone, asked)  # searched once: the request stands, no second search
+            reg._by_model(phone, asked)  # the same fixed cameras: the request stands, no second search
             assert len(calls) == 1
+            other = PhotoInput("f1", FrameImage(jpeg), camera_id="cam-b", focal_px=INTR.f_px, capture_time_ns=8)
+            reg.register_anchor(other, *clicks)  # one more fixed camera carries texture: searched again, with both
+            sources.clear()
+            reg._by_model(phone, asked)
+            assert len(calls) == 2 and len(sources) == 2
+            reg._by_model(phone, asked)
+            assert len(calls) == 2
     finally:
         view.close()
         lookup.close()

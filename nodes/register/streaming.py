@@ -289,16 +289,19 @@ class StreamingRegistrar:
     def _phone_by_model(self, photo: PhotoInput, out: Outcome, lookup: MeshDepthLookup) -> Outcome:
         """A phone photo that needs clicks, anchored by the model when the fixed cameras' latest frames' texture (or its
         matches with registered photos) confirm a camera the outlines suggest
-        (:func:`~nodes.register.phonesearch.phone_anchor_in`, once per photo); else ``out``."""
-        tried: set[str] = self.__dict__.setdefault("phones_searched", set())
-        if not self.mcfg.phone_search or photo.photo_id in tried or photo.photo_id not in self.recon:
+        (:func:`~nodes.register.phonesearch.phone_anchor_in`; once per photo, again only when more fixed cameras
+        carry texture to it than at its last search); else ``out``."""
+        tried: dict[str, frozenset[str]] = self.__dict__.setdefault("phones_searched", {})
+        latest: dict[str, tuple[str, np.ndarray]] = self.__dict__.get("latest_frames", {})
+        cameras = frozenset(c for c, (p, _) in latest.items() if p in self.poses)
+        last = tried.get(photo.photo_id)
+        if not self.mcfg.phone_search or (last is not None and not cameras > last) or photo.photo_id not in self.recon:
             return out
-        tried.add(photo.photo_id)
+        tried[photo.photo_id] = cameras
         idx = self.recon.index(photo.photo_id)
         w, h = self.recon.images[idx].width_px, self.recon.images[idx].height_px
         intr = cam.centered_intrinsics(w, h, self.mcfg.focal_px or photo.focal_px or cam.focal_from_fov(w, 50.0))
         try:
-            latest: dict[str, tuple[str, np.ndarray]] = self.__dict__.get("latest_frames", {})
             frames = [(px, self.poses[p].intrinsics, self.poses[p].world_from_camera, self.poses[p].capture_time_ns)
                       for p, px in latest.values() if p in self.poses]  # fmt: skip
             clicks, why = phone_anchor_in(self.recon, idx, lookup, photo.image.gray(), intr, self.mcfg, frames)
