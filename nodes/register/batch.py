@@ -31,6 +31,7 @@ import numpy as np
 from tqdm import tqdm
 
 from constructaide import camera as cam
+from constructaide.anchorsolve import DegenerateAnchors
 from constructaide.bim.ifc import load_site_model
 from constructaide.errors import UserError
 from constructaide.geo import exif_gps
@@ -41,9 +42,10 @@ from nodes.register.colmap_io import ColmapImage, ColmapModel, write_text_model
 from nodes.register.config import MapperConfig
 from nodes.register.densify import DensifyParams, densify_reconstruction
 from nodes.register.features import Features, extract_features
+from nodes.register.mapper import register_anchor
 from nodes.register.modelalign import AlignParams, Polished, PolishPolicy, ViewPolish, polish_registration
 from nodes.register.modelsearch import OutlineCheck, model_anchor
-from nodes.register.phonesearch import nearest_fixed_frames, phone_anchor_in
+from nodes.register.phonesearch import nearest_fixed_frames, phone_anchor_in, retexture
 from nodes.register.pose import epipolar_agreement
 from nodes.register.recon import Clicks, Reconstruction, add_image, focal_prior
 from nodes.register.sfm import reconstruct
@@ -335,6 +337,33 @@ def _gray(path: Path) -> np.ndarray:
     return img
 
 
+def retexture_phones(recon: Reconstruction, paths: dict[str, Path], lookup: MeshDepthLookup, cfg: MapperConfig) -> int:
+    """Phone photos the texture found (method "model", no camera) refined again on the fixed cameras' frames at
+    their final poses (:func:`~nodes.register.phonesearch.retexture`) and solved from the new model-point clicks, in
+    place. Returns how many moved."""
+    moved = 0
+    for i, im in enumerate(recon.images):
+        if not (im.registered and im.method == "model" and im.camera_id is None):
+            continue
+        frames = [
+            (_gray(paths[o.name]), o.camera, o.pose, o.capture_time_ns)
+            for o in (recon.images[j] for j in nearest_fixed_frames(recon, im.capture_time_ns))
+        ]
+        clicks = retexture(
+            lookup, _gray(paths[im.name]), im.camera, im.pose, im.capture_time_ns, frames, cfg.model_search_clicks
+        )
+        if clicks is None:
+            continue
+        message = im.message
+        try:
+            register_anchor(recon, i, clicks, cfg)
+        except DegenerateAnchors:
+            continue
+        im.method, im.message = "model", f"{message}; refined again on the fixed cameras' final poses"
+        moved += 1
+    return moved
+
+
 def polish_reconstruction(
     recon: Reconstruction,
     paths: dict[str, Path],
@@ -490,6 +519,8 @@ def run_batch(
     )
     bar_m.close()
     bar_r.close()
+    if lookup is not None and cfg.phone_search and cfg.phone_search_texture:
+        retexture_phones(recon, paths, lookup, cfg)
     polish_notes: dict[str, str] = {}
     t_polish = time.perf_counter()
     if lookup is not None and polish_params:

@@ -530,6 +530,44 @@ TextureFrame = tuple[NDArray[np.uint8], Intrinsics, F64, int]
 capture time (ns)."""
 
 
+def retexture(
+    lookup: MeshDepthLookup,
+    gray: NDArray[np.uint8],
+    intr: Intrinsics,
+    world_from_camera: F64,
+    capture_time_ns: int,
+    frames: list[TextureFrame],
+    count: int = 24,
+    params: PhoneSearchParams | None = None,
+    texture: TextureParams | None = None,
+) -> tuple[F64, F64] | None:
+    """A phone camera found by the texture (``world_from_camera`` (4, 4), lens ``intr``) refined again on the
+    texture of ``frames`` at their final poses (the fixed frames it was found on moved in the adjustments since,
+    and their errors of then stay in it), at the finest working width; its model-point clicks (pixels (N, 2),
+    points (N, 3) m) or None when the refinement fails or turns the camera by more than ``max_turn_deg``."""
+    if not frames:
+        return None
+    p, tp = params or PhoneSearchParams(), texture or TextureParams()
+    view, ground = lookup.view, lookup.ground_height_m
+    sources = [texture_source(view, px, i, wfc, lookup.elements(t), ground) for px, i, wfc, t in frames]
+    elements = lookup.elements(capture_time_ns)
+    fine = max(tp.levels_px)
+    again = refine_by_texture(
+        view,
+        {fine: work_gray(gray, fine)},
+        intr,
+        world_from_camera,
+        elements,
+        ground,
+        sources,
+        msgspec.structs.replace(tp, levels_px=tuple(w for w in tp.levels_px if w == fine)),
+    )
+    if again is None or cam.rotation_angle_deg(again[:3, :3], world_from_camera[:3, :3]) > p.max_turn_deg:
+        return None
+    px, pts = virtual_clicks(view, intr, again, elements, ground, count)
+    return (px, pts) if len(px) >= 6 else None
+
+
 def nearest_fixed_frames(recon: Reconstruction, capture_time_ns: int) -> list[int]:
     """Per fixed camera, its registered frame nearest in time to ``capture_time_ns`` (image indices)."""
     best: dict[str, int] = {}
