@@ -544,7 +544,8 @@ def retexture(
     """A phone camera found by the texture (``world_from_camera`` (4, 4), lens ``intr``) refined again on the
     texture of ``frames`` at their final poses (the fixed frames it was found on moved in the adjustments since,
     and their errors of then stay in it), at the finest working width; its model-point clicks (pixels (N, 2),
-    points (N, 3) m) or None when the refinement fails or turns the camera by more than ``max_turn_deg``."""
+    points (N, 3) m) or None when the refinement fails, turns the camera by more than ``max_turn_deg`` or does not
+    line up better with the texture (:func:`~nodes.register.texture.texture_score`) than the camera it started from."""
     if not frames:
         return None
     p, tp = params or PhoneSearchParams(), texture or TextureParams()
@@ -564,6 +565,12 @@ def retexture(
     )
     if again is None or cam.rotation_angle_deg(again[:3, :3], world_from_camera[:3, :3]) > p.max_turn_deg:
         return None
+    work = work_gray(gray, tp.score_width_px)
+    if (
+        texture_score(view, work, intr, again, elements, ground, sources, tp)[0]
+        <= texture_score(view, work, intr, world_from_camera, elements, ground, sources, tp)[0]
+    ):
+        return None  # the texture at the final poses lines up no better there
     px, pts = virtual_clicks(view, intr, again, elements, ground, count)
     return (px, pts) if len(px) >= 6 else None
 
