@@ -337,11 +337,13 @@ def _gray(path: Path) -> np.ndarray:
     return img
 
 
-def retexture_phones(recon: Reconstruction, paths: dict[str, Path], lookup: MeshDepthLookup, cfg: MapperConfig) -> int:
+def retexture_phones(
+    recon: Reconstruction, paths: dict[str, Path], lookup: MeshDepthLookup, cfg: MapperConfig
+) -> set[str]:
     """Phone photos the texture found (method "model", no camera) refined again on the fixed cameras' frames at
-    their final poses (:func:`~nodes.register.phonesearch.retexture`) and solved from the new model-point clicks, in
-    place. Returns how many moved."""
-    moved = 0
+    their final (polished) poses (:func:`~nodes.register.phonesearch.retexture`) and solved from the new model-point
+    clicks, in place. Returns the names of those that moved."""
+    moved: set[str] = set()
     for i, im in enumerate(recon.images):
         if not (im.registered and im.method == "model" and im.camera_id is None):
             continue
@@ -360,7 +362,7 @@ def retexture_phones(recon: Reconstruction, paths: dict[str, Path], lookup: Mesh
         except DegenerateAnchors:
             continue
         im.method, im.message = "model", f"{message}; refined again on the fixed cameras' final poses"
-        moved += 1
+        moved.add(im.name)
     return moved
 
 
@@ -371,14 +373,18 @@ def polish_reconstruction(
     params: AlignParams | None = None,
     policy: PolishPolicy | None = None,
     progress: Callable[[int, int], None] | None = None,
+    only: set[str] | None = None,
 ) -> dict[str, str]:
     """Polish the registered images' poses and intrinsics by the model outline, in place, as the register node
     polishes what it publishes (:func:`nodes.register.modelalign.polish_registration`: fixed cameras' frames, one
-    polish per view, and anchored phone photos with their accepted clicks), in capture order. Returns a note per
-    image: how it was polished, or why not."""
+    polish per view, and anchored phone photos with their accepted clicks), in capture order (``only``: these
+    images). Returns a note per image: how it was polished, or why not."""
     params = params or AlignParams()
     views: dict[str, ViewPolish] = {}
-    order = sorted((im for im in recon.images if im.registered), key=lambda im: (im.capture_time_ns, im.name))
+    order = sorted(
+        (im for im in recon.images if im.registered and (only is None or im.name in only)),
+        key=lambda im: (im.capture_time_ns, im.name),
+    )
     notes: dict[str, str] = {}
     for k, im in enumerate(order):
         path = paths[im.name]
@@ -519,10 +525,9 @@ def run_batch(
     )
     bar_m.close()
     bar_r.close()
-    if lookup is not None and cfg.phone_search and cfg.phone_search_texture:
-        retexture_phones(recon, paths, lookup, cfg)
     polish_notes: dict[str, str] = {}
     t_polish = time.perf_counter()
+    retextured = lookup is not None and cfg.phone_search and cfg.phone_search_texture
     if lookup is not None and polish_params:
         bar_p = tqdm(total=0, desc="outline polish", unit="img", disable=not show_progress, file=sys.stderr)
 
@@ -532,11 +537,19 @@ def run_batch(
 
         try:
             polish_notes = polish_reconstruction(recon, dict(named), lookup, polish_params, progress=pprog)
+            # phones found on the fixed frames' texture: again on their polished poses, then polished themselves
+            moved = retexture_phones(recon, paths, lookup, cfg) if retextured else set()
+            if moved:
+                polish_notes |= polish_reconstruction(recon, dict(named), lookup, polish_params, only=moved)
         finally:
             lookup.close()  # the GL context and the model's buffers
             bar_p.close()
     elif lookup is not None:
-        lookup.close()
+        try:
+            if retextured:
+                retexture_phones(recon, paths, lookup, cfg)
+        finally:
+            lookup.close()
     polish_secs = time.perf_counter() - t_polish
     dense_stats = None
     if densify_params is not None:
