@@ -169,7 +169,8 @@ def test_refinement_on_the_texture_reaches_the_true_pose(seed: int) -> None:
 def test_a_found_phone_refined_again_on_the_final_source_poses(seed: int) -> None:
     """A phone camera found on a fixed frame whose pose has moved since (the camera 0.15 m and 0.3 deg off, as
     found on the frame's pose of then) is refined again on the frame at its final (here true) pose: its model-point
-    clicks put it within 0.3 % of the width, at most half as far off as it was; no frames, or a camera turned to the sky: None."""
+    clicks put it within 0.3 % of the width, at most half as far off as it was; no frames, or a camera turned to the
+    sky: None."""
     view, allv, fixed, src, phone, dst = _scene(seed)
     try:
         rng = np.random.default_rng(300 + seed)
