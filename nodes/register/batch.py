@@ -45,7 +45,7 @@ from nodes.register.features import Features, extract_features
 from nodes.register.mapper import register_anchor
 from nodes.register.modelalign import AlignParams, Polished, PolishPolicy, ViewPolish, polish_registration
 from nodes.register.modelsearch import OutlineCheck, model_anchor
-from nodes.register.phonesearch import nearest_fixed_frames, phone_anchor_in, retexture
+from nodes.register.phonesearch import TextureFrame, nearest_fixed_frames, phone_anchor_in, retexture
 from nodes.register.pose import epipolar_agreement
 from nodes.register.recon import Clicks, Reconstruction, add_image, focal_prior
 from nodes.register.sfm import reconstruct
@@ -337,6 +337,14 @@ def _gray(path: Path) -> np.ndarray:
     return img
 
 
+def _fixed_frames(recon: Reconstruction, paths: dict[str, Path], capture_time_ns: int) -> list[TextureFrame]:
+    """Each fixed camera's registered frame nearest in time, read, as a texture source."""
+    return [
+        (_gray(paths[o.name]), o.camera, o.pose, o.capture_time_ns)
+        for o in (recon.images[j] for j in nearest_fixed_frames(recon, capture_time_ns))
+    ]
+
+
 def retexture_phones(
     recon: Reconstruction, paths: dict[str, Path], lookup: MeshDepthLookup, cfg: MapperConfig
 ) -> set[str]:
@@ -347,10 +355,7 @@ def retexture_phones(
     for i, im in enumerate(recon.images):
         if not (im.registered and im.method == "model" and im.camera_id is None):
             continue
-        frames = [
-            (_gray(paths[o.name]), o.camera, o.pose, o.capture_time_ns)
-            for o in (recon.images[j] for j in nearest_fixed_frames(recon, im.capture_time_ns))
-        ]
+        frames = _fixed_frames(recon, paths, im.capture_time_ns)
         clicks = retexture(
             lookup, _gray(paths[im.name]), im.camera, im.pose, im.capture_time_ns, frames, cfg.model_search_clicks
         )
@@ -497,10 +502,7 @@ def run_batch(
         im = recon.images[i]
         assert lookup is not None  # only passed with a lookup
         intr = cam.centered_intrinsics(im.width_px, im.height_px, focal_prior(im, cfg))
-        frames = [
-            (_gray(paths[o.name]), o.camera, o.pose, o.capture_time_ns)
-            for o in (recon.images[j] for j in nearest_fixed_frames(recon, im.capture_time_ns))
-        ]
+        frames = _fixed_frames(recon, paths, im.capture_time_ns)
         return phone_anchor_in(recon, i, lookup, _gray(paths[im.name]), intr, cfg, frames)
 
     outline = None

@@ -530,6 +530,12 @@ TextureFrame = tuple[NDArray[np.uint8], Intrinsics, F64, int]
 capture time (ns)."""
 
 
+def texture_sources(lookup: MeshDepthLookup, frames: list[TextureFrame]) -> list[TextureSource]:
+    """Registered fixed frames as texture sources, each with the model standing at its capture time."""
+    ground = lookup.ground_height_m
+    return [texture_source(lookup.view, px, i, wfc, lookup.elements(t), ground) for px, i, wfc, t in frames]
+
+
 def retexture(
     lookup: MeshDepthLookup,
     gray: NDArray[np.uint8],
@@ -550,7 +556,7 @@ def retexture(
         return None
     p, tp = params or PhoneSearchParams(), texture or TextureParams()
     view, ground = lookup.view, lookup.ground_height_m
-    sources = [texture_source(view, px, i, wfc, lookup.elements(t), ground) for px, i, wfc, t in frames]
+    sources = texture_sources(lookup, frames)
     elements = lookup.elements(capture_time_ns)
     fine = max(tp.levels_px)
     again = refine_by_texture(
@@ -614,11 +620,7 @@ def phone_anchor_in(
     frame shares that many matches), its outline contrast reaches ``cfg.min_outline_contrast`` (0 when off)."""
     im = recon.images[idx]
     if cfg.phone_search_texture and frames is not None:
-        ground = lookup.ground_height_m
-        sources = [
-            texture_source(lookup.view, pixels, intr_f, wfc_f, lookup.elements(t_f), ground)
-            for pixels, intr_f, wfc_f, t_f in frames
-        ]
+        sources = texture_sources(lookup, frames)
         return phone_anchor_by_texture(lookup, gray, intr, im.gps, im.capture_time_ns, sources, cfg.model_search_clicks)
     partners = fixed_partners(recon, idx, cfg.phone_search_min_agreeing)
     if not partners:
