@@ -119,6 +119,10 @@ class EvidenceParams:
     """Pixels a material / absence model needs before it is used."""
     appearance_ring_px: int = 12
     """Background pixels this close to an element's region model what shows where it is absent."""
+    appearance_same_behind: bool = True
+    """A candidate's pixels in front of a believed-built element of its own material say nothing of it: absent, they
+    would show that element's look (the same colours), so they count as neutral in its appearance cue (a concrete
+    column before a concrete slab was read standing before it went up; BENCHMARKS progress notes, 2026-12-07)."""
     appearance_novelty_weight: float = 0.5
     """Without a known look of its material (the first frames of a site, before any element of that material is
     seen appearing) an element's colours are tested against a flat model (anything unlike what would show where
@@ -557,18 +561,22 @@ def _appearance_cue(
         b = bins[ys, xs]
         others = normalised_hist(others_all - local[m] + background, 20.0)
         absent = 0.5 * bg[b] + 0.5 * others[b]
+        same = np.zeros(len(ys), bool)
         if front[ys[0], xs[0]] == i:  # a candidate: what is believed built behind it shows when it is absent
             behind = mat_of_id[built[ys, xs]]
             for k in np.unique(behind[(behind >= 0) & (behind != m)]):
                 use = behind == k
                 if local[k].sum() >= p.appearance_min_reference_px:
                     absent[use] = 0.5 * normalised_hist(local[k], 20.0)[b[use]] + 0.5 * others[b[use]]
+            if p.appearance_same_behind:
+                same = behind == m
         if novelty:  # no look of its material yet: anything unlike what would show where it is absent
             ratio = np.clip(np.log(1.0 / NUM_BINS) - np.log(absent), -4.0, 4.0)
             alpha = p.appearance_novelty_weight
         else:
             ratio = np.clip(np.log(normalised_hist(counts, 20.0)[b]) - np.log(absent), -4.0, 4.0)
             alpha = counts.sum() / (counts.sum() + p.appearance_min_reference_px)
+        ratio = np.where(same, 0.0, ratio)
         llr = float(np.clip(alpha * p.appearance_scale * ratio.mean(), -p.appearance_max_llr, p.appearance_max_llr))
         if llr < 0.0:
             llr *= p.appearance_negative_scale
