@@ -72,6 +72,9 @@ class EvidenceParams:
     """Discount, likewise, pixels this close to another element that may have changed since the plate (the
     registration's error and the change score's blur reach it; -1: none). These two, ``thin_interior_px`` and
     ``EngineParams.unchanged_floor``: BENCHMARKS progress notes, 2026-12-05."""
+    hidden_behind_appeared: float = 0.3
+    """P(appeared since the plate) taken for a candidate behind an element where it has too few pixels of its own to
+    tell (fewer than ``min_pixels``)."""
     change_ring_px: int = 8
     """A change inside an element speaks for its appearance only as much as its surroundings stayed the same: a
     positive change LLR is scaled by ``(1 - f) ** change_ring_power``, f the changed fraction of the ring this wide
@@ -390,7 +393,9 @@ def _change_cue(
     n_excl = np.bincount(ids[excl], minlength=n)[:n]
     f_excl = np.bincount(ids[excl], weights=chg[excl], minlength=n)[:n] / np.maximum(n_excl, 1)
     appeared = np.where(
-        n_excl >= p.min_pixels, np.clip((f_excl - p.change_noise) / (p.change_hit - p.change_noise), 0.02, 0.98), 0.3
+        n_excl >= p.min_pixels,
+        np.clip((f_excl - p.change_noise) / (p.change_hit - p.change_noise), 0.02, 0.98),
+        p.hidden_behind_appeared,
     )
     stood = np.full(n, 0.5) if present is None else np.clip(np.asarray(present, np.float64), 0.0, 1.0)
     # a pixel speaks for its owner as much as nothing else could have changed it: the candidate behind it may have
