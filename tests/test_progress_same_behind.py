@@ -10,17 +10,7 @@ import pytest
 from constructaide.camera import look_at
 from nodes.progress.evidence import EvidenceParams, photo_evidence, to_lab
 from nodes.progress.modelview import LayerRenderer
-from schemas.messages import Intrinsics
-
-H, W = 120, 160
-INTR = Intrinsics(width_px=W, height_px=H, f_px=140.0, cx_px=79.5, cy_px=59.5)
-
-
-def box(lo: tuple[float, float, float], hi: tuple[float, float, float]) -> tuple[np.ndarray, np.ndarray]:
-    import trimesh
-
-    m = trimesh.creation.box(bounds=np.array([lo, hi]))
-    return np.asarray(m.vertices), np.asarray(m.faces, np.int32)
+from tests.test_progress_fusion_evidence import INTR, H, W, box
 
 
 @pytest.fixture(scope="module")
