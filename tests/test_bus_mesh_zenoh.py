@@ -33,6 +33,7 @@ from constructaide.runtime import BusConfig, open_bus
 from schemas import keys
 
 port, starts, isolated_runs = int(sys.argv[1]), Path(sys.argv[2]), int(sys.argv[3])
+signal.signal(signal.SIGINT, signal.default_int_handler)  # started from a background shell, SIGINT comes ignored
 n = len(starts.read_text().splitlines()) if starts.exists() else 0
 with starts.open("a") as f:
     f.write("start\n")

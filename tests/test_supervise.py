@@ -166,6 +166,33 @@ def test_sigkilled_node_is_restarted_and_reported(hub_port: int, tmp_path: Path)
             assert "killed by SIGKILL" in err.reason and "restart 1" in err.reason
 
 
+@pytest.mark.zenoh
+def test_node_started_with_sigint_ignored_still_stops_cleanly_on_sigint(hub_port: int, tmp_path: Path) -> None:
+    """A script started in the background (``cmd &``) hands its children SIGINT ignored; the launcher's stop
+    (SIGINT, drain, then SIGKILL after its timeout) must still land as a clean exit, not a kill."""
+    import os
+    import subprocess
+
+    from constructaide.app.launch import NodeProcess
+
+    site = "sigign"
+    live = keys.pattern(keys.LIVELINESS, site=site, node="echo")
+    argv = [sys.executable, str(ECHO), "--site", site, "--hub-port", str(hub_port), "--state-dir", str(tmp_path)]
+    with open_bus(BusConfig(hub_port=hub_port)) as bus:
+        p = NodeProcess("echo", argv)
+        p.env = dict(os.environ)
+        p.proc = subprocess.Popen(  # as a background shell starts it: SIGINT ignored from exec on
+            argv, env=p.env, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN)
+        )
+        try:
+            bus.wait_for_tokens([live], timeout=30)
+            assert p.stop(timeout=30) == 0  # exited by its own handler: SIGKILL would give -9
+        finally:
+            if p.proc.poll() is None:
+                p.proc.kill()
+                p.proc.wait()
+
+
 def _node_process(argv: list[str]):
     import os
 
