@@ -155,16 +155,20 @@ def evaluate(
     est: dict[str, tuple[Intrinsics, np.ndarray]],
     X_check: np.ndarray,
     focal_priors: dict[str, float | None] | None = None,
+    worst: list[tuple[float, str]] | None = None,
 ) -> dict[str, float]:
     """Mean errors over registered images; ``est`` maps image name -> (intrinsics, world_from_camera).
     'reproj_max_pct_width': the worst image's mean checkpoint reprojection; 'implausible': registered images with
-    |k1| or |k2| above 1 or a focal more than 20 % off its prior (``focal_priors``, EXIF; None: unknown)."""
+    |k1| or |k2| above 1 or a focal more than 20 % off its prior (``focal_priors``, EXIF; None: unknown).
+    ``worst``, when given, gets the five worst images' (mean checkpoint reprojection % of the width, name)."""
     centre = X_check.mean(0)
     ang, dist, dist_pct, reproj, reproj_med = [], [], [], [], []
+    names: list[str] = []
     implausible = 0
     for c in cams:
         if c.name not in est:
             continue
+        names.append(c.name)
         intr, T = est[c.name]
         T_gt = c.world_from_camera
         ang.append(cam.viewing_angle_deg(T, T_gt))
@@ -180,6 +184,7 @@ def evaluate(
         f0 = (focal_priors or {}).get(c.name)
         bad_f = f0 is not None and abs(intr.f_px / f0 - 1) > 0.2
         implausible += int(abs(intr.k1) > 1 or abs(intr.k2) > 1 or bad_f)
+    (worst if worst is not None else []).extend(sorted(zip(reproj, names, strict=True), reverse=True)[:5])
     aligned = align_to_gt(est, cams)
     sim_dist = [
         float(np.linalg.norm(aligned[c.name][1][:3, 3] - c.world_from_camera[:3, 3])) for c in cams if c.name in aligned
@@ -451,14 +456,16 @@ def bench_set(
                     # a person's clicks; a fixed camera the model's outlines found is no person's work
                     anchored = [im for im in report["images"] if im["status"] == "anchor"]
                     n_anchor = sum(1 for im in anchored if im.get("method") != "model")
+                    worst: list[tuple[float, str]] = []
                     m = {
-                        **evaluate(cams, est, X_check, priors),
+                        **evaluate(cams, est, X_check, priors, worst),
                         **predicted_centre(report, est, cams),
                         "anchors_used": n_anchor,
                         "model_anchors": len(anchored) - n_anchor,
                     }
                     per_draw[(p_label, label)].append(m)
                     print(f"  draw {draw} {p_label} / {label}: {json.dumps(m)}", flush=True)
+                    print("  worst (% of the width):", ", ".join(f"{n} {e:.2f}" for e, n in worst), flush=True)
                     if report["unregistered"]:
                         print("  unregistered:", [u["image"] for u in report["unregistered"]], flush=True)
             if r < pycolmap_runs:

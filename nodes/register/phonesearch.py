@@ -121,6 +121,12 @@ class PhoneSearchParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True)
     ambiguity_steps_m: tuple[float, ...] = (1.5, 3.0, 4.5, 6.0)
     """... nor started again this far aside (horizontally, across the view, both ways): a close-up of one bay of a
     facade of like bays lines up a bay aside too, and the GPS cannot tell which."""
+    ambiguity_model_axes: bool = True
+    """... nor along either of the model's horizontal axes (when more than 20 deg from across the view): a photo of a
+    facade of like bays taken obliquely, its camera a bay along the facade, lines up as well."""
+    ambiguity_take_better: bool = True
+    """Where one of those moves lines up better by ``texture_margin``, that camera is taken instead and tested
+    again (once)."""
     bay_scan_steps_m: tuple[float, float] = (0.5, 8.0)
     """Before those tests the found camera is also tried moved along each of the model's horizontal axes by
     multiples of the first (m) up to the second, unrefined, scored by the large structures
@@ -409,7 +415,9 @@ def phone_anchor_by_texture(
     (:func:`~nodes.register.texture.refine_by_texture`, ``sources``) and scored by its correlation with it
     (:func:`~nodes.register.texture.texture_score`), the best also tried a bay aside (:func:`bay_scan`); it is
     taken when it stands where a person can (height, near the GPS, outside the building), correlates by at least
-    ``min_texture_ncc`` and beats every camera that draws the model elsewhere by ``texture_margin``. Returns
+    ``min_texture_ncc`` and beats every camera that draws the model elsewhere by ``texture_margin``, also those
+    refined from it moved (the ambiguity test: the model shifted in the photo, the camera a bay aside or along the
+    model's axes; one that lines up better by the margin is taken instead and tested again). Returns
     model-point clicks (pixels (N, 2) full resolution, points (N, 3) m) for the anchor solve, or None, and why."""
     xy, why = gps_in_model(lookup, gps)
     if xy is None:
@@ -470,26 +478,50 @@ def phone_anchor_by_texture(
     )
     if best < p.min_texture_ncc or best - rival < p.texture_margin:
         return None, f"the fixed cameras' texture does not single out a camera: {why}"
-    depth = float(np.median((pts - wfc[:3, 3]) @ wfc[:3, 2]))
-    across = np.array([wfc[0, 0], wfc[1, 0], 0.0]) / max(math.hypot(wfc[0, 0], wfc[1, 0]), 1e-9)
-    moves = [
-        (sign * q * intr.width_px * depth / intr.f_px * wfc[:3, axis], f"the model moved {q:.0%} of the width")
-        for q in p.ambiguity_shifts_rel
-        for axis in (0, 1)
-        for sign in (1.0, -1.0)
-    ] + [(sign * m * across, f"the camera {m:g} m aside") for m in p.ambiguity_steps_m for sign in (1.0, -1.0)]
-    for move, how in moves:
-        start = wfc.copy()
-        start[:3, 3] += move
-        again = refined(start)
-        if again is None or _image_shift_rel(intr, again[1], pts, px) <= p.distinct_image_rel:
-            continue
-        if again[0] > best - p.texture_margin:
-            return None, (
-                f"the fixed cameras' texture lines up as well elsewhere: {again[0]:.2f} against {best:.2f} with {how} "
-                "(repeated texture)"
-            )
-    return (px, pts), why
+    yaw = math.radians(model_axes_yaw(view))
+    model_axes = (np.array([math.cos(yaw), math.sin(yaw), 0.0]), np.array([-math.sin(yaw), math.cos(yaw), 0.0]))
+    for turn in range(2):
+        depth = float(np.median((pts - wfc[:3, 3]) @ wfc[:3, 2]))
+        across = np.array([wfc[0, 0], wfc[1, 0], 0.0]) / max(math.hypot(wfc[0, 0], wfc[1, 0]), 1e-9)
+        aside = [(across, "aside")]
+        if p.ambiguity_model_axes:  # a bay along the facade the photo looks at obliquely: along the model's axes too
+            aside += [
+                (a, "along a model axis") for a in model_axes if abs(float(a @ across)) < math.cos(math.radians(20))
+            ]
+        moves = [
+            (sign * q * intr.width_px * depth / intr.f_px * wfc[:3, axis], f"the model moved {q:.0%} of the width")
+            for q in p.ambiguity_shifts_rel
+            for axis in (0, 1)
+            for sign in (1.0, -1.0)
+        ] + [
+            (sign * m * d, f"the camera {m:g} m {how}")
+            for d, how in aside
+            for m in p.ambiguity_steps_m
+            for sign in (1, -1)
+        ]
+        better = None
+        for move, how in moves:
+            start = wfc.copy()
+            start[:3, 3] += move
+            again = refined(start)
+            if again is None or _image_shift_rel(intr, again[1], pts, px) <= p.distinct_image_rel:
+                continue
+            if p.ambiguity_take_better and turn == 0 and again[0] > best + p.texture_margin:
+                better = again, how
+                break
+            if again[0] > best - p.texture_margin:
+                return None, (
+                    f"the fixed cameras' texture lines up as well elsewhere: {again[0]:.2f} against {best:.2f} with "
+                    f"{how} (repeated texture)"
+                )
+        if better is None:
+            return (px, pts), why
+        (best, wfc), how = better  # lines up clearly better a bay away: taken, and tested again from there
+        px, pts = virtual_clicks(view, intr, wfc, elements, ground, count)
+        if len(px) < 6:
+            return None, "the camera the texture finds sees too little of the model to click"
+        why = f"texture correlation {best:.2f} with {how} from the first found, which scored {why}"
+    return None, "the fixed cameras' texture lines up better elsewhere twice (repeated texture)"
 
 
 def bay_scan(
