@@ -184,7 +184,8 @@ def evaluate(
         f0 = (focal_priors or {}).get(c.name)
         bad_f = f0 is not None and abs(intr.f_px / f0 - 1) > 0.2
         implausible += int(abs(intr.k1) > 1 or abs(intr.k2) > 1 or bad_f)
-    (worst if worst is not None else []).extend(sorted(zip(reproj, names, strict=True), reverse=True)[:5])
+    if worst is not None:
+        worst.extend(sorted(zip(reproj, names, strict=True), reverse=True)[:5])
     aligned = align_to_gt(est, cams)
     sim_dist = [
         float(np.linalg.norm(aligned[c.name][1][:3, 3] - c.world_from_camera[:3, 3])) for c in cams if c.name in aligned

@@ -145,6 +145,12 @@ def model_axes_yaw(view: ModelView) -> float:
     return model_axes_yaw_deg(scene.normals.reshape(-1, 3, 3)[:, 0].astype(np.float64), areas)
 
 
+def model_axes(view: ModelView) -> tuple[F64, F64]:
+    """The model's two horizontal axes (unit (3,) world vectors) at :func:`model_axes_yaw`."""
+    yaw = math.radians(model_axes_yaw(view))
+    return np.array([math.cos(yaw), math.sin(yaw), 0.0]), np.array([-math.sin(yaw), math.cos(yaw), 0.0])
+
+
 def outside(footprint: tuple[F64, F64], centre_m: F64) -> bool:
     """Whether a camera centre (3,) lies outside the standing elements' horizontal bounds."""
     lo, hi = footprint
@@ -478,16 +484,13 @@ def phone_anchor_by_texture(
     )
     if best < p.min_texture_ncc or best - rival < p.texture_margin:
         return None, f"the fixed cameras' texture does not single out a camera: {why}"
-    yaw = math.radians(model_axes_yaw(view))
-    model_axes = (np.array([math.cos(yaw), math.sin(yaw), 0.0]), np.array([-math.sin(yaw), math.cos(yaw), 0.0]))
+    axes = model_axes(view)
     for turn in range(2):
         depth = float(np.median((pts - wfc[:3, 3]) @ wfc[:3, 2]))
         across = np.array([wfc[0, 0], wfc[1, 0], 0.0]) / max(math.hypot(wfc[0, 0], wfc[1, 0]), 1e-9)
         aside = [(across, "aside")]
         if p.ambiguity_model_axes:  # a bay along the facade the photo looks at obliquely: along the model's axes too
-            aside += [
-                (a, "along a model axis") for a in model_axes if abs(float(a @ across)) < math.cos(math.radians(20))
-            ]
+            aside += [(a, "along a model axis") for a in axes if abs(float(a @ across)) < math.cos(math.radians(20))]
         moves = [
             (sign * q * intr.width_px * depth / intr.f_px * wfc[:3, axis], f"the model moved {q:.0%} of the width")
             for q in p.ambiguity_shifts_rel
@@ -521,7 +524,7 @@ def phone_anchor_by_texture(
         if len(px) < 6:
             return None, "the camera the texture finds sees too little of the model to click"
         why = f"texture correlation {best:.2f} with {how} from the first found, which scored {why}"
-    return None, "the fixed cameras' texture lines up better elsewhere twice (repeated texture)"
+    raise AssertionError("not reached: the second turn takes no better camera")
 
 
 def bay_scan(
@@ -541,9 +544,8 @@ def bay_scan(
     when by ``bay_scan_gain`` better than ``wfc``'s own, else None; and ``wfc``'s own structure score."""
     own = texture_score(view, photo_work, intr, wfc, elements, ground, sources, tp, structures=True)[0]
     step, reach = p.bay_scan_steps_m
-    yaw = math.radians(model_axes_yaw(view))
     best, best_score = None, own + p.bay_scan_gain
-    for axis in (np.array([math.cos(yaw), math.sin(yaw), 0.0]), np.array([-math.sin(yaw), math.cos(yaw), 0.0])):
+    for axis in model_axes(view):
         for k in range(-int(reach / step), int(reach / step) + 1):
             if k == 0:
                 continue
